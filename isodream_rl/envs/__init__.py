@@ -1,0 +1,8 @@
+"""Environments: sprites (synthetic, with ground-truth masks), CARLA-like highway, DMC with moving backgrounds."""
+
+import os
+
+# Headless rendering defaults; must be set before mujoco / pygame are imported.
+# SDL's "dummy" driver silently renders black frames with highway-env: use "offscreen".
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("SDL_VIDEODRIVER", "offscreen")
