@@ -1,0 +1,155 @@
+import numpy as np
+import pytest
+
+from isodream_rl.envs.sprites import _DISTRACTOR_COLOURS, SpritesEnv
+
+
+def _centroid(mask: np.ndarray) -> np.ndarray:
+    return np.argwhere(mask).mean(axis=0)
+
+
+def _rollout(env: SpritesEnv, actions: np.ndarray, seed: int):
+    obs, info = env.reset(seed=seed)
+    frames, infos, rewards = [obs], [info], []
+    for a in actions:
+        obs, reward, _, _, info = env.step(a)
+        frames.append(obs)
+        infos.append(info)
+        rewards.append(reward)
+    return np.stack(frames), infos, np.array(rewards)
+
+
+def test_observation_and_masks_have_declared_shapes_and_dtypes():
+    env = SpritesEnv(task="reach")
+    obs, info = env.reset(seed=0)
+    assert env.observation_space.contains(obs)
+    assert obs.shape == (64, 64, 3) and obs.dtype == np.uint8
+    obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+    assert env.observation_space.contains(obs)
+    assert isinstance(reward, float) and terminated is False and truncated is False
+    for key in ("mask_agent", "mask_distractors", "mask_target"):
+        assert info[key].shape == (64, 64) and info[key].dtype == bool
+
+
+def test_same_seed_gives_same_episode_and_other_seed_differs():
+    actions = np.random.default_rng(0).uniform(-1, 1, (30, 2))
+    f1, i1, r1 = _rollout(SpritesEnv(task="reach"), actions, seed=3)
+    f2, i2, r2 = _rollout(SpritesEnv(task="reach"), actions, seed=3)
+    f3, _, _ = _rollout(SpritesEnv(task="reach"), actions, seed=4)
+    np.testing.assert_array_equal(f1, f2)
+    np.testing.assert_array_equal(r1, r2)
+    assert all((a["mask_distractors"] == b["mask_distractors"]).all() for a, b in zip(i1, i2))
+    assert not np.array_equal(f1, f3)
+
+
+def test_masks_are_disjoint_and_match_the_drawn_sprites():
+    env = SpritesEnv(task="reach", num_distractors=4)
+    actions = np.random.default_rng(1).uniform(-1, 1, (40, 2))
+    frames, infos, _ = _rollout(env, actions, seed=5)
+    palette = {tuple(c) for c in _DISTRACTOR_COLOURS}
+    for frame, info in zip(frames, infos):
+        agent, distractors, target = info["mask_agent"], info["mask_distractors"], info["mask_target"]
+        assert not (agent & distractors).any() and not (target & (agent | distractors)).any()
+        assert agent.sum() == (2 * env.radius + 1) ** 2  # the agent is on top: always fully visible
+        assert {tuple(p) for p in frame[agent]} <= {(255, 255, 255), (0, 0, 0)}
+        assert {tuple(p) for p in frame[distractors]} <= palette
+        assert {tuple(p) for p in frame[target]} <= {(30, 200, 60)}
+        # Outside every mask the frame is exactly the episode's static background.
+        unmasked = ~(agent | distractors | target)
+        np.testing.assert_array_equal(frame[unmasked], env._background[unmasked])
+
+
+def test_agent_follows_the_action():
+    env = SpritesEnv(num_distractors=0, agent_speed=0.05)
+    _, info = env.reset(seed=0)
+    # Start from the centre so no border clamps the move.
+    env._agent[:] = 32.0
+    *_, info = env.step(np.zeros(2))
+    start = _centroid(info["mask_agent"])
+    *_, info = env.step(np.array([1.0, 0.0]))  # +x: right
+    np.testing.assert_allclose(_centroid(info["mask_agent"]) - start, [0.0, 3.0], atol=1.0)
+    *_, info = env.step(np.array([0.0, -1.0]))  # -y: up
+    np.testing.assert_allclose(_centroid(info["mask_agent"]) - start, [-3.0, 3.0], atol=1.0)
+    *_, info2 = env.step(np.zeros(2))
+    np.testing.assert_array_equal(info2["mask_agent"], info["mask_agent"])
+
+
+def test_distractors_move_independently_of_the_action():
+    env_a, env_b = SpritesEnv(num_distractors=5), SpritesEnv(num_distractors=5)
+    _, ia = env_a.reset(seed=7)
+    _, ib = env_b.reset(seed=7)
+    moved = False
+    for _ in range(20):
+        prev = ia["mask_distractors"]
+        _, _, _, _, ia = env_a.step(np.array([1.0, 1.0]))
+        _, _, _, _, ib = env_b.step(np.array([-1.0, -0.5]))
+        hidden = ia["mask_agent"] | ib["mask_agent"]
+        np.testing.assert_array_equal(ia["mask_distractors"] & ~hidden, ib["mask_distractors"] & ~hidden)
+        moved |= not np.array_equal(prev, ia["mask_distractors"])
+    assert moved
+
+
+def test_distractors_bounce_and_stay_inside_the_frame():
+    env = SpritesEnv(num_distractors=1, distractor_speed=0.1, agent_speed=0.0)
+    _, info = env.reset(seed=2)
+    centres = []
+    for _ in range(100):
+        _, _, _, _, info = env.step(np.zeros(2))
+        visible = info["mask_distractors"] | info["mask_agent"]
+        assert visible.any()
+        centres.append(env._distractors[0].copy())
+    steps = np.diff(np.array(centres), axis=0)
+    # Each coordinate's velocity changes sign at a wall, keeping its magnitude.
+    assert (np.sign(steps[:, 0]) > 0).any() and (np.sign(steps[:, 0]) < 0).any()
+    assert (np.sign(steps[:, 1]) > 0).any() and (np.sign(steps[:, 1]) < 0).any()
+
+
+def test_task_none_gives_zero_reward_and_truncates_at_max_steps():
+    env = SpritesEnv(max_steps=5)
+    env.reset(seed=0)
+    for t in range(5):
+        _, reward, terminated, truncated, _ = env.step(env.action_space.sample())
+        assert reward == 0.0 and not terminated
+        assert truncated == (t == 4)
+
+
+def test_reach_rewards_reaching_the_target_and_penalises_contact():
+    env = SpritesEnv(task="reach", num_distractors=0, max_steps=300)
+    _, info = env.reset(seed=0)
+    total = 0.0
+    for _ in range(300):
+        delta = _centroid(info["mask_target"]) - _centroid(info["mask_agent"])  # (dy, dx)
+        action = np.clip(np.array([delta[1], delta[0]]) / 3.0, -1, 1)
+        _, reward, _, _, info = env.step(action)
+        assert reward in (0.0, 1.0) and (reward == 1.0) == info["reached"]
+        total += reward
+    assert total >= 5  # a greedy reacher collects several respawned targets
+
+    env = SpritesEnv(task="reach", num_distractors=6, contact_penalty=0.5)
+    env.reset(seed=1)
+    touched = 0
+    for _ in range(200):
+        _, reward, _, _, info = env.step(env.action_space.sample())
+        if info["touching"] and not info["reached"]:
+            assert reward == -0.5
+            touched += 1
+        if not info["touching"] and not info["reached"]:
+            assert reward == 0.0
+    assert touched > 0
+
+
+def test_bad_arguments_raise_clear_errors():
+    with pytest.raises(ValueError, match="none.*reach"):
+        SpritesEnv(task="dance")
+    with pytest.raises(ValueError, match="image_size"):
+        SpritesEnv(image_size=8)
+    env = SpritesEnv()
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"shape \(2,\).*\(3,\)"):
+        env.step(np.zeros(3))
+
+
+def test_other_image_sizes_render_consistently():
+    env = SpritesEnv(image_size=32, task="reach")
+    obs, info = env.reset(seed=0)
+    assert obs.shape == (32, 32, 3) and info["mask_agent"].shape == (32, 32)
