@@ -6,3 +6,7 @@ import os
 # SDL's "dummy" driver silently renders black frames with highway-env: use "offscreen".
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("SDL_VIDEODRIVER", "offscreen")
+
+from isodream_rl.envs.sprites import SPRITES_TASKS, SpritesEnv  # noqa: E402
+
+__all__ = ["SPRITES_TASKS", "SpritesEnv"]
