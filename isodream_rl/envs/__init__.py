@@ -7,6 +7,23 @@ import os
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("SDL_VIDEODRIVER", "offscreen")
 
+from isodream_rl.envs.builder import (  # noqa: E402
+    SimulatorFaultGuard,
+    env_names,
+    make_env,
+    make_gym_env,
+    make_parallel_env,
+    wrap_gym_env,
+)
 from isodream_rl.envs.sprites import SPRITES_TASKS, SpritesEnv  # noqa: E402
 
-__all__ = ["SPRITES_TASKS", "SpritesEnv"]
+__all__ = [
+    "SPRITES_TASKS",
+    "SimulatorFaultGuard",
+    "SpritesEnv",
+    "env_names",
+    "make_env",
+    "make_gym_env",
+    "make_parallel_env",
+    "wrap_gym_env",
+]

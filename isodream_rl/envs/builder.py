@@ -1,0 +1,285 @@
+"""One builder for every isodream-rl environment, returning TorchRL envs with the keys the world model reads.
+
+``make_env(name, **cfg)`` builds the gymnasium env, guards it against simulator faults, wraps it with
+TorchRL's ``GymWrapper`` and appends the transforms every recipe needs:
+
+- ``"pixels"``: uint8 ``[3, H, W]`` (CHW; ``PermuteTransform`` of the gymnasium HWC frame, left uint8 so the
+  replay buffer stores bytes and the world model normalises on the fly);
+- ``"action"``: float32 in [-1, 1];
+- ``"is_init"`` (``InitTracker``) and ``"step_count"`` (``StepCounter``);
+- ``("next", "reward")``: float32 ``[1]``; ``done``/``terminated``/``truncated``;
+- ``"sim_error"``: bool ``[]``, ``True`` on the step where the simulator raised (see ``SimulatorFaultGuard``);
+- with ``make_env("sprites", return_masks=True)``: ``"mask_agent"``, ``"mask_distractors"`` and
+  ``"mask_target"``, bool ``[H, W]``.
+
+TorchRL's ``GymWrapper`` is used as is (it already maps an HxWx3 uint8 Box to ``"pixels"``, reads info
+dicts and seeds through ``reset(seed=)``); only the fault guard and the info specs are ours.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from torchrl.data import Binary, Categorical, Composite
+from torchrl.envs import (
+    Compose,
+    EnvCreator,
+    GymWrapper,
+    InitTracker,
+    ParallelEnv,
+    PermuteTransform,
+    StepCounter,
+    TransformedEnv,
+)
+from torchrl.envs.gym_like import default_info_dict_reader
+
+logger = logging.getLogger(__name__)
+
+SPRITES_MASK_KEYS = ("mask_agent", "mask_distractors", "mask_target")
+
+
+class SimulatorFaultGuard(gym.Wrapper):
+    """Turns an exception raised by the simulator during a step into the end of that episode.
+
+    Long training runs should not die because a physics engine or a renderer fails once in a million steps.
+    When the wrapped env's ``step`` raises, the guard logs a warning naming the env, the step and the
+    exception, and returns the last good observation with reward 0, ``terminated=False``,
+    ``truncated=True`` and ``info["sim_error"] = True`` (``False`` on every other step and at reset). The
+    next ``reset`` starts a fresh episode; an exception in ``reset`` itself is not caught, since there is no
+    observation to fall back to.
+
+    The guard also checks the action before the simulator sees it, so a wrong action shape is reported as a
+    ``ValueError`` naming the expected shape instead of being mistaken for a simulator fault, and rescales
+    actions from [-1, 1] to the env's own bounds when they differ.
+
+    Args:
+        env (gymnasium.Env): an env with a ``Box`` action space.
+        name (str, optional): name used in the log line. Defaults to the env's class name.
+    """
+
+    def __init__(self, env: gym.Env, *, name: str | None = None) -> None:
+        super().__init__(env)
+        space = env.action_space
+        if not isinstance(space, gym.spaces.Box):
+            raise ValueError(f"SimulatorFaultGuard needs a Box action space, got {space}.")
+        self.name = name or type(env.unwrapped).__name__
+        self._low = space.low.astype(np.float64)
+        self._high = space.high.astype(np.float64)
+        self._rescale = not (np.all(self._low == -1.0) and np.all(self._high == 1.0))
+        self.action_space = gym.spaces.Box(-1.0, 1.0, space.shape, dtype=np.float32)
+        self._last_obs: Any = None
+        self._last_info: dict[str, Any] = {}
+        self._episode_steps = 0
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        obs, info = self.env.reset(seed=seed, options=options)
+        info = dict(info, sim_error=np.False_)
+        self._last_obs, self._last_info, self._episode_steps = obs, info, 0
+        return obs, info
+
+    def step(self, action):
+        action = np.asarray(action, dtype=np.float32)
+        if action.shape != self.action_space.shape:
+            raise ValueError(
+                f"{self.name} expects an action of shape {self.action_space.shape}, got shape {action.shape}."
+            )
+        if self._rescale:
+            action = (self._low + (action + 1.0) * 0.5 * (self._high - self._low)).astype(np.float32)
+        self._episode_steps += 1
+        try:
+            obs, reward, terminated, truncated, info = self.env.step(action)
+        except Exception as err:  # noqa: BLE001 - any simulator failure ends the episode, see the docstring
+            logger.warning(
+                "%s: the simulator raised %s: %s at step %d of the episode; ending the episode "
+                "(truncated=True, info['sim_error']=True).",
+                self.name,
+                type(err).__name__,
+                err,
+                self._episode_steps,
+            )
+            return self._last_obs, 0.0, False, True, dict(self._last_info, sim_error=np.True_)
+        info = dict(info, sim_error=np.False_)
+        self._last_obs, self._last_info = obs, info
+        return obs, reward, terminated, truncated, info
+
+
+def wrap_gym_env(
+    env: gym.Env,
+    *,
+    seed: int | None = None,
+    device: torch.device | str = "cpu",
+    mask_keys: tuple[str, ...] = (),
+    name: str | None = None,
+) -> TransformedEnv:
+    """Wraps a gymnasium env with an HxWx3 uint8 observation into the TorchRL env ``make_env`` returns.
+
+    Args:
+        env (gymnasium.Env): observation ``Box(0, 255, (H, W, 3), uint8)``, ``Box`` action.
+        seed (int, optional): seeds the first reset; later resets continue the env's generator, so the
+            sequence of episodes is reproducible. Defaults to ``None`` (unseeded).
+        device (torch.device or str, optional): device of the output tensors. Defaults to ``"cpu"``.
+        mask_keys (tuple of str, optional): bool ``[H, W]`` info entries copied into the step output.
+            Defaults to none.
+        name (str, optional): name used in fault log lines.
+
+    Returns:
+        TransformedEnv: see the module docstring for its keys.
+    """
+    space = env.observation_space
+    if not (isinstance(space, gym.spaces.Box) and space.dtype == np.uint8 and len(space.shape) == 3):
+        raise ValueError(f"wrap_gym_env needs an HxWx3 uint8 Box observation, got {space}.")
+    if space.shape[-1] != 3:
+        raise ValueError(f"wrap_gym_env needs HWC RGB frames (last dim 3), got shape {space.shape}.")
+    height, width = space.shape[:2]
+    base = GymWrapper(SimulatorFaultGuard(env, name=name), device=device)
+    info_spec = {"sim_error": Categorical(2, shape=(), dtype=torch.bool, device=device)}
+    for key in mask_keys:
+        info_spec[key] = Binary(shape=(height, width), dtype=torch.bool, device=device)
+    keys = list(info_spec)
+    base.set_info_dict_reader(default_info_dict_reader(keys, spec=Composite(info_spec, shape=())))
+    transformed = TransformedEnv(
+        base,
+        Compose(PermuteTransform((-1, -3, -2), in_keys=["pixels"]), InitTracker(), StepCounter()),
+    )
+    if seed is not None:
+        transformed.set_seed(seed)
+    return transformed
+
+
+@functools.cache
+def dmc_env_names() -> dict[str, tuple[str, str]]:
+    """Maps every ``"dmc_<domain>_<task>"`` name to its ``(domain, task)``, for all dm_control suite tasks."""
+    from isodream_rl.envs.dmc import dmc_tasks
+
+    return {f"dmc_{domain}_{task}": (domain, task) for domain, task in dmc_tasks()}
+
+
+def env_names() -> list[str]:
+    """The names ``make_env`` accepts: ``"sprites"``, ``"highway"`` and ``"dmc_<domain>_<task>"``."""
+    return ["sprites", "highway", *dmc_env_names()]
+
+
+def _check_name(name: str) -> None:
+    if name not in ("sprites", "highway") and name not in dmc_env_names():
+        raise ValueError(
+            f"Unknown env name {name!r}. Valid names: 'sprites', 'highway', or 'dmc_<domain>_<task>', one "
+            f"of: {', '.join(dmc_env_names())}."
+        )
+
+
+def make_gym_env(name: str, **cfg: Any) -> gym.Env:
+    """Builds the raw gymnasium env behind ``make_env(name, **cfg)`` (HWC uint8 frames, no guard).
+
+    Args:
+        name (str): see ``env_names()``.
+        **cfg: constructor arguments of ``SpritesEnv``, ``HighwayIsoEnv`` or ``DMCBackgroundEnv``.
+
+    Raises:
+        ValueError: for an unknown name, listing the valid ones.
+    """
+    _check_name(name)
+    if name == "sprites":
+        from isodream_rl.envs.sprites import SpritesEnv
+
+        return SpritesEnv(**cfg)
+    if name == "highway":
+        from isodream_rl.envs.highway import HighwayIsoEnv
+
+        return HighwayIsoEnv(**cfg)
+    from isodream_rl.envs.dmc import DMCBackgroundEnv
+
+    domain, task = dmc_env_names()[name]
+    return DMCBackgroundEnv(domain=domain, task=task, **cfg)
+
+
+def make_env(
+    name: str,
+    *,
+    seed: int | None = None,
+    device: torch.device | str = "cpu",
+    return_masks: bool = False,
+    **cfg: Any,
+) -> TransformedEnv:
+    """Builds a TorchRL env by name, with uint8 ``"pixels"`` ``[3, H, W]`` and float32 actions in [-1, 1].
+
+    Args:
+        name (str): ``"sprites"``, ``"highway"`` or ``"dmc_<domain>_<task>"`` (e.g. ``"dmc_walker_walk"``).
+        seed (int, optional): seeds the env; the same seed gives the same episodes under the same actions.
+        device (torch.device or str, optional): device of the output tensors. Defaults to ``"cpu"``.
+        return_masks (bool, optional): sprites only: add the ground-truth masks ``"mask_agent"``,
+            ``"mask_distractors"``, ``"mask_target"`` (bool ``[H, W]``) to every step. Defaults to ``False``.
+        **cfg: passed to the env class, e.g. ``task="reach"`` (sprites), ``view="top_down"``,
+            ``vehicles_count=20`` (highway), ``background="video_hard"`` (dmc).
+
+    Returns:
+        TransformedEnv: keys listed in this module's docstring.
+
+    Raises:
+        ValueError: unknown name (the message lists the valid ones), or ``return_masks`` on an env without
+            ground-truth masks.
+
+    Examples:
+        >>> env = make_env("sprites", seed=0, task="reach", return_masks=True)
+        >>> td = env.rollout(3)
+        >>> td["next", "pixels"].shape, td["next", "mask_agent"].shape
+        (torch.Size([3, 3, 64, 64]), torch.Size([3, 64, 64]))
+    """
+    if return_masks and name != "sprites":
+        raise ValueError(
+            f"return_masks=True needs ground-truth masks, which only 'sprites' has, not {name!r}."
+        )
+    env = make_gym_env(name, **cfg)
+    mask_keys = SPRITES_MASK_KEYS if return_masks else ()
+    return wrap_gym_env(env, seed=seed, device=device, mask_keys=mask_keys, name=name)
+
+
+def make_parallel_env(
+    name: str,
+    *,
+    num_workers: int,
+    seed: int | None = None,
+    device: torch.device | str = "cpu",
+    mp_start_method: str | None = None,
+    **cfg: Any,
+) -> ParallelEnv:
+    """Runs ``num_workers`` copies of ``make_env(name, **cfg)`` in worker processes (TorchRL ``ParallelEnv``).
+
+    Args:
+        name (str): see ``make_env``.
+        num_workers (int): number of worker processes, >= 1.
+        seed (int, optional): worker ``i`` is seeded with ``seed + i``.
+        device (torch.device or str, optional): device of the output tensors. Defaults to ``"cpu"``.
+        mp_start_method (str, optional): ``"fork"`` starts workers in about a second; TorchRL's default
+            (``"spawn"``) re-imports torch in each worker, which takes 10+ s on a busy 2-core machine.
+        **cfg: passed to ``make_env``.
+
+    Returns:
+        ParallelEnv: batch size ``[num_workers]``, same keys as ``make_env``.
+    """
+    if num_workers < 1:
+        raise ValueError(f"num_workers must be >= 1, got {num_workers}.")
+    _check_name(name)  # here, with the list of valid names, rather than inside a worker
+    env = ParallelEnv(
+        num_workers,
+        EnvCreator(functools.partial(make_env, name, device=device, **cfg)),
+        mp_start_method=mp_start_method,
+    )
+    if seed is not None:
+        env.set_seed(seed)
+    return env
+
+
+__all__ = [
+    "SPRITES_MASK_KEYS",
+    "SimulatorFaultGuard",
+    "env_names",
+    "make_env",
+    "make_gym_env",
+    "make_parallel_env",
+    "wrap_gym_env",
+]
