@@ -1,0 +1,448 @@
+"""CARLA-like highway driving on highway-env: the paper's CARLA task (§4.3, Appendix A) without CARLA.
+
+A straight highway (4 lanes by default) with other vehicles driven by highway-env's own IDM/MOBIL models, a 20 Hz
+simulation, continuous [steer, throttle/brake] actions repeated for 4 ticks, and the paper's reward
+r = v_ego . u_lane * dt - xi1 * I - xi2 * |steer|. Observations are 64x64 RGB frames from a forward camera on the
+ego's roof (``view="first_person"``) or from an ego-centred top-down chase view (``view="top_down"``).
+
+highway-env is slow at 20 Hz with 30 vehicles (about 6 ms per tick on this CPU, 80 % of it in lane geometry and
+neighbour search), so the road used here is a drop-in replacement specialised to straight lanes along +x that
+returns bit-identical vehicle trajectories (``tests/test_env_highway.py`` checks it) about 3x faster.
+"""
+
+from __future__ import annotations
+
+from bisect import bisect_left
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from highway_env import utils
+from highway_env.envs.highway_env import HighwayEnv
+from highway_env.road.lane import LineType, StraightLane
+from highway_env.road.road import LaneIndex, Road, RoadNetwork
+from highway_env.vehicle.kinematics import Vehicle
+
+from isodream_rl.envs.highway_render import ChaseViewRenderer, FirstPersonRenderer
+
+HIGHWAY_VIEWS = ("first_person", "top_down")
+"""Observation views of :class:`HighwayIsoEnv`."""
+
+SIMULATION_FREQUENCY = 20
+"""Simulation ticks per second (dt = 0.05 s), as the authors' synchronous CARLA."""
+
+_LANE_WIDTH = StraightLane.DEFAULT_WIDTH
+_ROAD_LENGTH = 10_000.0  # metres; an ego at the 40 m/s speed cap covers 2 km in a 1000-tick episode
+
+
+class _AxisLane(StraightLane):
+    """A straight lane along +x: its lane coordinates are plain differences instead of two dot products.
+
+    The results are bit-identical: the direction vectors are exactly (1, 0) and (-0, 1).
+    """
+
+    def __init__(self, start: np.ndarray, end: np.ndarray, **kwargs: Any) -> None:
+        super().__init__(start, end, **kwargs)
+        if self.start[1] != self.end[1] or self.end[0] <= self.start[0]:
+            raise ValueError(f"an _AxisLane runs along +x, got start={self.start} and end={self.end}")
+        self._x0, self._y0 = float(self.start[0]), float(self.start[1])
+
+    def local_coordinates(self, position: np.ndarray) -> tuple[float, float]:
+        return float(position[0]) - self._x0, float(position[1]) - self._y0
+
+
+class _StraightHighwayNetwork(RoadNetwork):
+    """Parallel lanes along +x, like ``RoadNetwork.straight_road_network``, with a constant-time closest lane.
+
+    The lanes share their heading and extent, so the heading and end terms of ``RoadNetwork``'s lane distance are
+    equal for all lanes and the closest lane is the one with the nearest centre line (first one on a tie).
+    """
+
+    def __init__(self, *, lanes_count: int, speed_limit: float = 30.0) -> None:
+        super().__init__()
+        self._centres = [lane * _LANE_WIDTH for lane in range(lanes_count)]
+        for lane, y in enumerate(self._centres):
+            line_types = (
+                LineType.CONTINUOUS_LINE if lane == 0 else LineType.STRIPED,
+                LineType.CONTINUOUS_LINE if lane == lanes_count - 1 else LineType.NONE,
+            )
+            self.add_lane(
+                "0",
+                "1",
+                _AxisLane([0.0, y], [_ROAD_LENGTH, y], line_types=line_types, speed_limit=speed_limit),
+            )
+
+    def get_closest_lane_index(self, position: np.ndarray, heading: float | None = None) -> LaneIndex:
+        y = float(position[1])
+        distances = [abs(y - centre) for centre in self._centres]
+        return "0", "1", distances.index(min(distances))
+
+
+class _StraightHighwayRoad(Road):
+    """highway-env's ``Road`` with the two O(n^2) hot spots replaced, for a road of ``_AxisLane``s only.
+
+    - ``neighbour_vehicles`` (front and rear vehicle in a lane, called ~35 times per tick by IDM and MOBIL): while
+      ``act`` runs positions are fixed, so each lane's vehicles are sorted once per tick and searched by bisection.
+      Ties resolve as in ``Road``: the last of equal front vehicles, the first of equal rear ones.
+    - the collision checks after ``step``: one vectorised distance test selects the pairs that ``Road`` would not
+      dismiss by its own distance pre-check, and only those get the exact polygon check, in ``Road``'s order.
+    """
+
+    _lanes_at_act: dict[LaneIndex, list[tuple[float, int]]] | None = None
+    _index_at_act: dict[int, int] | None = None
+
+    def act(self) -> None:
+        self._lanes_at_act, self._index_at_act = {}, {id(v): i for i, v in enumerate(self.vehicles)}
+        try:
+            super().act()
+        finally:
+            self._lanes_at_act = self._index_at_act = None
+
+    def _sorted_lane(self, lane_index: LaneIndex) -> list[tuple[float, int]]:
+        entries = self._lanes_at_act.get(lane_index)
+        if entries is None:
+            lane = self.network.get_lane(lane_index)
+            entries = []
+            for i, vehicle in enumerate(self.vehicles):
+                s, lateral = lane.local_coordinates(vehicle.position)
+                # Road.neighbour_vehicles counts vehicles within a 1 m margin of the lane.
+                if lane.on_lane(vehicle.position, s, lateral, margin=1):
+                    entries.append((s, i))
+            entries.sort()
+            self._lanes_at_act[lane_index] = entries
+        return entries
+
+    def neighbour_vehicles(
+        self, vehicle: Vehicle, lane_index: LaneIndex | None = None
+    ) -> tuple[Vehicle | None, Vehicle | None]:
+        lane_index = lane_index or vehicle.lane_index
+        if self._lanes_at_act is None or self.objects or not lane_index:
+            return super().neighbour_vehicles(vehicle, lane_index)
+        entries = self._sorted_lane(lane_index)
+        me = self._index_at_act.get(id(vehicle), -1)
+        s = self.network.get_lane(lane_index).local_coordinates(vehicle.position)[0]
+        k = bisect_left(entries, (s, -1))  # entries[k:] have s_v >= s: the front side
+        front = s_front = None
+        for s_v, i in entries[k:]:
+            if i == me:
+                continue
+            if s_front is not None and s_v != s_front:
+                break
+            front, s_front = i, s_v
+        rear = None
+        if k > 0:
+            j = k - 1
+            while j > 0 and entries[j - 1][0] == entries[k - 1][0]:
+                j -= 1
+            rear = entries[j][1]
+        return (
+            self.vehicles[front] if front is not None else None,
+            self.vehicles[rear] if rear is not None else None,
+        )
+
+    def step(self, dt: float) -> None:
+        if self.objects:
+            super().step(dt)
+            return
+        for vehicle in self.vehicles:
+            vehicle.step(dt)
+        xy = np.array([v.position for v in self.vehicles], dtype=np.float64).reshape(-1, 2)
+        half_diagonal = np.array([v.diagonal for v in self.vehicles]) / 2
+        speed = np.array([v.speed for v in self.vehicles], dtype=np.float64)
+        distance = np.sqrt(((xy[:, None, :] - xy[None, :, :]) ** 2).sum(-1))
+        # Road's pre-check dismisses a pair (i, j), i < j, when distance > half diagonals + speed_i * dt; the
+        # 1e-6 m slack only admits extra pairs, which the exact check then dismisses itself.
+        reach = half_diagonal[:, None] + half_diagonal[None, :] + speed[:, None] * dt + 1e-6
+        rows, cols = np.nonzero(np.triu(distance <= reach, k=1))
+        for i, j in zip(rows.tolist(), cols.tolist()):
+            self.vehicles[i].handle_collisions(self.vehicles[j], dt)
+
+
+class _HighwaySimulator(HighwayEnv):
+    """highway-env's ``highway-v0`` on the fast straight road. Only its scene (``road``, ``vehicle``) and reset are
+    used: :class:`HighwayIsoEnv` runs the ticks itself, skipping highway-env's per-step observation and reward."""
+
+    def _create_road(self) -> None:
+        self.road = _StraightHighwayRoad(
+            network=_StraightHighwayNetwork(lanes_count=self.config["lanes_count"]),
+            np_random=self.np_random,
+            record_history=self.config["show_trajectories"],
+        )
+
+
+class HighwayIsoEnv(gym.Env):
+    """CARLA-like highway driving from pixels (the paper's CARLA task on highway-env).
+
+    Each agent step repeats the action for ``action_repeat`` ticks of dt = 0.05 s and returns the mean of the per-tick
+    rewards (as the authors' CARLA env), so the default 1000 ticks are 250 agent steps. The per-tick reward is
+
+        r = v_ego . u_lane * dt - collision_weight * I - steer_weight * |steer|
+
+    with ``v_ego`` highway-env's velocity of the ego, ``u_lane`` the unit direction of its closest lane, and ``I``
+    a collision impulse proxy (highway-env has no contact physics): on the tick the ego first crashes, the impulse
+    of a perfectly inelastic collision of two equal cars, ``I = vehicle_mass / 2 * |v_ego - v_other|`` in N s,
+    summed over the vehicles it overlaps.
+
+    The episode terminates when the ego crashes, leaves the road (its centre beyond the road edge) or is stuck
+    (speed below ``stuck_speed`` at a multiple of ``stuck_check_ticks`` ticks), and is truncated at ``max_ticks``
+    ticks. Unlike the authors' CARLA, a crash ends the episode: highway-env then takes the ego's controls for good
+    (it brakes to a stop and the crash flag never clears), so the rest of the episode would show actions without
+    effect, contradicting the controllable/noncontrollable split Iso-Dream learns.
+
+    Args:
+        view (str, optional): ``"first_person"`` (forward roof camera, 60 degree field of view, as in the paper) or
+            ``"top_down"`` (ego-centred chase view). Defaults to ``"first_person"``.
+        vehicles_count (int, optional): other vehicles. Defaults to 30.
+        lanes_count (int, optional): lanes of the highway. Defaults to 4.
+        action_repeat (int, optional): ticks per agent step. Defaults to 4.
+        max_ticks (int, optional): ticks per episode before truncation. Defaults to 1000.
+        image_size (int, optional): side of the square observation. Defaults to 64.
+        collision_weight (float, optional): xi1, weight of the collision impulse. Defaults to 1e-4.
+        steer_weight (float, optional): xi2, weight of |steer|. Defaults to 1.0.
+        render_mode (str, optional): ``None`` or ``"rgb_array"`` (``render()`` returns the last observation).
+        vehicle_mass (float, optional): mass of every car in kg, for the impulse proxy. Defaults to 1500.
+        vehicles_density (float, optional): highway-env's traffic density (1: about 20 m between spawned
+            vehicles). Defaults to 1.0.
+        stuck_speed (float, optional): speed in m/s under which the ego counts as stuck. Defaults to 0.02.
+        stuck_check_ticks (int, optional): the stuck check runs every this many ticks. Defaults to 100.
+
+    Examples:
+        >>> env = HighwayIsoEnv(vehicles_count=10)
+        >>> obs, info = env.reset(seed=0)
+        >>> obs.shape, obs.dtype
+        ((64, 64, 3), dtype('uint8'))
+        >>> obs, reward, terminated, truncated, info = env.step(np.array([0.0, 0.2], dtype=np.float32))
+        >>> info["ticks"]
+        4
+        >>> env.close()
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": SIMULATION_FREQUENCY}
+
+    def __init__(
+        self,
+        *,
+        view: str = "first_person",
+        vehicles_count: int = 30,
+        lanes_count: int = 4,
+        action_repeat: int = 4,
+        max_ticks: int = 1000,
+        image_size: int = 64,
+        collision_weight: float = 1e-4,
+        steer_weight: float = 1.0,
+        render_mode: str | None = None,
+        vehicle_mass: float = 1500.0,
+        vehicles_density: float = 1.0,
+        stuck_speed: float = 0.02,
+        stuck_check_ticks: int = 100,
+    ) -> None:
+        if view not in HIGHWAY_VIEWS:
+            raise ValueError(f"Unknown view {view!r}. Valid views: {', '.join(map(repr, HIGHWAY_VIEWS))}")
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"Unknown render_mode {render_mode!r}. Valid: None, 'rgb_array'")
+        for name, value, low in (
+            ("vehicles_count", vehicles_count, 0),
+            ("lanes_count", lanes_count, 1),
+            ("action_repeat", action_repeat, 1),
+            ("max_ticks", max_ticks, 1),
+            ("image_size", image_size, 8),
+            ("stuck_check_ticks", stuck_check_ticks, 1),
+        ):
+            if int(value) != value or value < low:
+                raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+        for name, value in (
+            ("collision_weight", collision_weight),
+            ("steer_weight", steer_weight),
+            ("vehicle_mass", vehicle_mass),
+            ("stuck_speed", stuck_speed),
+        ):
+            if not value >= 0:
+                raise ValueError(f"{name} must be >= 0, got {value!r}")
+        if not vehicles_density > 0:
+            raise ValueError(f"vehicles_density must be > 0, got {vehicles_density!r}")
+        self.view = view
+        self.vehicles_count = int(vehicles_count)
+        self.lanes_count = int(lanes_count)
+        self.action_repeat = int(action_repeat)
+        self.max_ticks = int(max_ticks)
+        self.image_size = int(image_size)
+        self.collision_weight = float(collision_weight)
+        self.steer_weight = float(steer_weight)
+        self.render_mode = render_mode
+        self.vehicle_mass = float(vehicle_mass)
+        self.stuck_speed = float(stuck_speed)
+        self.stuck_check_ticks = int(stuck_check_ticks)
+        self.dt = 1.0 / SIMULATION_FREQUENCY
+        self.metadata = {**self.metadata, "render_fps": SIMULATION_FREQUENCY / self.action_repeat}
+        self.observation_space = gym.spaces.Box(0, 255, (self.image_size, self.image_size, 3), np.uint8)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+
+        self._sim = _HighwaySimulator(
+            config={
+                "action": {"type": "ContinuousAction"},
+                "simulation_frequency": SIMULATION_FREQUENCY,
+                "policy_frequency": SIMULATION_FREQUENCY,
+                "lanes_count": self.lanes_count,
+                "vehicles_count": self.vehicles_count,
+                "vehicles_density": float(vehicles_density),
+                "duration": self.max_ticks * self.dt,
+                "offscreen_rendering": True,
+            }
+        )
+        if view == "first_person":
+            self._renderer = FirstPersonRenderer(
+                lanes_count=self.lanes_count, max_vehicles=self.vehicles_count, image_size=self.image_size
+            )
+        else:
+            self._renderer = ChaseViewRenderer(image_size=self.image_size)
+        self._ticks = 0
+        self._done = True
+        self._crashed_before = False
+        self._last_obs: np.ndarray | None = None
+
+    @property
+    def road(self) -> Road:
+        """highway-env's road: lanes and vehicles (the ego included)."""
+        return self._sim.road
+
+    @property
+    def ego(self) -> Vehicle:
+        """The vehicle the agent drives."""
+        return self._sim.vehicle
+
+    @property
+    def ticks(self) -> int:
+        """Simulation ticks since the last reset."""
+        return self._ticks
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
+        """Starts an episode: new traffic, the ego at 25 m/s in a random lane.
+
+        Args:
+            seed (int, optional): seeds this episode and the following ones.
+            options (dict, optional): unused.
+
+        Returns:
+            tuple: uint8 observation [image_size, image_size, 3] and the info dict (all reward terms zero).
+        """
+        super().reset(seed=seed)
+        self._sim.reset(seed=int(self.np_random.integers(2**31 - 1)))
+        self._ticks = 0
+        self._done = False
+        self._crashed_before = False
+        self._last_obs = self._observe()
+        return self._last_obs, self._info(progress=0.0, collision=0.0, steer=0.0, impulse=0.0, stuck=False)
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        """Applies [steer, throttle/brake] for ``action_repeat`` ticks (fewer if the episode ends sooner).
+
+        Args:
+            action (np.ndarray): shape [2], clipped to [-1, 1]. steer -1 is full left (highway-env's pi/4 rad
+                wheel angle); throttle/brake +-1 is +-5 m/s^2, and braking stops the car without reversing.
+
+        Returns:
+            tuple: observation [image_size, image_size, 3] uint8, reward (mean over the ticks run), terminated,
+            truncated, and info with the mean reward terms ``progress``, ``collision_penalty``,
+            ``steer_penalty``, and ``collision_impulse`` (N s, summed), ``crashed``, ``off_road``, ``stuck``,
+            ``speed`` (m/s) and ``ticks``.
+        """
+        if self._done:
+            raise RuntimeError("step() called on a finished episode (or before reset()); call reset() first")
+        action = np.asarray(action, dtype=np.float64)
+        if action.shape != (2,):
+            raise ValueError(
+                f"expected an action of shape (2,) [steer, throttle/brake], got shape {action.shape}"
+            )
+        if not np.isfinite(action).all():
+            raise ValueError(f"the action must be finite, got {action}")
+        steer, throttle = np.clip(action, -1.0, 1.0)
+        totals = np.zeros(4)  # progress, collision penalty, steer penalty, impulse
+        ticks_run = 0
+        terminated = stuck = False
+        for _ in range(min(self.action_repeat, self.max_ticks - self._ticks)):
+            self._tick(steer, throttle)
+            ticks_run += 1
+            impulse = self._collision_impulse()
+            progress = self.progress()
+            totals += (progress, self.collision_weight * impulse, self.steer_weight * abs(steer), impulse)
+            stuck = self._ticks % self.stuck_check_ticks == 0 and self.ego.speed < self.stuck_speed
+            terminated = self.ego.crashed or not self.ego.on_road or stuck
+            if terminated:
+                break
+        truncated = self._ticks >= self.max_ticks
+        self._done = terminated or truncated
+        progress, collision, steer_penalty = totals[:3] / ticks_run
+        reward = progress - collision - steer_penalty
+        self._last_obs = self._observe()
+        info = self._info(
+            progress=progress, collision=collision, steer=steer_penalty, impulse=totals[3], stuck=stuck
+        )
+        return self._last_obs, float(reward), bool(terminated), bool(truncated), info
+
+    def progress(self) -> float:
+        """The progress term v_ego . u_lane * dt of the current state, in metres (the reward before penalties)."""
+        ego = self.ego
+        lane = ego.lane
+        longitudinal = lane.local_coordinates(ego.position)[0]
+        heading = lane.heading_at(longitudinal)
+        return float(ego.velocity @ np.array([np.cos(heading), np.sin(heading)])) * self.dt
+
+    def render(self) -> np.ndarray | None:
+        """The last observation (``render_mode="rgb_array"``), or ``None``."""
+        if self.render_mode != "rgb_array" or self._last_obs is None:
+            return None
+        return self._last_obs.copy()
+
+    def close(self) -> None:
+        if self.view == "first_person":
+            self._renderer.close()
+        self._sim.close()
+
+    def _tick(self, steer: float, throttle: float) -> None:
+        # highway-env's ContinuousAction is ordered [acceleration, steering]. It is applied on every tick because
+        # the vehicle clips its stored command in place (speed limit, crash).
+        self._sim.action_type.act(np.array([throttle, steer]))
+        self.road.act()
+        self.road.step(self.dt)
+        # CARLA's brake stops the car; highway-env's kinematics would drive it backwards.
+        self.ego.speed = max(self.ego.speed, 0.0)
+        self._ticks += 1
+
+    def _collision_impulse(self) -> float:
+        """Impulse proxy in N s: nonzero on the tick the ego first crashes (highway-env's crash flag never clears)."""
+        ego = self.ego
+        if not ego.crashed or self._crashed_before:
+            return 0.0
+        self._crashed_before = True
+        others = [v for v in self.road.vehicles if v is not ego]
+        if not others:
+            return 0.0
+        zero = np.zeros(2)
+        # A crash is flagged when the polygons overlap after the tick, so the partners overlap the ego now.
+        partners = [
+            v for v in others if utils.are_polygons_intersecting(ego.polygon(), v.polygon(), zero, zero)[0]
+        ]
+        if not partners:
+            partners = [min(others, key=lambda v: np.linalg.norm(v.position - ego.position))]
+        return sum(
+            0.5 * self.vehicle_mass * float(np.linalg.norm(ego.velocity - v.velocity)) for v in partners
+        )
+
+    def _observe(self) -> np.ndarray:
+        if self.view == "first_person":
+            others = [v for v in self.road.vehicles if v is not self.ego]
+            return self._renderer.render(self.ego, others)
+        return self._renderer.render(self.road, self.ego)
+
+    def _info(self, *, progress: float, collision: float, steer: float, impulse: float, stuck: bool) -> dict:
+        return {
+            "progress": float(progress),
+            "collision_penalty": float(collision),
+            "steer_penalty": float(steer),
+            "collision_impulse": float(impulse),
+            "crashed": bool(self.ego.crashed),
+            "off_road": not self.ego.on_road,
+            "stuck": bool(stuck),
+            "speed": float(self.ego.speed),
+            "ticks": self._ticks,
+        }
