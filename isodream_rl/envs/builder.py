@@ -9,8 +9,9 @@ TorchRL's ``GymWrapper`` and appends the transforms every recipe needs:
 - ``"is_init"`` (``InitTracker``) and ``"step_count"`` (``StepCounter``);
 - ``("next", "reward")``: float32 ``[1]``; ``done``/``terminated``/``truncated``;
 - ``"sim_error"``: bool ``[]``, ``True`` on the step where the simulator raised (see ``SimulatorFaultGuard``);
-- with ``make_env("sprites", return_masks=True)``: ``"mask_agent"``, ``"mask_distractors"`` and
-  ``"mask_target"``, bool ``[H, W]``.
+- with ``return_masks=True``, the env's ground-truth masks, bool ``[H, W]``: ``"mask_agent"``,
+  ``"mask_distractors"`` and ``"mask_target"`` for sprites, ``"background_mask"`` (the pixels showing the
+  video) for DMC.
 
 TorchRL's ``GymWrapper`` is used as is (it already maps an HxWx3 uint8 Box to ``"pixels"``, reads info
 dicts and seeds through ``reset(seed=)``); only the fault guard and the info specs are ours.
@@ -41,6 +42,7 @@ from torchrl.envs.gym_like import default_info_dict_reader
 logger = logging.getLogger(__name__)
 
 SPRITES_MASK_KEYS = ("mask_agent", "mask_distractors", "mask_target")
+DMC_MASK_KEYS = ("background_mask",)
 
 
 class SimulatorFaultGuard(gym.Wrapper):
@@ -156,7 +158,8 @@ def dmc_env_names() -> dict[str, tuple[str, str]]:
     """Maps every ``"dmc_<domain>_<task>"`` name to its ``(domain, task)``, for all dm_control suite tasks."""
     from isodream_rl.envs.dmc import dmc_tasks
 
-    return {f"dmc_{domain}_{task}": (domain, task) for domain, task in dmc_tasks()}
+    pairs = (name.split("-") for name in dmc_tasks())
+    return {f"dmc_{domain}_{task}": (domain, task) for domain, task in pairs}
 
 
 def env_names() -> list[str]:
@@ -211,8 +214,9 @@ def make_env(
         name (str): ``"sprites"``, ``"highway"`` or ``"dmc_<domain>_<task>"`` (e.g. ``"dmc_walker_walk"``).
         seed (int, optional): seeds the env; the same seed gives the same episodes under the same actions.
         device (torch.device or str, optional): device of the output tensors. Defaults to ``"cpu"``.
-        return_masks (bool, optional): sprites only: add the ground-truth masks ``"mask_agent"``,
-            ``"mask_distractors"``, ``"mask_target"`` (bool ``[H, W]``) to every step. Defaults to ``False``.
+        return_masks (bool, optional): add the ground-truth masks (bool ``[H, W]``) to every step:
+            ``"mask_agent"``, ``"mask_distractors"``, ``"mask_target"`` (sprites) or ``"background_mask"``
+            (DMC). Highway has none. Defaults to ``False``.
         **cfg: passed to the env class, e.g. ``task="reach"`` (sprites), ``view="top_down"``,
             ``vehicles_count=20`` (highway), ``background="video_hard"`` (dmc).
 
@@ -229,13 +233,14 @@ def make_env(
         >>> td["next", "pixels"].shape, td["next", "mask_agent"].shape
         (torch.Size([3, 3, 64, 64]), torch.Size([3, 64, 64]))
     """
-    if return_masks and name != "sprites":
+    _check_name(name)
+    mask_keys = {"sprites": SPRITES_MASK_KEYS, "highway": ()}.get(name, DMC_MASK_KEYS)
+    if return_masks and not mask_keys:
         raise ValueError(
-            f"return_masks=True needs ground-truth masks, which only 'sprites' has, not {name!r}."
+            f"return_masks=True needs ground-truth masks: 'sprites' and 'dmc_*' have them, {name!r} not."
         )
     env = make_gym_env(name, **cfg)
-    mask_keys = SPRITES_MASK_KEYS if return_masks else ()
-    return wrap_gym_env(env, seed=seed, device=device, mask_keys=mask_keys, name=name)
+    return wrap_gym_env(env, seed=seed, device=device, mask_keys=mask_keys if return_masks else (), name=name)
 
 
 def make_parallel_env(
@@ -275,6 +280,7 @@ def make_parallel_env(
 
 
 __all__ = [
+    "DMC_MASK_KEYS",
     "SPRITES_MASK_KEYS",
     "SimulatorFaultGuard",
     "env_names",

@@ -1,0 +1,124 @@
+"""Milliseconds per agent step of every isodream-rl env, raw gymnasium and through ``make_env`` (TorchRL).
+
+Usage::
+
+    python bench/env_speed.py [--steps 300] [--only sprites highway/top_down ...] [--json PATH]
+
+Each env runs random actions in [-1, 1] (drawn before timing, seeded); each step is timed alone and the median
+over ``--steps`` steps after a short warm-up is reported, so the occasional reset does not count. The JSON maps
+every env name, written as ``make_env`` takes it plus its view or background (``"sprites"``,
+``"highway/first_person"``, ``"dmc/walker-walk/video_easy"``, ...), to its median ms per agent step through
+TorchRL; ``"details"`` holds the raw gymnasium times, the targets and the machine load during the run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import time
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("SDL_VIDEODRIVER", "offscreen")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from isodream_rl.envs import make_env, make_gym_env  # noqa: E402
+
+# name -> (make_env name, cfg, target ms per agent step from issue 4 / the brief)
+CASES: dict[str, tuple[str, dict, float]] = {
+    "sprites": ("sprites", {"task": "reach"}, 0.5),
+    "highway/first_person": ("highway", {"view": "first_person"}, 20.0),
+    "highway/top_down": ("highway", {"view": "top_down"}, 12.0),
+}
+for _domain, _task in (("walker", "walk"), ("cheetah", "run")):
+    for _background, _target in (("video_easy", 10.0), ("video_hard", 10.0), ("none", 10.0)):
+        CASES[f"dmc/{_domain}-{_task}/{_background}"] = (
+            f"dmc_{_domain}_{_task}",
+            {"background": _background},
+            _target,
+        )
+
+WARMUP = 10
+
+
+def _time_gym(name: str, cfg: dict, actions: np.ndarray) -> float:
+    env = make_gym_env(name, **cfg)
+    env.reset(seed=0)
+    times = []
+    for i, action in enumerate(actions):
+        start = time.perf_counter()
+        _, _, terminated, truncated, _ = env.step(action)
+        elapsed = time.perf_counter() - start
+        if i >= WARMUP:
+            times.append(elapsed)
+        if terminated or truncated:
+            env.reset()
+    env.close()
+    return 1e3 * statistics.median(times)
+
+
+def _time_torchrl(name: str, cfg: dict, actions: np.ndarray) -> float:
+    env = make_env(name, seed=0, **cfg)
+    td = env.reset()
+    times = []
+    for i, action in enumerate(torch.as_tensor(actions)):
+        td.set("action", action)
+        start = time.perf_counter()
+        _, td = env.step_and_maybe_reset(td)
+        elapsed = time.perf_counter() - start
+        if i >= WARMUP and not td["is_init"].item():
+            times.append(elapsed)
+    env.close()
+    return 1e3 * statistics.median(times)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--steps", type=int, default=300, help="timed steps per env and path (plus warm-up)")
+    parser.add_argument("--only", nargs="*", default=None, help=f"subset of: {' '.join(CASES)}")
+    parser.add_argument("--json", default=None, help="write the results to this JSON file")
+    args = parser.parse_args(argv)
+    names = args.only or list(CASES)
+    unknown = [n for n in names if n not in CASES]
+    if unknown:
+        parser.error(f"unknown case(s) {unknown}; expected some of {list(CASES)}")
+    torch.set_num_threads(1)
+
+    results: dict[str, float] = {}
+    details: dict = {"gym_ms": {}, "targets_ms": {}, "steps": args.steps, "warmup": WARMUP}
+    load_before = os.getloadavg()
+    print(f"{'env':32s} {'gym ms':>8s} {'torchrl ms':>11s} {'target':>7s}")
+    for case in names:
+        name, cfg, target = CASES[case]
+        probe = make_gym_env(name, **cfg)
+        rng = np.random.default_rng(0)
+        shape = probe.action_space.shape
+        probe.close()
+        actions = rng.uniform(-1.0, 1.0, size=(args.steps + WARMUP, *shape)).astype(np.float32)
+        gym_ms = _time_gym(name, cfg, actions)
+        torchrl_ms = _time_torchrl(name, cfg, actions)
+        results[case] = round(torchrl_ms, 3)
+        details["gym_ms"][case] = round(gym_ms, 3)
+        details["targets_ms"][case] = target
+        flag = "ok" if gym_ms <= target else "SLOW"  # targets are for the env itself
+        print(f"{case:32s} {gym_ms:8.3f} {torchrl_ms:11.3f} {target:7.1f} {flag}")
+    details["loadavg_before_after"] = [round(x, 2) for x in (*load_before, *os.getloadavg())]
+    details["machine"] = {"cpu_count": os.cpu_count(), "python": platform.python_version()}
+    details["env"] = {k: os.environ.get(k) for k in ("MUJOCO_GL", "SDL_VIDEODRIVER", "LP_NUM_THREADS")}
+    out = {**results, "details": details}
+    if args.json:
+        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
+        with open(args.json, "w") as f:
+            json.dump(out, f, indent=2)
+        print(f"wrote {args.json}")
+    return out
+
+
+if __name__ == "__main__":
+    main()
