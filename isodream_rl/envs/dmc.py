@@ -31,7 +31,7 @@ import numpy as np  # noqa: E402
 from dm_control import suite  # noqa: E402
 from dm_control.mujoco.engine import Camera  # noqa: E402
 
-from isodream_rl.envs.backgrounds import BackgroundVideos  # noqa: E402
+from isodream_rl.envs.backgrounds import SPLITS, VIDEO_SOURCES, BackgroundVideos  # noqa: E402
 
 __all__ = ["BACKGROUNDS", "DMCBackgroundEnv", "dmc_tasks"]
 
@@ -125,6 +125,10 @@ class DMCBackgroundEnv(gymnasium.Env):
             raise ValueError(f"unknown DMC task {domain}-{task}; valid tasks: {', '.join(dmc_tasks())}")
         if background not in BACKGROUNDS:
             raise ValueError(f"background must be one of {BACKGROUNDS}, got {background!r}")
+        if video_split not in SPLITS:
+            raise ValueError(f"video_split must be one of {SPLITS}, got {video_split!r}")
+        if video_source not in VIDEO_SOURCES:
+            raise ValueError(f"video_source must be one of {VIDEO_SOURCES}, got {video_source!r}")
         if action_repeat < 1:
             raise ValueError(f"action_repeat must be >= 1, got {action_repeat}")
         if image_size < 1:
