@@ -4,9 +4,9 @@ Usage::
 
     python bench/env_speed.py [--steps 300] [--only sprites highway/top_down ...] [--json PATH]
 
-Each env runs random actions in [-1, 1] (drawn before timing, seeded); each step is timed alone and the median
-over ``--steps`` steps after a short warm-up is reported, so the occasional reset does not count. The JSON maps
-every env name, written as ``make_env`` takes it plus its view or background (``"sprites"``,
+Each env runs random actions in [-1, 1] (drawn before timing, seeded); each step is timed alone and the
+median over ``--steps`` steps after a short warm-up is reported, so the occasional reset does not count. The
+JSON maps every env name, written as ``make_env`` takes it plus its view or background (``"sprites"``,
 ``"highway/first_person"``, ``"dmc/walker-walk/video_easy"``, ...), to its median ms per agent step through
 TorchRL; ``"details"`` holds the raw gymnasium times, the targets and the machine load during the run.
 """

@@ -15,7 +15,10 @@ from isodream_rl.envs.builder import (  # noqa: E402
     make_parallel_env,
     wrap_gym_env,
 )
+from isodream_rl.envs.registration import register_envs  # noqa: E402
 from isodream_rl.envs.sprites import SPRITES_TASKS, SpritesEnv  # noqa: E402
+
+register_envs()
 
 __all__ = [
     "SPRITES_TASKS",
@@ -25,5 +28,6 @@ __all__ = [
     "make_env",
     "make_gym_env",
     "make_parallel_env",
+    "register_envs",
     "wrap_gym_env",
 ]
