@@ -212,8 +212,11 @@ def _scene_xml(
 ) -> str:
     """MJCF of the scene: a mocap ground (grass and textured road), a mocap ego carrying the camera, and one mocap
     car per vehicle slot."""
-    back = 2 * _DASH_PERIOD
-    half_length = (view_distance + back) / 2
+    # The road box starts 1.5 dash periods behind the ego and its half-length is whole periods, so its centre is
+    # half a period past a period boundary: with the texture mapping below, dashes start at x = 0 mod period, where
+    # highway-env's top-down view draws them too.
+    back = 1.5 * _DASH_PERIOD
+    half_length = np.ceil((view_distance + back) / 2 / _DASH_PERIOD) * _DASH_PERIOD
     centre = half_length - back
     road_half_width = lanes_count * lane_width / 2
     # Lane centres are at highway-env y = i * w, i.e. MuJoCo y = -i * w; the road spans half a lane beyond them.
@@ -265,6 +268,15 @@ def _scene_xml(
 """
 
 
+class _LaneGraphics(LaneGraphics):
+    """highway-env's lane drawing with the first-person view's dashes (its own 4.33 m period aliases: an ego at
+    25 m/s moves 5 m per agent step, so its dashes would seem to creep forward)."""
+
+    STRIPE_SPACING = _DASH_PERIOD
+    STRIPE_LENGTH = _DASH_LENGTH
+    STRIPE_WIDTH = _LINE_WIDTH
+
+
 class ChaseViewRenderer:
     """Top-down view that follows the ego, turned so that driving points up, drawn with highway-env's graphics.
 
@@ -309,7 +321,7 @@ class ChaseViewRenderer:
         right, lower = surface.pos2pix(max(lane.end[0] for lane in lanes), bottom)
         pygame.draw.rect(surface, _ASPHALT, (left, upper, right - left, lower - upper))
         for lane in lanes:
-            LaneGraphics.display(lane, surface)
+            _LaneGraphics.display(lane, surface)
         RoadGraphics.display_traffic(road, surface, offscreen=True)
         # surfarray is [x, y, rgb]; a counter-clockwise quarter turn makes +x (driving) point up and keeps the
         # driver's right (+y, screen down) on the right.

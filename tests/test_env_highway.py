@@ -1,0 +1,247 @@
+import numpy as np
+import pytest
+from highway_env.envs.highway_env import HighwayEnv
+from highway_env.vehicle.kinematics import Vehicle
+
+from isodream_rl.envs.highway import HIGHWAY_VIEWS, HighwayIsoEnv, _HighwaySimulator
+
+STRAIGHT = np.zeros(2, dtype=np.float32)
+
+
+def _place(env: HighwayIsoEnv, vehicle: Vehicle, x: float, y: float, heading: float, speed: float) -> None:
+    vehicle.position = np.array([x, y], dtype=np.float64)
+    vehicle.heading = heading
+    vehicle.speed = speed
+    vehicle.on_state_update()
+
+
+def _only_cruisers(env: HighwayIsoEnv, *states: tuple[float, float, float]) -> list[Vehicle]:
+    """Replaces the traffic by plain vehicles at (dx ahead of the ego, y, speed) that keep their speed."""
+    ego = env.ego
+    others = [Vehicle(env.road, [ego.position[0] + dx, y], 0.0, speed) for dx, y, speed in states]
+    env.road.vehicles[:] = [ego, *others]
+    return others
+
+
+def _red_columns(frame: np.ndarray) -> np.ndarray:
+    """Columns of pixels painted like vehicle slot 0 (red)."""
+    r, g, b = (frame[..., c].astype(int) for c in range(3))
+    return np.nonzero((r > 110) & (g < 60) & (b < 60))[1]
+
+
+@pytest.mark.parametrize("view", HIGHWAY_VIEWS)
+def test_spaces_and_info_follow_the_contract(view):
+    env = HighwayIsoEnv(view=view, vehicles_count=5)
+    assert env.observation_space == __import__("gymnasium").spaces.Box(0, 255, (64, 64, 3), np.uint8)
+    assert env.action_space.shape == (2,) and env.action_space.dtype == np.float32
+    assert (env.action_space.low == -1).all() and (env.action_space.high == 1).all()
+    obs, info = env.reset(seed=0)
+    assert env.observation_space.contains(obs)
+    obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+    assert env.observation_space.contains(obs) and isinstance(reward, float)
+    assert isinstance(terminated, bool) and isinstance(truncated, bool)
+    for key in ("progress", "collision_penalty", "steer_penalty", "crashed", "off_road", "ticks"):
+        assert key in info
+    assert info["ticks"] == 4
+    env.close()
+
+
+def test_same_seed_gives_same_episode_and_other_seed_differs():
+    actions = np.random.default_rng(0).uniform(-0.05, 0.3, (12, 2)).astype(np.float32)
+
+    def rollout(seed):
+        env = HighwayIsoEnv(vehicles_count=10)
+        frames, rewards = [env.reset(seed=seed)[0]], []
+        for action in actions:
+            obs, reward, terminated, truncated, _ = env.step(action)
+            frames.append(obs)
+            rewards.append(reward)
+            if terminated or truncated:
+                break
+        env.close()
+        return np.stack(frames), np.array(rewards)
+
+    frames, rewards = rollout(7)
+    frames_again, rewards_again = rollout(7)
+    frames_other, _ = rollout(8)
+    np.testing.assert_array_equal(frames, frames_again)
+    np.testing.assert_array_equal(rewards, rewards_again)
+    assert not np.array_equal(frames[0], frames_other[0])
+
+
+def test_fast_road_reproduces_highway_env_trajectories():
+    config = {
+        "action": {"type": "ContinuousAction"},
+        "simulation_frequency": 20,
+        "policy_frequency": 20,
+        "vehicles_count": 12,
+    }
+    trajectories = []
+    for simulator in (HighwayEnv(config=config), _HighwaySimulator(config=config)):
+        simulator.reset(seed=9)
+        states = []
+        for tick in range(100):
+            # Full throttle rams the traffic ahead (at tick 34 with this seed): crash handling is compared too.
+            simulator.action_type.act(np.array([1.0, 0.02 * np.sin(tick / 10)]))
+            simulator.road.act()
+            simulator.road.step(0.05)
+            states.append([[*v.position, v.heading, v.speed, v.crashed] for v in simulator.road.vehicles])
+        trajectories.append(np.array(states))
+    stock, fast = trajectories
+    assert stock[-1, 0, 4] == 1.0, "the ego should have crashed"
+    np.testing.assert_array_equal(stock, fast)
+
+
+def test_progress_is_velocity_along_the_lane_times_dt():
+    env = HighwayIsoEnv(view="top_down", vehicles_count=0)
+    env.reset(seed=0)
+    _place(env, env.ego, x=100.0, y=4.0, heading=0.1, speed=20.0)
+    obs, reward, terminated, truncated, info = env.step(STRAIGHT)
+    expected = 20.0 * np.cos(0.1) * 0.05  # straight wheels keep speed and heading on every tick
+    assert info["progress"] == pytest.approx(expected, rel=1e-9)
+    assert info["steer_penalty"] == 0.0 and info["collision_penalty"] == 0.0
+    assert reward == pytest.approx(expected, rel=1e-9)
+    assert not terminated and not truncated and info["speed"] == pytest.approx(20.0)
+    env.close()
+
+
+def test_steer_penalty_is_weight_times_abs_steer_and_reward_is_the_mean_of_terms():
+    env = HighwayIsoEnv(view="top_down", vehicles_count=0, steer_weight=2.0)
+    env.reset(seed=0)
+    _place(env, env.ego, x=100.0, y=4.0, heading=0.0, speed=10.0)
+    obs, reward, terminated, truncated, info = env.step(np.array([-0.05, 0.0], dtype=np.float32))
+    assert info["steer_penalty"] == pytest.approx(2.0 * 0.05)
+    # Steering turns the ego, so each tick progresses less than the last; the reward averages the 4 ticks.
+    assert 0.0 < info["progress"] < 10.0 * 0.05
+    assert reward == pytest.approx(info["progress"] - info["steer_penalty"] - info["collision_penalty"])
+    assert env.ego.heading < 0.0, "negative steer turns left (towards lower y)"
+    env.close()
+
+
+def test_rear_end_crash_costs_the_documented_impulse_and_terminates():
+    env = HighwayIsoEnv(view="top_down", vehicles_count=1, collision_weight=1e-4)
+    env.reset(seed=0)
+    _place(env, env.ego, x=100.0, y=4.0, heading=0.0, speed=30.0)
+    # 0.5 m between the bumpers, closing at 20 m/s: the cars overlap after the first tick.
+    _only_cruisers(env, (5.5, 4.0, 10.0))
+    obs, reward, terminated, truncated, info = env.step(STRAIGHT)
+    impulse = 1500.0 / 2 * 20.0
+    assert info["crashed"] and terminated and not truncated
+    assert info["ticks"] == 1, "the action repeat stops at the terminal tick"
+    assert info["collision_impulse"] == pytest.approx(impulse)
+    assert info["collision_penalty"] == pytest.approx(1e-4 * impulse)
+    assert reward == pytest.approx(30.0 * 0.05 - 1e-4 * impulse)
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(STRAIGHT)
+    env.close()
+
+
+def test_truncates_after_exactly_250_steps_of_4_ticks():
+    env = HighwayIsoEnv(view="top_down", vehicles_count=0)
+    env.reset(seed=1)
+    steps, truncated, terminated = 0, False, False
+    while not (truncated or terminated):
+        _, _, terminated, truncated, info = env.step(STRAIGHT)
+        steps += 1
+    assert steps == 250 and truncated and not terminated
+    assert info["ticks"] == 1000
+    env.close()
+
+
+def test_last_step_runs_only_the_remaining_ticks():
+    env = HighwayIsoEnv(view="top_down", vehicles_count=0, max_ticks=10)
+    env.reset(seed=0)
+    ticks = [env.step(STRAIGHT)[4]["ticks"] for _ in range(3)]
+    assert ticks == [4, 8, 10]
+    env.close()
+
+
+def test_leaving_the_road_terminates():
+    env = HighwayIsoEnv(view="top_down", vehicles_count=0)
+    env.reset(seed=0)
+    # The rightmost lane (y = 12) ends at y = 14; heading right at 25 m/s moves 0.6 m sideways per tick.
+    _place(env, env.ego, x=100.0, y=13.5, heading=0.5, speed=25.0)
+    _, _, terminated, truncated, info = env.step(STRAIGHT)
+    assert terminated and info["off_road"] and not info["crashed"] and info["ticks"] == 1
+    env.close()
+
+
+def test_braking_stops_without_reversing_and_a_stopped_ego_is_stuck_at_tick_100():
+    env = HighwayIsoEnv(view="top_down", vehicles_count=0)
+    env.reset(seed=0)
+    brake = np.array([0.0, -1.0], dtype=np.float32)
+    speeds = []
+    terminated = False
+    while not terminated:
+        _, _, terminated, _, info = env.step(brake)
+        speeds.append(info["speed"])
+    # 25 m/s at -5 m/s^2 stops after 100 ticks, the first stuck check.
+    assert info["stuck"] and info["ticks"] == 100 and len(speeds) == 25
+    assert min(speeds) == 0.0
+    env.close()
+
+
+def test_first_person_frames_show_sky_road_and_change_as_the_ego_moves():
+    env = HighwayIsoEnv(vehicles_count=0)
+    first, _ = env.reset(seed=0)
+    second = env.step(STRAIGHT)[0]
+    for frame in (first, second):
+        assert frame.mean() > 60
+        top, bottom = frame[0].mean(axis=0), frame[-1].mean(axis=0)
+        assert top[2] > top[0] + 40, "the top row is sky blue"
+        assert abs(bottom[0] - bottom[2]) < 20 and bottom.mean() < 160, "the bottom row is grey asphalt"
+    assert (first != second).any(axis=-1).mean() > 0.01, "the lane dashes move past"
+    env.close()
+
+
+@pytest.mark.parametrize(("lateral", "side"), [(4.0, "right"), (-4.0, "left"), (0.0, "centre")])
+def test_first_person_view_puts_vehicles_on_their_side(lateral, side):
+    env = HighwayIsoEnv(vehicles_count=1)
+    env.reset(seed=0)
+    _place(env, env.ego, x=100.0, y=4.0, heading=0.0, speed=20.0)
+    _only_cruisers(env, (15.0, 4.0 + lateral, 20.0))
+    frame = env.step(STRAIGHT)[0]
+    columns = _red_columns(frame)
+    assert columns.size > 4, "the car ahead is visible"
+    middle = frame.shape[1] / 2
+    if side == "right":
+        assert columns.mean() > middle + 8
+    elif side == "left":
+        assert columns.mean() < middle - 8
+    else:
+        assert abs(columns.mean() - middle) < 4
+    env.close()
+
+
+def test_top_down_view_follows_the_ego_with_driving_pointing_up():
+    env = HighwayIsoEnv(view="top_down", vehicles_count=1)
+    env.reset(seed=0)
+    _place(env, env.ego, x=100.0, y=4.0, heading=0.0, speed=20.0)
+    _only_cruisers(env, (15.0, 4.0, 20.0))
+    frame = env.step(STRAIGHT)[0].astype(int)
+    # highway-env paints plain (non-IDM) vehicles yellow; the scaling is 1.5 px/m.
+    yellow = np.argwhere((frame[..., 0] > 150) & (frame[..., 1] > 150) & (frame[..., 2] < 80))
+    ego, ahead = yellow[yellow[:, 0] > 32], yellow[yellow[:, 0] <= 32]
+    assert ego.size and ahead.size
+    assert abs(ego[:, 1].mean() - 32) < 2 and abs(ego[:, 0].mean() - 64 * 0.7) < 2
+    assert abs(ahead[:, 1].mean() - 32) < 2, "same lane, same column"
+    assert ego[:, 0].mean() - ahead[:, 0].mean() == pytest.approx(15.0 * 1.5, abs=2), "15 m ahead is up"
+    env.close()
+
+
+def test_bad_inputs_raise_clear_errors():
+    with pytest.raises(ValueError, match="'first_person', 'top_down'"):
+        HighwayIsoEnv(view="bird")
+    with pytest.raises(ValueError, match="vehicles_count"):
+        HighwayIsoEnv(vehicles_count=-1)
+    with pytest.raises(ValueError, match="render_mode"):
+        HighwayIsoEnv(render_mode="human")
+    env = HighwayIsoEnv(view="top_down", vehicles_count=0)
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(STRAIGHT)
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"shape \(2,\).*got shape \(3,\)"):
+        env.step(np.zeros(3, dtype=np.float32))
+    with pytest.raises(ValueError, match="finite"):
+        env.step(np.array([np.nan, 0.0]))
+    env.close()
