@@ -1,3 +1,4 @@
+import gymnasium as gym
 import numpy as np
 import pytest
 from highway_env.envs.highway_env import HighwayEnv
@@ -32,7 +33,7 @@ def _red_columns(frame: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("view", HIGHWAY_VIEWS)
 def test_spaces_and_info_follow_the_contract(view):
     env = HighwayIsoEnv(view=view, vehicles_count=5)
-    assert env.observation_space == __import__("gymnasium").spaces.Box(0, 255, (64, 64, 3), np.uint8)
+    assert env.observation_space == gym.spaces.Box(0, 255, (64, 64, 3), np.uint8)
     assert env.action_space.shape == (2,) and env.action_space.dtype == np.float32
     assert (env.action_space.low == -1).all() and (env.action_space.high == 1).all()
     obs, info = env.reset(seed=0)

@@ -280,6 +280,8 @@ class HighwayIsoEnv(gym.Env):
         self._sim = _HighwaySimulator(
             config={
                 "action": {"type": "ContinuousAction"},
+                # highway-env's default Kinematics observation (pandas) would take 70 % of every reset.
+                "observation": {"type": "AttributesObservation", "attributes": []},
                 "simulation_frequency": SIMULATION_FREQUENCY,
                 "policy_frequency": SIMULATION_FREQUENCY,
                 "lanes_count": self.lanes_count,

@@ -10,6 +10,7 @@ is right-handed with z up, so a highway-env point (x, y) maps to (x, -y, z) and 
 from __future__ import annotations
 
 import io
+import weakref
 from collections.abc import Sequence
 
 import mujoco
@@ -121,6 +122,9 @@ class FirstPersonRenderer:
         self._scene_option.geomgroup[_HIDDEN_GROUP] = 0
         self._sky = _sky_gradient(image_size)
         self._renderer = mujoco.Renderer(self._model, image_size, image_size)
+        # Frees the GL context at garbage collection or, at the latest, at interpreter exit: later, EGL is already
+        # torn down and mujoco's own __del__ prints errors.
+        self._release = weakref.finalize(self, self._renderer.close)
 
     def render(self, ego: Vehicle, others: Sequence[Vehicle]) -> np.ndarray:
         """Draws the view from the ego's roof.
@@ -163,7 +167,7 @@ class FirstPersonRenderer:
 
     def close(self) -> None:
         """Releases the GL context."""
-        self._renderer.close()
+        self._release()
 
 
 def _yaw_quaternion(heading: np.ndarray) -> np.ndarray:
