@@ -1,0 +1,68 @@
+"""Mask composition of the branch components into one image (paper eq. 4).
+
+``o^_t = M^s_t * o^s_t + M^z_t * o^z_t + (1 - M^s_t - M^z_t) * o^b``.
+
+Two ways to produce the masks:
+
+* ``"softmax"`` (default): one logit map per branch (the static branch has its own), softmax over the
+  branches, so every mask is non-negative and the three sum to one at every pixel.
+* ``"sigmoid"``: the authors' code: independent sigmoids ``M^s = sigmoid(l^s)``, ``M^z = sigmoid(l^z)`` and
+  ``M^b = 1 - M^s - M^z``, which is unclamped and can be negative (isodream_reference.md §14.2).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+MASK_MODES = ("softmax", "sigmoid")
+BRANCHES = ("control", "free", "static")
+
+
+class MaskComposition(nn.Module):
+    """Compose per-branch RGB components with their masks (eq. 4).
+
+    Args:
+        mask_mode: ``"softmax"`` or ``"sigmoid"`` (see the module docstring).
+
+    Forward:
+        ``colors`` and ``logits`` map branch names (``"control"``, ``"free"``, ``"static"``; any subset
+        with ``"control"``) to ``[*N, 3, H, W]`` components and ``[*N, 1, H, W]`` mask logits; tensors
+        broadcast against each other (a per-window background ``[B, 1, 3, H, W]`` against ``[B, T, ...]``
+        components). In sigmoid mode the static branch needs no logit.
+
+    Returns:
+        ``(composite [*N, 3, H, W], masks)`` with ``masks[name]`` of shape ``[*N, 1, H, W]``.
+    """
+
+    def __init__(self, *, mask_mode: str = "softmax"):
+        super().__init__()
+        if mask_mode not in MASK_MODES:
+            raise ValueError(f"unknown mask_mode {mask_mode!r}; valid: {MASK_MODES}")
+        self.mask_mode = mask_mode
+
+    def forward(
+        self, colors: dict[str, torch.Tensor], logits: dict[str, torch.Tensor]
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        names = [name for name in BRANCHES if name in colors]
+        if "control" not in names:
+            raise KeyError("the controllable component is required for the composition")
+        if len(names) == 1:
+            color = colors["control"]
+            return color, {"control": torch.ones_like(color[..., :1, :, :])}
+        shape = torch.broadcast_shapes(
+            *(colors[n].shape[:-3] for n in names), *(logits[n].shape[:-3] for n in logits)
+        )
+        if self.mask_mode == "softmax":
+            stacked = torch.stack([logits[n].expand(*shape, *logits[n].shape[-3:]) for n in names])
+            weights = torch.softmax(stacked, dim=0)
+            masks = dict(zip(names, weights.unbind(0)))
+        else:
+            if names[-1] != "static":
+                raise ValueError(
+                    "mask_mode='sigmoid' composes against the static background branch; enable it"
+                )
+            masks = {n: torch.sigmoid(logits[n]).expand(*shape, *logits[n].shape[-3:]) for n in names[:-1]}
+            masks["static"] = 1.0 - sum(masks.values())
+        composite = sum(masks[n] * colors[n] for n in names)
+        return composite, masks

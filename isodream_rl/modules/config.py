@@ -1,0 +1,106 @@
+"""World-model configuration and size presets."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+from isodream_rl.modules.composition import MASK_MODES
+from isodream_rl.modules.inverse_dynamics import INVERSE_INPUTS
+
+#: Size presets. ``paper``: Table 5 and isodream_reference.md §8 (cnn depth 32, deter 200, stoch 50,
+#: MLP units 400); ``small``: quick CPU runs; ``tiny``: unit tests.
+SIZE_PRESETS: dict[str, dict[str, int]] = {
+    "paper": {"depth": 32, "state_dim": 50, "belief_dim": 200, "hidden_dim": 200, "units": 400},
+    "small": {"depth": 16, "state_dim": 32, "belief_dim": 128, "hidden_dim": 128, "units": 256},
+    "tiny": {"depth": 4, "state_dim": 8, "belief_dim": 16, "hidden_dim": 16, "units": 32},
+}
+DECODER_INPUTS = ("paper", "posterior")
+PRECISIONS = ("fp32", "bf16")
+
+
+@dataclass
+class WorldModelConfig:
+    """Everything that shapes an :class:`~isodream_rl.modules.world_model.IsoDreamWorldModel`."""
+
+    action_dim: int
+    """Width of the action vector."""
+    depth: int = 32
+    """Channels of the first convolution; encoder/decoder widths scale with it (TorchRL's ``channels``)."""
+    state_dim: int = 50
+    """Width of each stochastic state (s and z)."""
+    belief_dim: int = 200
+    """Width of each GRU state (h and h')."""
+    hidden_dim: int = 200
+    """Width of the RSSM's hidden layers."""
+    units: int = 400
+    """Width of the reward/discount/inverse MLPs."""
+    min_std: float = 0.1
+    """Lower bound of the latent std (``2 sigmoid(x/2) + min_std``)."""
+    layer_norm_gru: bool = True
+    """Layer-norm GRU cells (the authors' default) instead of ``nn.GRUCell``."""
+    free_branch: bool = True
+    """The action-free (noncontrollable) branch; ``False`` with no static branch and no inverse cell is DreamerV2."""
+    static_branch: bool = True
+    """The static background branch (Dec_phi3 on the first ``static_frames`` frames)."""
+    inverse_dynamics: bool = True
+    """The inverse-dynamics cell."""
+    inverse_input: str = "state"
+    """``"state"``: MLP(s_{t-1}, s_t) on posterior states (paper); ``"embedding"``: e^s_t - e^s_{t-1} (authors)."""
+    mask_mode: str = "softmax"
+    """``"softmax"`` over three logits, or the authors' ``"sigmoid"`` masks with 1 - M^s - M^z background."""
+    decoder_input: str = "paper"
+    """``"paper"``: controllable component from the one-step prior s~_t, noncontrollable from the posterior z_t
+    (§3.2, against collapse); ``"posterior"``: both from posteriors."""
+    static_frames: int = 10
+    """K, the number of first frames of a window that the static branch reads (clamped to the window)."""
+    reward_uses_free: bool = False
+    """Reward head on [s, h, z, h'] (CARLA-style) instead of [s, h] (DMC-style)."""
+    discount_head: bool = False
+    """Predict episode continuation (Bernoulli)."""
+    precision: str = "fp32"
+    """``"bf16"`` runs convolutions and MLPs under bf16 autocast; GRUs and losses stay fp32."""
+    channels_last: bool = True
+    """Channels-last memory format for the convolutions (faster on CPU oneDNN and GPU tensor cores)."""
+
+    def __post_init__(self):
+        if self.action_dim < 1:
+            raise ValueError(f"action_dim must be >= 1, got {self.action_dim}")
+        for name, value, valid in (
+            ("inverse_input", self.inverse_input, INVERSE_INPUTS),
+            ("mask_mode", self.mask_mode, MASK_MODES),
+            ("decoder_input", self.decoder_input, DECODER_INPUTS),
+            ("precision", self.precision, PRECISIONS),
+        ):
+            if value not in valid:
+                raise ValueError(f"unknown {name} {value!r}; valid: {valid}")
+        if self.reward_uses_free and not self.free_branch:
+            raise ValueError("reward_uses_free=True needs the action-free branch (free_branch=True)")
+        if self.mask_mode == "sigmoid" and not self.static_branch:
+            raise ValueError("mask_mode='sigmoid' needs the static branch (its mask is 1 - M^s - M^z)")
+        if self.static_frames < 1:
+            raise ValueError(f"static_frames must be >= 1, got {self.static_frames}")
+
+    @classmethod
+    def from_preset(cls, size: str, *, action_dim: int, **overrides) -> WorldModelConfig:
+        """A config of the named size (``paper``, ``small``, ``tiny``) with ``overrides`` applied."""
+        if size not in SIZE_PRESETS:
+            raise ValueError(f"unknown size preset {size!r}; valid: {sorted(SIZE_PRESETS)}")
+        known = {f.name for f in fields(cls)}
+        unknown = set(overrides) - known
+        if unknown:
+            raise TypeError(f"unknown WorldModelConfig fields {sorted(unknown)}")
+        return cls(action_dim=action_dim, **{**SIZE_PRESETS[size], **overrides})
+
+    @classmethod
+    def dreamerv2(cls, size: str = "paper", *, action_dim: int, **overrides) -> WorldModelConfig:
+        """The single-branch DreamerV2 baseline: no action-free branch, no static branch, no inverse cell."""
+        base = {
+            "free_branch": False,
+            "static_branch": False,
+            "inverse_dynamics": False,
+            "decoder_input": "posterior",
+        }
+        return cls.from_preset(size, action_dim=action_dim, **{**base, **overrides})
+
+    def to_dict(self) -> dict:
+        return asdict(self)

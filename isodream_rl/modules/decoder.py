@@ -1,0 +1,49 @@
+"""Branch decoders ``Dec_phi1``, ``Dec_phi2`` (RGB + mask logit) and ``Dec_phi3`` (background) (§3.2).
+
+Same layer pattern and widths as TorchRL's ``ObsDecoder`` (a linear layer to ``32*depth`` on a 1x1 map,
+then transposed convolutions with kernels 5, 5, 6, 6 and stride 2 to 64x64, ReLU). It is written here
+rather than reused because the static branch decodes a stack of frame embeddings, not ``(state,
+belief)``, and because every call site wants the flat ``[N, C, 64, 64]`` form (channels-last friendly).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+
+class ConvDecoder(nn.Module):
+    """Latent vector -> image-sized map.
+
+    Args:
+        in_features: width of the input vector.
+        out_channels: output channels (4 = RGB + mask logit for the dynamic branches).
+        depth: channels of the last hidden layer (32 in the paper's setting).
+        device: where to create the parameters.
+
+    Shapes:
+        ``[N, in_features]`` -> ``[N, out_channels, 64, 64]``.
+    """
+
+    def __init__(self, *, in_features: int, out_channels: int, depth: int = 32, device=None):
+        super().__init__()
+        self.in_features = in_features
+        self.linear = nn.Linear(in_features, 32 * depth, device=device)
+        self.deconv = nn.Sequential(
+            nn.ReLU(),
+            nn.ConvTranspose2d(32 * depth, 4 * depth, 5, stride=2, device=device),
+            nn.ReLU(),
+            nn.ConvTranspose2d(4 * depth, 2 * depth, 5, stride=2, device=device),
+            nn.ReLU(),
+            nn.ConvTranspose2d(2 * depth, depth, 6, stride=2, device=device),
+            nn.ReLU(),
+            nn.ConvTranspose2d(depth, out_channels, 6, stride=2, device=device),
+        )
+
+    def forward(self, latent: torch.Tensor) -> torch.Tensor:
+        x = self.linear(latent)[:, :, None, None]
+        # ``x`` is [N, C, 1, 1]; its channels-last form is the same memory, and asking for it lets
+        # the transposed convolutions pick their channels-last kernels when the weights are.
+        if self.deconv[1].weight.is_contiguous(memory_format=torch.channels_last):
+            x = x.contiguous(memory_format=torch.channels_last)
+        return self.deconv(x)

@@ -1,0 +1,96 @@
+"""Shared encoder ``Enc_theta`` and the three branch heads ``Enc_phi1..3`` (paper §3.2, Table 5).
+
+The layer pattern is TorchRL's ``ObsEncoder`` (k4 s2 convolutions, ReLU, widths doubling from
+``depth``) cut in two: the first two convolutions are the shared trunk, the last two are repeated with
+separate weights for the controllable, noncontrollable and static heads. TorchRL's ``ObsEncoder``
+always starts from pixels and flattens its output, so it cannot serve as a trunk; the heads would fit
+but are two lines with the trunk's helper.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+IMAGE_SHAPE = (3, 64, 64)
+
+
+def check_pixels(pixels: torch.Tensor, *, name: str = "pixels") -> None:
+    """Raise a clear error unless ``pixels`` is ``[*batch, 3, 64, 64]``."""
+    if pixels.dim() < 3 or tuple(pixels.shape[-3:]) != IMAGE_SHAPE:
+        raise ValueError(
+            f"{name} must have shape [*batch, 3, 64, 64] (channels first, 64x64 RGB); got {tuple(pixels.shape)}. "
+            "Resize observations to 64x64 (e.g. torchrl.envs.Resize) and put channels first."
+        )
+
+
+def preprocess_pixels(pixels: torch.Tensor) -> torch.Tensor:
+    """uint8 ``[0, 255]`` -> float ``[-0.5, 0.5]``; float input is taken to be in ``[0, 1]``."""
+    if pixels.dtype == torch.uint8:
+        return pixels.float().div_(255.0).sub_(0.5)
+    if not pixels.is_floating_point():
+        raise TypeError(f"pixels must be uint8 or floating point, got {pixels.dtype}")
+    return pixels.float() - 0.5
+
+
+def _conv_stack(widths: list[int], *, device=None) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for cin, cout in zip(widths[:-1], widths[1:]):
+        layers += [nn.Conv2d(cin, cout, 4, stride=2, device=device), nn.ReLU()]
+    return nn.Sequential(*layers)
+
+
+class BranchedEncoder(nn.Module):
+    """``Enc_theta`` then ``Enc_phi1`` (controllable), ``Enc_phi2`` (noncontrollable), ``Enc_phi3`` (static).
+
+    Args:
+        depth: channels of the first convolution (32 in the paper's setting; TorchRL's ``channels``).
+        heads: which heads to build, a subset of ``("control", "free", "static")``.
+        device: where to create the parameters.
+
+    Shapes:
+        ``trunk(x)``: ``[N, 3, 64, 64]`` (preprocessed) -> ``[N, 2*depth, 14, 14]``;
+        ``head(name, f)``: ``[N, 2*depth, 14, 14]`` -> ``[N, 32*depth]`` (1024 at depth 32).
+    """
+
+    def __init__(
+        self, *, depth: int = 32, heads: tuple[str, ...] = ("control", "free", "static"), device=None
+    ):
+        super().__init__()
+        unknown = set(heads) - {"control", "free", "static"}
+        if unknown:
+            raise ValueError(f"unknown encoder heads {sorted(unknown)}; valid: control, free, static")
+        self.depth = depth
+        self.trunk = _conv_stack([3, depth, 2 * depth], device=device)
+        self.heads = nn.ModuleDict(
+            {name: _conv_stack([2 * depth, 4 * depth, 8 * depth], device=device) for name in heads}
+        )
+
+    @property
+    def embed_dim(self) -> int:
+        return 32 * self.depth
+
+    def head(self, name: str, features: torch.Tensor) -> torch.Tensor:
+        return self.heads[name](features).flatten(1)
+
+    def trunk_features(self, pixels: torch.Tensor, *, channels_last: bool = False) -> torch.Tensor:
+        """Shared trunk ``Enc_theta``: ``[N, 3, 64, 64]`` raw pixels -> ``[N, 2*depth, 14, 14]``."""
+        check_pixels(pixels)
+        if channels_last:
+            # Converting the uint8 input is 4x cheaper than converting the float copy.
+            pixels = pixels.contiguous(memory_format=torch.channels_last)
+        return self.trunk(preprocess_pixels(pixels))
+
+    def forward(self, pixels: torch.Tensor, *, channels_last: bool = False) -> tuple[torch.Tensor, ...]:
+        """Encode ``[*batch, 3, 64, 64]`` pixels into one embedding ``[*batch, 32*depth]`` per dynamic head.
+
+        Returns the embeddings of the ``"control"`` and ``"free"`` heads that exist, in that order.
+        """
+        check_pixels(pixels)
+        lead = pixels.shape[:-3]
+        features = self.trunk_features(pixels.reshape(-1, *IMAGE_SHAPE), channels_last=channels_last)
+        return tuple(
+            self.head(name, features).reshape(*lead, self.embed_dim)
+            for name in ("control", "free")
+            if name in self.heads
+        )

@@ -1,0 +1,195 @@
+"""The Iso-Dream world-model loss (paper eq. 5)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
+from torch.nn import functional as F
+from torchrl.objectives import LossModule
+
+from isodream_rl.modules.encoder import preprocess_pixels
+from isodream_rl.modules.world_model import IsoDreamWorldModel
+from isodream_rl.objectives.inverse_dynamics import InverseDynamicsLoss
+from isodream_rl.objectives.kl import balanced_kl
+
+FREE_BRANCH_MODES = ("kl", "recon_only")
+
+
+class IsoDreamModelLoss(LossModule):
+    """World-model loss of eq. 5 over ``[B, T]`` replay windows.
+
+    ``L = lambda_reco * L_img + lambda_reward * L_rew + lambda_discount * L_gamma + alpha * L_inv
+    + beta1 * KL_s + beta2 * KL_z`` with
+
+    * ``L_img = -log N(o_t; o^_t, I)`` summed over pixels (``0.5 * squared error``, constants dropped),
+      mean over ``B, T``; ``o^_t`` is the mask composition of eq. 4;
+    * ``L_rew = -log N(r_t; r^_t, 1)`` and ``L_gamma`` a Bernoulli log-loss on "not terminated" (when the
+      world model has a discount head);
+    * ``L_inv`` from :class:`~isodream_rl.objectives.InverseDynamicsLoss`;
+    * ``KL_s``, ``KL_z``: DreamerV2-balanced KLs with free nats on the batch mean, one per branch.
+
+    Args:
+        world_model: an :class:`~isodream_rl.modules.IsoDreamWorldModel`.
+        lambda_reco: weight of the image log-loss (1).
+        lambda_reward: weight of the reward log-loss (2 in the authors' DMC and CARLA configs).
+        lambda_discount: weight of the discount log-loss (1; used only with a discount head).
+        lambda_inverse: ``alpha``, the weight of the action loss (1).
+        lambda_kl_control: ``beta1``, the weight of ``KL_s`` (1).
+        lambda_kl_free: ``beta2``, the weight of ``KL_z`` (1).
+        kl_balance: DreamerV2 KL balancing (0.8).
+        free_nats: free nats, applied to each branch's batch-mean KL (1.0).
+        free_branch: ``"kl"`` (CARLA-style: the noncontrollable branch has its KL term) or ``"recon_only"``
+            (DMC-style, §3.2 last paragraph: it learns from reconstruction alone; ``KL_z`` is only logged).
+        inverse_loss: ``"gaussian"`` or ``"l2"``, see :class:`~isodream_rl.objectives.InverseDynamicsLoss`.
+
+    Returns:
+        ``(losses, model_output)``, like TorchRL's ``DreamerModelLoss``: ``losses`` holds
+        ``loss_model_reco``, ``loss_model_reward``, ``loss_model_kl_control`` and, depending on the model
+        and mode, ``loss_model_kl_free``, ``loss_model_inverse``, ``loss_model_discount``; plus detached
+        diagnostics ``kl_control``, ``kl_free``, ``mask_control``, ``mask_free``, ``mask_static`` (mean
+        masks) and ``reco_mse``. ``model_output`` is the world model's output tensordict (posteriors
+        under ``"next"``), the start states for imagination.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
+        >>> from isodream_rl.objectives import IsoDreamModelLoss
+        >>> loss = IsoDreamModelLoss(IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2)))
+        >>> td = TensorDict({"action": torch.zeros(2, 5, 2),
+        ...                  ("next", "pixels"): torch.zeros(2, 5, 3, 64, 64, dtype=torch.uint8),
+        ...                  ("next", "reward"): torch.zeros(2, 5, 1)}, [2, 5])
+        >>> losses, _ = loss(td)
+        >>> sorted(k for k in losses.keys() if k.startswith("loss"))[:2]
+        ['loss_model_inverse', 'loss_model_kl_control']
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Tensordict keys read by the loss; remap with :meth:`set_keys`.
+
+        Attributes:
+            pixels: observations o_{t+1}. Defaults to ``("next", "pixels")``.
+            action: actions a_t. Defaults to ``"action"``.
+            is_init: episode starts inside the window. Defaults to ``"is_init"``.
+            reward: true rewards. Defaults to ``("next", "reward")``.
+            terminated: true terminations (discount head only). Defaults to ``("next", "terminated")``.
+        """
+
+        pixels: NestedKey = ("next", "pixels")
+        action: NestedKey = "action"
+        is_init: NestedKey = "is_init"
+        reward: NestedKey = ("next", "reward")
+        terminated: NestedKey = ("next", "terminated")
+
+    tensor_keys: _AcceptedKeys
+    default_keys = _AcceptedKeys
+
+    def __init__(
+        self,
+        world_model: IsoDreamWorldModel,
+        *,
+        lambda_reco: float = 1.0,
+        lambda_reward: float = 1.0,
+        lambda_discount: float = 1.0,
+        lambda_inverse: float = 1.0,
+        lambda_kl_control: float = 1.0,
+        lambda_kl_free: float = 1.0,
+        kl_balance: float = 0.8,
+        free_nats: float = 1.0,
+        free_branch: str = "kl",
+        inverse_loss: str = "gaussian",
+    ):
+        super().__init__()
+        if free_branch not in FREE_BRANCH_MODES:
+            raise ValueError(f"unknown free_branch mode {free_branch!r}; valid: {FREE_BRANCH_MODES}")
+        self.world_model = world_model
+        self.inverse_loss = InverseDynamicsLoss(lambda_inverse=lambda_inverse, loss_type=inverse_loss)
+        self.lambda_reco = lambda_reco
+        self.lambda_reward = lambda_reward
+        self.lambda_discount = lambda_discount
+        self.lambda_kl_control = lambda_kl_control
+        self.lambda_kl_free = lambda_kl_free
+        self.kl_balance = kl_balance
+        self.free_nats = free_nats
+        self.free_branch = free_branch
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        pass
+
+    def _read(self, tensordict: TensorDictBase, key: NestedKey, *, required: bool = True):
+        value = tensordict.get(key, None)
+        if value is None and required:
+            raise KeyError(
+                f"IsoDreamModelLoss: the input has no key {key!r}; remap it with "
+                f"loss.set_keys(...) (accepted keys: {self.tensor_keys})"
+            )
+        return value
+
+    def forward(self, tensordict: TensorDictBase) -> tuple[TensorDictBase, TensorDictBase]:
+        keys = self.tensor_keys
+        cfg = self.world_model.config
+        pixels = self._read(tensordict, keys.pixels)
+        reward = self._read(tensordict, keys.reward)
+        model_in = TensorDict(
+            {("next", "pixels"): pixels, "action": self._read(tensordict, keys.action)},
+            batch_size=tensordict.batch_size,
+            device=tensordict.device,
+        )
+        is_init = self._read(tensordict, keys.is_init, required=False)
+        if is_init is not None:
+            model_in.set("is_init", is_init)
+        out = self.world_model(model_in)
+        nxt = out.get("next")
+
+        target = preprocess_pixels(pixels)
+        squared = (nxt.get("reco_pixels") - target).pow(2)
+        losses = {"loss_model_reco": self.lambda_reco * 0.5 * squared.sum((-3, -2, -1)).mean()}
+        if reward.shape != nxt.get("reward_pred").shape:
+            raise ValueError(f"reward must have shape [B, T, 1], got {tuple(reward.shape)}")
+        losses["loss_model_reward"] = (
+            self.lambda_reward * 0.5 * (nxt.get("reward_pred") - reward.float()).pow(2).mean()
+        )
+        if cfg.discount_head:
+            not_terminated = 1.0 - self._read(tensordict, keys.terminated).float()
+            losses["loss_model_discount"] = self.lambda_discount * F.binary_cross_entropy_with_logits(
+                nxt.get("discount_logit"), not_terminated
+            )
+        if cfg.inverse_dynamics:
+            losses["loss_model_inverse"] = self.inverse_loss(out)["loss_inverse"]
+
+        kl_kwargs = {"balance": self.kl_balance, "free_nats": self.free_nats}
+        kl_loss, kl_control = balanced_kl(
+            nxt.get("posterior_mean"),
+            nxt.get("posterior_std"),
+            nxt.get("prior_mean"),
+            nxt.get("prior_std"),
+            **kl_kwargs,
+        )
+        losses["loss_model_kl_control"] = self.lambda_kl_control * kl_loss
+        diagnostics = {"kl_control": kl_control, "reco_mse": squared.detach().mean()}
+        if cfg.free_branch:
+            kl_loss, kl_free = balanced_kl(
+                nxt.get("free_posterior_mean"),
+                nxt.get("free_posterior_std"),
+                nxt.get("free_prior_mean"),
+                nxt.get("free_prior_std"),
+                **kl_kwargs,
+            )
+            if self.free_branch == "kl":
+                losses["loss_model_kl_free"] = self.lambda_kl_free * kl_loss
+            diagnostics["kl_free"] = kl_free
+        for name in ("control", "free", "static"):
+            mask = nxt.get(f"mask_{name}", None)
+            if mask is not None:
+                diagnostics[f"mask_{name}"] = mask.detach().mean()
+        result = TensorDict({**losses, **diagnostics}, [])
+        return result, out
+
+    @staticmethod
+    def total(losses: TensorDictBase) -> torch.Tensor:
+        """Sum of the ``loss_*`` entries."""
+        return sum(v for k, v in losses.items() if k.startswith("loss_"))
