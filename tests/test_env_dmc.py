@@ -123,14 +123,13 @@ def test_hard_background_covers_floor_that_easy_keeps(walker_envs):
     assert masks["video_hard"].sum() > masks["video_easy"].sum()
 
 
-def test_each_reset_plays_the_next_video():
-    env = _make("video_easy")
+def test_each_reset_plays_the_next_video(walker_envs):
+    env = walker_envs["video_easy"]
     env.reset(seed=0)
     names = [env.current_video]
     for _ in range(len(env.video_sources) - 1):
         env.reset()
         names.append(env.current_video)
-    env.close()
     assert sorted(names) == sorted(env.video_sources)
 
 
@@ -147,7 +146,8 @@ def test_train_and_eval_video_sets_are_disjoint(video_source):
 def test_natural_sources_load_as_rgb_frames():
     names = available_sources("train") + available_sources("eval")
     assert set(names) <= {s.name for s in NATURAL_SOURCES}, "natural imagery missing from installed packages"
-    for name in names:
+    # The 250-frame bikes clip takes seconds to decode; carphone exercises the same clip path.
+    for name in set(names) - {"bikes_clip"}:
         frames = load_source(name)
         assert frames.dtype == np.uint8 and frames.ndim == 4 and frames.shape[-1] == 3
         assert min(frames.shape[1:3]) >= 64 and frames.std() > 10
