@@ -79,10 +79,8 @@ def test_dmc_background_mask_appears_in_the_step_output_when_requested():
     assert td["next", "background_mask"].any()
 
 
-def test_pixels_are_the_gymnasium_frame_in_chw():
-    gym_env = SpritesEnv()
-    gym_env.reset(seed=4)
-    obs, _ = gym_env.reset()  # TorchRL's set_seed resets once with the seed; reset() starts the next episode
+def test_pixels_are_the_seeded_gymnasium_frame_in_chw():
+    obs, _ = SpritesEnv().reset(seed=4)
     td = make_env("sprites", seed=4).reset()
     np.testing.assert_array_equal(td["pixels"].permute(1, 2, 0).numpy(), obs)
 

@@ -1,10 +1,10 @@
 """One builder for every isodream-rl environment, returning TorchRL envs with the keys the world model reads.
 
-``make_env(name, **cfg)`` builds the gymnasium env, guards it against simulator faults, wraps it with
-TorchRL's ``GymWrapper`` and appends the transforms every recipe needs:
+``make_env(name, **cfg)`` builds the gymnasium env, guards it against simulator faults, exposes it to TorchRL
+(``GymPixelsEnv``) and appends the transforms every recipe needs:
 
-- ``"pixels"``: uint8 ``[3, H, W]`` (CHW; ``PermuteTransform`` of the gymnasium HWC frame, left uint8 so the
-  replay buffer stores bytes and the world model normalises on the fly);
+- ``"pixels"``: uint8 ``[3, H, W]`` (CHW view of the gymnasium HWC frame, left uint8 so the replay buffer
+  stores bytes and the world model normalises on the fly);
 - ``"action"``: float32 in [-1, 1];
 - ``"is_init"`` (``InitTracker``) and ``"step_count"`` (``StepCounter``);
 - ``("next", "reward")``: float32 ``[1]``; ``done``/``terminated``/``truncated``;
@@ -13,8 +13,9 @@ TorchRL's ``GymWrapper`` and appends the transforms every recipe needs:
   ``"mask_distractors"`` and ``"mask_target"`` for sprites, ``"background_mask"`` (the pixels showing the
   video) for DMC.
 
-TorchRL's ``GymWrapper`` is used as is (it already maps an HxWx3 uint8 Box to ``"pixels"``, reads info
-dicts and seeds through ``reset(seed=)``); only the fault guard and the info specs are ours.
+``GymPixelsEnv`` is a small ``EnvBase`` rather than TorchRL's ``GymWrapper``: the wrapper's generic
+observation, reward and info encoding plus a ``PermuteTransform`` cost about 3x the per-step overhead of a
+direct conversion, which is 10x the sprites step itself (see ``bench/env_speed.py``).
 """
 
 from __future__ import annotations
@@ -26,23 +27,15 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch
-from torchrl.data import Binary, Categorical, Composite
-from torchrl.envs import (
-    Compose,
-    EnvCreator,
-    GymWrapper,
-    InitTracker,
-    ParallelEnv,
-    PermuteTransform,
-    StepCounter,
-    TransformedEnv,
-)
-from torchrl.envs.gym_like import default_info_dict_reader
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import Compose, EnvBase, EnvCreator, InitTracker, ParallelEnv, StepCounter, TransformedEnv
 
 logger = logging.getLogger(__name__)
 
 SPRITES_MASK_KEYS = ("mask_agent", "mask_distractors", "mask_target")
 DMC_MASK_KEYS = ("background_mask",)
+_DONE_KEYS = ("done", "terminated", "truncated")
 
 
 class SimulatorFaultGuard(gym.Wrapper):
@@ -110,6 +103,86 @@ class SimulatorFaultGuard(gym.Wrapper):
         return obs, reward, terminated, truncated, info
 
 
+class GymPixelsEnv(EnvBase):
+    """A gymnasium env with HxWx3 uint8 frames and a [-1, 1] ``Box`` action, as a TorchRL ``EnvBase``.
+
+    Output keys: ``"pixels"`` uint8 ``[3, H, W]``, ``"sim_error"`` bool ``[]`` (from ``SimulatorFaultGuard``,
+    ``False`` when the env has no such info), the ``mask_keys`` info entries as bool ``[H, W]``, and
+    ``reward`` float32 ``[1]``, ``done``/``terminated``/``truncated`` bool ``[1]``. ``set_seed(s)`` makes the
+    next reset ``env.reset(seed=s)``; later resets continue the env's own generator.
+
+    Args:
+        env (gymnasium.Env): observation ``Box(0, 255, (H, W, 3), uint8)``, action ``Box(-1, 1, (A,))``.
+        device (torch.device or str, optional): device of the output tensors. Defaults to ``"cpu"``.
+        mask_keys (tuple of str, optional): bool ``[H, W]`` info entries copied into the output.
+    """
+
+    def __init__(
+        self, env: gym.Env, *, device: torch.device | str = "cpu", mask_keys: tuple[str, ...] = ()
+    ) -> None:
+        obs_space, act_space = env.observation_space, env.action_space
+        if not (
+            isinstance(obs_space, gym.spaces.Box)
+            and obs_space.dtype == np.uint8
+            and obs_space.shape[2:] == (3,)
+        ):
+            raise ValueError(f"GymPixelsEnv needs an HxWx3 uint8 Box observation, got {obs_space}.")
+        if not (isinstance(act_space, gym.spaces.Box) and len(act_space.shape) == 1):
+            raise ValueError(f"GymPixelsEnv needs a 1-d Box action space, got {act_space}.")
+        super().__init__(device=device, batch_size=())
+        self.env = env
+        self.mask_keys = tuple(mask_keys)
+        height, width = obs_space.shape[:2]
+        observations = {
+            "pixels": Bounded(0, 255, (3, height, width), dtype=torch.uint8, device=device),
+            "sim_error": Categorical(2, shape=(), dtype=torch.bool, device=device),
+        }
+        for key in self.mask_keys:
+            observations[key] = Binary(shape=(height, width), dtype=torch.bool, device=device)
+        self.observation_spec = Composite(observations)
+        self.action_spec = Bounded(-1.0, 1.0, act_space.shape, dtype=torch.float32, device=device)
+        self.reward_spec = Unbounded((1,), dtype=torch.float32, device=device)
+        self.full_done_spec = Composite(
+            {key: Categorical(2, shape=(1,), dtype=torch.bool, device=device) for key in _DONE_KEYS}
+        )
+        self._next_seed: int | None = None
+
+    def _observation(self, obs: np.ndarray, info: dict[str, Any]) -> dict[str, torch.Tensor]:
+        out = {
+            # A copy, not a view: a renderer may hand out the same buffer again at the next step.
+            "pixels": torch.from_numpy(obs).permute(2, 0, 1).contiguous(),
+            "sim_error": torch.tensor(bool(info.get("sim_error", False))),
+        }
+        for key in self.mask_keys:
+            out[key] = torch.from_numpy(np.asarray(info[key], dtype=bool))
+        return out
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
+        obs, info = self.env.reset(seed=self._next_seed)
+        self._next_seed = None
+        out = self._observation(obs, info)
+        for key in _DONE_KEYS:
+            out[key] = torch.zeros(1, dtype=torch.bool)
+        return TensorDict(out, batch_size=(), device=self.device)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get("action").detach().cpu().numpy()
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        out = self._observation(obs, info)
+        out["reward"] = torch.tensor([float(reward)], dtype=torch.float32)
+        out["terminated"] = torch.tensor([bool(terminated)])
+        out["truncated"] = torch.tensor([bool(truncated)])
+        out["done"] = torch.tensor([bool(terminated or truncated)])
+        return TensorDict(out, batch_size=(), device=self.device)
+
+    def _set_seed(self, seed: int | None) -> None:
+        self._next_seed = seed
+
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        self.env.close()
+        super().close(raise_if_closed=raise_if_closed)
+
+
 def wrap_gym_env(
     env: gym.Env,
     *,
@@ -122,32 +195,18 @@ def wrap_gym_env(
 
     Args:
         env (gymnasium.Env): observation ``Box(0, 255, (H, W, 3), uint8)``, ``Box`` action.
-        seed (int, optional): seeds the first reset; later resets continue the env's generator, so the
-            sequence of episodes is reproducible. Defaults to ``None`` (unseeded).
+        seed (int, optional): the first reset is ``env.reset(seed=seed)``; later resets continue the env's
+            generator, so the sequence of episodes is reproducible. Defaults to ``None`` (unseeded).
         device (torch.device or str, optional): device of the output tensors. Defaults to ``"cpu"``.
         mask_keys (tuple of str, optional): bool ``[H, W]`` info entries copied into the step output.
             Defaults to none.
         name (str, optional): name used in fault log lines.
 
     Returns:
-        TransformedEnv: see the module docstring for its keys.
+        TransformedEnv: ``GymPixelsEnv(SimulatorFaultGuard(env))`` with ``InitTracker`` and ``StepCounter``.
     """
-    space = env.observation_space
-    if not (isinstance(space, gym.spaces.Box) and space.dtype == np.uint8 and len(space.shape) == 3):
-        raise ValueError(f"wrap_gym_env needs an HxWx3 uint8 Box observation, got {space}.")
-    if space.shape[-1] != 3:
-        raise ValueError(f"wrap_gym_env needs HWC RGB frames (last dim 3), got shape {space.shape}.")
-    height, width = space.shape[:2]
-    base = GymWrapper(SimulatorFaultGuard(env, name=name), device=device)
-    info_spec = {"sim_error": Categorical(2, shape=(), dtype=torch.bool, device=device)}
-    for key in mask_keys:
-        info_spec[key] = Binary(shape=(height, width), dtype=torch.bool, device=device)
-    keys = list(info_spec)
-    base.set_info_dict_reader(default_info_dict_reader(keys, spec=Composite(info_spec, shape=())))
-    transformed = TransformedEnv(
-        base,
-        Compose(PermuteTransform((-1, -3, -2), in_keys=["pixels"]), InitTracker(), StepCounter()),
-    )
+    base = GymPixelsEnv(SimulatorFaultGuard(env, name=name), device=device, mask_keys=mask_keys)
+    transformed = TransformedEnv(base, Compose(InitTracker(), StepCounter()))
     if seed is not None:
         transformed.set_seed(seed)
     return transformed
@@ -281,6 +340,7 @@ def make_parallel_env(
 
 __all__ = [
     "DMC_MASK_KEYS",
+    "GymPixelsEnv",
     "SPRITES_MASK_KEYS",
     "SimulatorFaultGuard",
     "env_names",
