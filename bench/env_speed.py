@@ -8,7 +8,9 @@ Each env runs random actions in [-1, 1] (drawn before timing, seeded); each step
 median over ``--steps`` steps after a short warm-up is reported, so the occasional reset does not count. The
 JSON maps every env name, written as ``make_env`` takes it plus its view or background (``"sprites"``,
 ``"highway/first_person"``, ``"dmc/walker-walk/video_easy"``, ...), to its median ms per agent step through
-TorchRL; ``"details"`` holds the raw gymnasium times, the targets and the machine load during the run.
+TorchRL; ``"details"`` holds the raw gymnasium times, the process CPU time per step of both paths (less
+sensitive than wall time to other jobs sharing the cores; it includes llvmpipe's render threads), the
+targets and the machine load during the run.
 """
 
 from __future__ import annotations
@@ -45,35 +47,41 @@ for _domain, _task in (("walker", "walk"), ("cheetah", "run")):
 WARMUP = 10
 
 
-def _time_gym(name: str, cfg: dict, actions: np.ndarray) -> float:
+def _medians_ms(wall: list[float], cpu: list[float]) -> tuple[float, float]:
+    return 1e3 * statistics.median(wall), 1e3 * statistics.median(cpu)
+
+
+def _time_gym(name: str, cfg: dict, actions: np.ndarray) -> tuple[float, float]:
+    """Median wall and process-CPU ms of ``env.step`` on the raw gymnasium env."""
     env = make_gym_env(name, **cfg)
     env.reset(seed=0)
-    times = []
+    wall, cpu = [], []
     for i, action in enumerate(actions):
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         _, _, terminated, truncated, _ = env.step(action)
-        elapsed = time.perf_counter() - start
         if i >= WARMUP:
-            times.append(elapsed)
+            wall.append(time.perf_counter() - start)
+            cpu.append(time.process_time() - start_cpu)
         if terminated or truncated:
             env.reset()
     env.close()
-    return 1e3 * statistics.median(times)
+    return _medians_ms(wall, cpu)
 
 
-def _time_torchrl(name: str, cfg: dict, actions: np.ndarray) -> float:
+def _time_torchrl(name: str, cfg: dict, actions: np.ndarray) -> tuple[float, float]:
+    """Median wall and process-CPU ms of ``step_and_maybe_reset`` on ``make_env``, reset steps excluded."""
     env = make_env(name, seed=0, **cfg)
     td = env.reset()
-    times = []
+    wall, cpu = [], []
     for i, action in enumerate(torch.as_tensor(actions)):
         td.set("action", action)
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         _, td = env.step_and_maybe_reset(td)
-        elapsed = time.perf_counter() - start
         if i >= WARMUP and not td["is_init"].item():
-            times.append(elapsed)
+            wall.append(time.perf_counter() - start)
+            cpu.append(time.process_time() - start_cpu)
     env.close()
-    return 1e3 * statistics.median(times)
+    return _medians_ms(wall, cpu)
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -91,9 +99,16 @@ def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(1)
 
     results: dict[str, float] = {}
-    details: dict = {"gym_ms": {}, "targets_ms": {}, "steps": args.steps, "warmup": WARMUP}
+    details: dict = {
+        "gym_ms": {},
+        "torchrl_cpu_ms": {},
+        "gym_cpu_ms": {},
+        "targets_ms": {},
+        "steps": args.steps,
+        "warmup": WARMUP,
+    }
     load_before = os.getloadavg()
-    print(f"{'env':32s} {'gym ms':>8s} {'torchrl ms':>11s} {'target':>7s}")
+    print(f"{'env':28s} {'gym ms':>8s} {'(cpu)':>7s} {'torchrl ms':>11s} {'(cpu)':>7s} {'target':>7s}")
     for case in names:
         name, cfg, target = CASES[case]
         probe = make_gym_env(name, **cfg)
@@ -101,13 +116,17 @@ def main(argv: list[str] | None = None) -> dict:
         shape = probe.action_space.shape
         probe.close()
         actions = rng.uniform(-1.0, 1.0, size=(args.steps + WARMUP, *shape)).astype(np.float32)
-        gym_ms = _time_gym(name, cfg, actions)
-        torchrl_ms = _time_torchrl(name, cfg, actions)
+        gym_ms, gym_cpu = _time_gym(name, cfg, actions)
+        torchrl_ms, torchrl_cpu = _time_torchrl(name, cfg, actions)
         results[case] = round(torchrl_ms, 3)
         details["gym_ms"][case] = round(gym_ms, 3)
+        details["gym_cpu_ms"][case] = round(gym_cpu, 3)
+        details["torchrl_cpu_ms"][case] = round(torchrl_cpu, 3)
         details["targets_ms"][case] = target
         flag = "ok" if gym_ms <= target else "SLOW"  # targets are for the env itself
-        print(f"{case:32s} {gym_ms:8.3f} {torchrl_ms:11.3f} {target:7.1f} {flag}")
+        print(
+            f"{case:28s} {gym_ms:8.3f} {gym_cpu:7.3f} {torchrl_ms:11.3f} {torchrl_cpu:7.3f} {target:7.1f} {flag}"
+        )
     details["loadavg_before_after"] = [round(x, 2) for x in (*load_before, *os.getloadavg())]
     details["machine"] = {"cpu_count": os.cpu_count(), "python": platform.python_version()}
     details["env"] = {k: os.environ.get(k) for k in ("MUJOCO_GL", "SDL_VIDEODRIVER", "LP_NUM_THREADS")}
