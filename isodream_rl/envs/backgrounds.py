@@ -24,11 +24,13 @@ from PIL import Image
 SPLITS = ("train", "eval")
 VIDEO_SOURCES = ("natural", "procedural")
 
-# Longest side a still is kept at: a 0.35x zoom still samples ~90 px into a 64 px frame, and the
-# antialiased crop-resize costs ~0.5 ms per frame at this size (2.4 ms at 512).
-_MAX_STILL_SIDE = 256
+# Shorter side a still is kept at (the pan/zoom window is a fraction of it): a 0.35x zoom still samples
+# ~90 px into a 64 px frame, and the antialiased crop-resize costs ~0.3 ms per frame (2.4 ms at 512).
+_STILL_SHORT_SIDE = 256
 # Clips are decoded once per process and kept in memory, so they are stored small.
 _CLIP_HEIGHT = 144
+# Fastest pan, in output pixels per agent step.
+_MAX_PAN_PX = 3.0
 
 
 @dataclass(frozen=True)
@@ -164,8 +166,8 @@ def available_sources(split: str, video_source: str = "natural") -> tuple[str, .
     return natural or procedural
 
 
-def _limit_size(image: Image.Image, max_side: int) -> Image.Image:
-    scale = max_side / max(image.size)
+def _limit_size(image: Image.Image, short_side: int) -> Image.Image:
+    scale = short_side / min(image.size)
     if scale >= 1:
         return image
     return image.resize((round(image.width * scale), round(image.height * scale)), Image.LANCZOS)
@@ -250,7 +252,7 @@ def _read_source(name: str) -> np.ndarray:
         # A horizontal cube-map cross: the middle row of faces is a 360 degree panorama of the horizon.
         face = image.height // 3
         image = image.crop((0, face, image.width, 2 * face))
-    return np.array(_limit_size(image, _MAX_STILL_SIDE))[None]
+    return np.array(_limit_size(image, _STILL_SHORT_SIDE))[None]
 
 
 @functools.cache
@@ -263,7 +265,9 @@ class PanZoomVideo:
     """One background video: a source seen through a square window that pans and zooms smoothly.
 
     The window's centre and size follow sinusoids with random periods and phases, so the motion never
-    stops and never jumps; clips also play forward then backward (as DMControl-GB loops its videos).
+    stops and never jumps. Periods are lengthened where needed so the window never slides more than
+    ``_MAX_PAN_PX`` output pixels per step (a wide panorama would otherwise sweep past in a blur). Clips
+    also play forward then backward, as the Distracting Control Suite does.
 
     Args:
         images (Sequence[PIL.Image.Image]): the source's frames (one for a still), all of one size.
@@ -281,6 +285,12 @@ class PanZoomVideo:
         zoom_low = 0.35 if len(images) == 1 else 0.65
         self._zoom_low, self._zoom_high = zoom_low, rng.uniform(zoom_low + 0.2, 1.0)
         self._periods = rng.uniform(80.0, 240.0, size=3)
+        # The window edge moves at most pi * travel / period source pixels per step.
+        smallest_window = zoom_low * self._side
+        travel = np.array([width, height]) - smallest_window
+        self._periods[:2] = np.maximum(
+            self._periods[:2], np.pi * travel / (_MAX_PAN_PX * smallest_window / size)
+        )
         self._phases = rng.uniform(0.0, 2 * np.pi, size=3)
         self._frame_offset = int(rng.integers(len(images)))
 
