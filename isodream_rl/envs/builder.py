@@ -73,7 +73,7 @@ class SimulatorFaultGuard(gym.Wrapper):
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         obs, info = self.env.reset(seed=seed, options=options)
-        info = dict(info, sim_error=np.False_)
+        info = dict(info, sim_error=False)
         self._last_obs, self._last_info, self._episode_steps = obs, info, 0
         return obs, info
 
@@ -88,7 +88,7 @@ class SimulatorFaultGuard(gym.Wrapper):
         self._episode_steps += 1
         try:
             obs, reward, terminated, truncated, info = self.env.step(action)
-        except Exception as err:  # noqa: BLE001 - any simulator failure ends the episode, see the docstring
+        except Exception as err:  # any simulator failure ends the episode, see the docstring
             logger.warning(
                 "%s: the simulator raised %s: %s at step %d of the episode; ending the episode "
                 "(truncated=True, info['sim_error']=True).",
@@ -97,8 +97,8 @@ class SimulatorFaultGuard(gym.Wrapper):
                 err,
                 self._episode_steps,
             )
-            return self._last_obs, 0.0, False, True, dict(self._last_info, sim_error=np.True_)
-        info = dict(info, sim_error=np.False_)
+            return self._last_obs, 0.0, False, True, dict(self._last_info, sim_error=True)
+        info = dict(info, sim_error=False)
         self._last_obs, self._last_info = obs, info
         return obs, reward, terminated, truncated, info
 
@@ -127,8 +127,16 @@ class GymPixelsEnv(EnvBase):
             and obs_space.shape[2:] == (3,)
         ):
             raise ValueError(f"GymPixelsEnv needs an HxWx3 uint8 Box observation, got {obs_space}.")
-        if not (isinstance(act_space, gym.spaces.Box) and len(act_space.shape) == 1):
-            raise ValueError(f"GymPixelsEnv needs a 1-d Box action space, got {act_space}.")
+        if not (
+            isinstance(act_space, gym.spaces.Box)
+            and len(act_space.shape) == 1
+            and (act_space.low == -1).all()
+            and (act_space.high == 1).all()
+        ):
+            raise ValueError(
+                f"GymPixelsEnv needs a Box(-1, 1, (A,)) action space, got {act_space}; "
+                "SimulatorFaultGuard rescales other bounds."
+            )
         super().__init__(device=device, batch_size=())
         self.env = env
         self.mask_keys = tuple(mask_keys)
