@@ -169,14 +169,15 @@ def test_video_stream_is_deterministic_by_seed():
     assert not np.array_equal(clip(1), clip(2))
 
 
-def test_truncates_after_max_sim_steps_and_sums_repeat_rewards():
-    repeat2 = _make("none", max_sim_steps=9)
+def test_truncates_after_max_sim_steps_and_sums_repeat_rewards_and_renders_last_obs():
+    repeat2 = _make("none", max_sim_steps=9, render_mode="rgb_array")
     repeat1 = _make("none", action_repeat=1)
     repeat2.reset(seed=1)
     repeat1.reset(seed=1)
     actions = _actions(repeat2, 5, seed=3)
     for i, action in enumerate(actions):
-        _, reward, terminated, truncated, _ = repeat2.step(action)
+        obs, reward, terminated, truncated, _ = repeat2.step(action)
+        np.testing.assert_array_equal(repeat2.render(), obs)
         expected = repeat1.step(action)[1]
         if i < 4:
             expected += repeat1.step(action)[1]
