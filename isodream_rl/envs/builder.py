@@ -325,7 +325,8 @@ def make_parallel_env(
     Args:
         name (str): see ``make_env``.
         num_workers (int): number of worker processes, >= 1.
-        seed (int, optional): worker ``i`` is seeded with ``seed + i``.
+        seed (int, optional): worker 0 is seeded with ``seed``, each next worker with the seed TorchRL's
+            ``set_seed`` chain derives from the previous one (distinct and deterministic).
         device (torch.device or str, optional): device of the output tensors. Defaults to ``"cpu"``.
         mp_start_method (str, optional): ``"fork"`` starts workers in about a second; TorchRL's default
             (``"spawn"``) re-imports torch in each worker, which takes 10+ s on a busy 2-core machine.
