@@ -144,6 +144,8 @@ def test_bad_arguments_raise_clear_errors():
     with pytest.raises(ValueError, match="image_size"):
         SpritesEnv(image_size=8)
     env = SpritesEnv()
+    with pytest.raises(RuntimeError, match="before reset"):
+        env.step(np.zeros(2))
     env.reset(seed=0)
     with pytest.raises(ValueError, match=r"shape \(2,\).*\(3,\)"):
         env.step(np.zeros(3))

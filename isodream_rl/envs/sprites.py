@@ -158,7 +158,7 @@ class SpritesEnv(gym.Env):
         self._distractors = np.zeros((num_distractors, 2))
         self._velocities = np.zeros((num_distractors, 2))
         self._target = np.zeros(2)
-        self._steps = 0
+        self._steps = -1  # -1 until the first reset
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         """Starts an episode: new background, sprite positions, distractor velocities and target.
@@ -195,6 +195,8 @@ class SpritesEnv(gym.Env):
         Returns:
             ``(obs, reward, terminated, truncated, info)``; ``terminated`` is always ``False``.
         """
+        if self._steps < 0:
+            raise RuntimeError("SpritesEnv.step() called before reset().")
         action = np.asarray(action, dtype=np.float64)
         if action.shape != (2,):
             raise ValueError(f"SpritesEnv expects an action of shape (2,), got shape {action.shape}.")
