@@ -109,6 +109,20 @@ def test_mask_is_exactly_sky_and_floor_of_segmentation(walker_envs, background):
         np.testing.assert_array_equal(obs[outside], obs_plain[outside])
 
 
+def test_mask_stays_exact_without_shadows():
+    video, plain = _make("video_easy", shadows=False), _make("none", shadows=False)
+    video.reset(seed=2)
+    plain.reset(seed=2)
+    for action in _actions(video, 3):
+        obs, *_, info = video.step(action)
+        obs_plain, *_ = plain.step(action)
+        seg = video._env.physics.render(64, 64, camera_id=video.camera_id, segmentation=True)
+        np.testing.assert_array_equal(info["background_mask"], _floor_and_sky(video, seg))
+        np.testing.assert_array_equal(obs[~info["background_mask"]], obs_plain[~info["background_mask"]])
+    video.close()
+    plain.close()
+
+
 def test_plain_env_replaces_nothing(walker_envs):
     _, info = walker_envs["none"].reset(seed=0)
     assert not info["background_mask"].any()
