@@ -35,7 +35,15 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
 from torchrl.data import Unbounded
-from torchrl.modules import MLP, ObsDecoder, ObsEncoder, RSSMPosterior, RSSMPrior, RSSMRollout, WorldModelWrapper
+from torchrl.modules import (
+    MLP,
+    ObsDecoder,
+    ObsEncoder,
+    RSSMPosterior,
+    RSSMPrior,
+    RSSMRollout,
+    WorldModelWrapper,
+)
 from torchrl.objectives import DreamerModelLoss
 
 from isodream_rl.modules import SIZE_PRESETS, IsoDreamWorldModel, WorldModelConfig
@@ -43,7 +51,9 @@ from isodream_rl.objectives import IsoDreamModelLoss
 
 
 def torchrl_dreamer(size: dict, action_dim: int, channels_last: bool) -> DreamerModelLoss:
-    depth, stoch, deter, hidden, units = (size[k] for k in ("depth", "state_dim", "belief_dim", "hidden_dim", "units"))
+    depth, stoch, deter, hidden, units = (
+        size[k] for k in ("depth", "state_dim", "belief_dim", "hidden_dim", "units")
+    )
     encoder = ObsEncoder(channels=depth, num_layers=4, in_channels=3)
     decoder = ObsDecoder(channels=depth, num_layers=4, latent_dim=stoch + deter)
     if channels_last:
@@ -56,7 +66,9 @@ def torchrl_dreamer(size: dict, action_dim: int, channels_last: bool) -> Dreamer
         state_dim=stoch,
         action_dim=action_dim,
     )
-    posterior = RSSMPosterior(hidden_dim=hidden, state_dim=stoch, rnn_hidden_dim=deter, obs_embed_dim=32 * depth)
+    posterior = RSSMPosterior(
+        hidden_dim=hidden, state_dim=stoch, rnn_hidden_dim=deter, obs_embed_dim=32 * depth
+    )
     transition = TensorDictSequential(
         TensorDictModule(encoder, in_keys=[("next", "pixels")], out_keys=[("next", "encoded_latents")]),
         RSSMRollout(
@@ -71,7 +83,9 @@ def torchrl_dreamer(size: dict, action_dim: int, channels_last: bool) -> Dreamer
                 out_keys=[("next", "posterior_mean"), ("next", "posterior_std"), ("next", "state")],
             ),
         ),
-        TensorDictModule(decoder, in_keys=[("next", "state"), ("next", "belief")], out_keys=[("next", "reco_pixels")]),
+        TensorDictModule(
+            decoder, in_keys=[("next", "state"), ("next", "belief")], out_keys=[("next", "reco_pixels")]
+        ),
     )
     reward = TensorDictModule(
         MLP(in_features=stoch + deter, out_features=1, depth=2, num_cells=units, activation_class=nn.ELU),
@@ -81,7 +95,9 @@ def torchrl_dreamer(size: dict, action_dim: int, channels_last: bool) -> Dreamer
     return DreamerModelLoss(WorldModelWrapper(transition, reward), free_nats=1.0)
 
 
-def make_batch(batch: int, time_: int, action_dim: int, size: dict, *, float_pixels: bool, channels_last: bool):
+def make_batch(
+    batch: int, time_: int, action_dim: int, size: dict, *, float_pixels: bool, channels_last: bool
+):
     pixels = torch.randint(0, 256, (batch, time_, 3, 64, 64), dtype=torch.uint8)
     td = TensorDict(
         {
@@ -96,7 +112,9 @@ def make_batch(batch: int, time_: int, action_dim: int, size: dict, *, float_pix
         td["state"] = torch.zeros(batch, time_, size["state_dim"])
         td["belief"] = torch.zeros(batch, time_, size["belief_dim"])
     if channels_last:
-        pixels = pixels.reshape(-1, 3, 64, 64).contiguous(memory_format=torch.channels_last).reshape(pixels.shape)
+        pixels = (
+            pixels.reshape(-1, 3, 64, 64).contiguous(memory_format=torch.channels_last).reshape(pixels.shape)
+        )
     td["next", "pixels"] = pixels
     return td
 
@@ -149,16 +167,26 @@ def main(argv=None):
     B, T, A = args.batch_size, args.time, args.action_dim
 
     def ours(precision, channels_last):
-        cfg = WorldModelConfig.from_preset(args.size, action_dim=A, precision=precision, channels_last=channels_last)
+        cfg = WorldModelConfig.from_preset(
+            args.size, action_dim=A, precision=precision, channels_last=channels_last
+        )
         loss = IsoDreamModelLoss(IsoDreamWorldModel(cfg))
         batch = make_batch(B, T, A, size, float_pixels=False, channels_last=False)
         # our model applies its own autocast (GRU and losses stay fp32), so the outer one is off
-        return Variant(f"ours_{precision}_{'cl' if channels_last else 'nchw'}", loss, batch, "fp32", loss.parameters)
+        return Variant(
+            f"ours_{precision}_{'cl' if channels_last else 'nchw'}", loss, batch, "fp32", loss.parameters
+        )
 
     def theirs(precision, channels_last):
         loss = torchrl_dreamer(size, A, channels_last)
         batch = make_batch(B, T, A, size, float_pixels=True, channels_last=channels_last)
-        return Variant(f"torchrl_{precision}_{'cl' if channels_last else 'nchw'}", loss, batch, precision, loss.parameters)
+        return Variant(
+            f"torchrl_{precision}_{'cl' if channels_last else 'nchw'}",
+            loss,
+            batch,
+            precision,
+            loss.parameters,
+        )
 
     builders = {
         "ours_fp32_cl": lambda: ours("fp32", True),
@@ -177,12 +205,19 @@ def main(argv=None):
     for i in range(args.steps):
         for v in variants:
             v.times.append(v.step())
-        print(f"round {i + 1}/{args.steps}: " + ", ".join(f"{v.name} {1e3 * v.times[-1]:.0f} ms" for v in variants))
+        print(
+            f"round {i + 1}/{args.steps}: "
+            + ", ".join(f"{v.name} {1e3 * v.times[-1]:.0f} ms" for v in variants)
+        )
 
     results = {}
     for v in variants:
         ms = 1e3 * statistics.median(v.times)
-        results[v.name] = {"ms": round(ms, 1), "gflop": round(v.flops / 1e9, 1), "gflop_per_s": round(v.flops / ms / 1e6, 1)}
+        results[v.name] = {
+            "ms": round(ms, 1),
+            "gflop": round(v.flops / 1e9, 1),
+            "gflop_per_s": round(v.flops / ms / 1e6, 1),
+        }
     ms = {k: r["ms"] for k, r in results.items()}
 
     def ratio(a, b):

@@ -377,3 +377,12 @@ def test_total_loss_falls_when_overfitting_one_batch(precision):
     assert all(math.isfinite(h) for h in history)
     first, last = np.mean(history[:5]), np.mean(history[-5:])
     assert last < 0.5 * first, (first, last)
+
+
+def test_decoder_matmul_first_layer_equals_the_transposed_convolution():
+    from isodream_rl.modules import ConvDecoder
+
+    decoder = ConvDecoder(in_features=20, out_channels=4, depth=4)
+    latent = torch.randn(3, 20)
+    reference = decoder.deconv(decoder.linear(latent)[:, :, None, None])
+    torch.testing.assert_close(decoder(latent), reference, rtol=1e-5, atol=1e-5)

@@ -54,7 +54,9 @@ def branch_grid(output: TensorDictBase, *, sample: int = 0, steps: int = 10, sca
     for r, (label, key, kind) in enumerate(rows):
         draw.text((4, r * tile + tile // 2 - 6), label, fill="black")
         for c, t in enumerate(columns):
-            image = Image.fromarray(_to_uint8(output.get(key)[sample, t], kind)).resize((tile, tile), Image.NEAREST)
+            image = Image.fromarray(_to_uint8(output.get(key)[sample, t], kind)).resize(
+                (tile, tile), Image.NEAREST
+            )
             grid.paste(image, (label_width + c * tile, r * tile))
     return grid
 

@@ -73,7 +73,9 @@ def main(argv=None) -> dict:
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     if args.episode_length % args.window:
-        raise SystemExit(f"--episode-length ({args.episode_length}) must be a multiple of --window ({args.window})")
+        raise SystemExit(
+            f"--episode-length ({args.episode_length}) must be a multiple of --window ({args.window})"
+        )
 
     print(f"collecting {args.episodes} random-action sprites episodes of {args.episode_length} steps ...")
     train = collect_sprites_episodes(episodes=args.episodes, steps=args.episode_length, seed=args.seed)
@@ -110,8 +112,12 @@ def main(argv=None) -> dict:
     checkpoint = out_dir / "world_model.pt"
     tmp = checkpoint.with_suffix(".tmp")
     torch.save(
-        {"config": config.to_dict(), "model": loss.world_model.state_dict(), "optimizer": optimizer.state_dict(),
-         "step": args.steps},
+        {
+            "config": config.to_dict(),
+            "model": loss.world_model.state_dict(),
+            "optimizer": optimizer.state_dict(),
+            "step": args.steps,
+        },
         tmp,
     )
     os.replace(tmp, checkpoint)
