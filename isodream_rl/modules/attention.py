@@ -6,8 +6,8 @@ code the attention has learned query/key/value projections of width 500, a scale
 over the window, an output projection and the residual ``e = o + q``; ``projections=False`` is the
 paper's literal ``e = softmax(s z^T) z + s``.
 
-The projected form is evaluated without projecting the window: ``(W_q q) . (W_k z_i + b_k)`` equals
-``((W_q q) W_k) . z_i`` plus a term that is the same for every ``i`` (so the softmax drops it), and
+The projected form is evaluated without projecting the window: ``(W_q q) . (W_k z_i)`` equals
+``((W_q q) W_k) . z_i``, and
 ``sum_i a_i (W_v z_i + b_v) = W_v (sum_i a_i z_i) + b_v`` because the weights sum to one. The cost per
 query is four ``F x width`` products whatever ``tau`` is, and a window shared between steps (the
 Iso-Dream imagination) is never copied or projected ``tau`` times. The result is the standard attention
@@ -65,7 +65,8 @@ class FutureStateAttention(nn.Module):
         self.projections = projections
         if projections:
             self.query = nn.Linear(query_dim, width, device=device)
-            self.key = nn.Linear(key_dim, width, device=device)
+            # A key bias adds the same score to every window entry, which the softmax cancels: omitted.
+            self.key = nn.Linear(key_dim, width, bias=False, device=device)
             self.value = nn.Linear(key_dim, width, device=device)
             self.output = nn.Linear(width, query_dim, device=device)
 
