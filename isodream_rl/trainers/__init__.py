@@ -1,0 +1,37 @@
+"""Training recipes: configuration, TorchRL Trainer assembly, optimisation stepper, hooks, checkpoints."""
+
+# Before torchrl: sets the headless rendering defaults that mujoco reads at import time.
+import isodream_rl.envs  # noqa: F401  isort: skip
+from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
+from isodream_rl.trainers.config import (
+    AlgoConfig,
+    CheckpointConfig,
+    ConfigError,
+    EnvConfig,
+    LoggingConfig,
+    ModelConfig,
+    RunConfig,
+    TrainConfig,
+    validate_config,
+)
+from isodream_rl.trainers.run import RunResult, evaluate_checkpoint, train
+from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper, NonFiniteLossError
+
+__all__ = [
+    "AlgoConfig",
+    "CheckpointConfig",
+    "CheckpointError",
+    "CheckpointManager",
+    "ConfigError",
+    "EnvConfig",
+    "IsoDreamOptimizationStepper",
+    "LoggingConfig",
+    "ModelConfig",
+    "NonFiniteLossError",
+    "RunConfig",
+    "RunResult",
+    "TrainConfig",
+    "evaluate_checkpoint",
+    "train",
+    "validate_config",
+]

@@ -1,0 +1,201 @@
+"""Builders of the TorchRL pieces of a run: env, collector, replay buffer, world model and loss, optimisers, logger."""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import nn
+from torchrl.collectors import Collector
+from torchrl.data import LazyMemmapStorage, SliceSampler, TensorDictReplayBuffer
+from torchrl.envs import EnvBase
+from torchrl.record.loggers import Logger, get_logger
+
+from isodream_rl.envs import make_env
+from isodream_rl.modules import (
+    IsoDreamActor,
+    IsoDreamValue,
+    IsoDreamWorldModel,
+    PolicyInput,
+    WorldModelConfig,
+)
+from isodream_rl.modules.policy import IsoDreamPolicy
+from isodream_rl.objectives import (
+    IsoDreamActorLoss,
+    IsoDreamImagination,
+    IsoDreamModelLoss,
+    IsoDreamValueLoss,
+    make_target_updater,
+)
+from isodream_rl.trainers.config import RunConfig, world_model_overrides
+
+#: What the replay buffer stores per step. The root ``"pixels"`` is left out: it is the previous step's
+#: ``("next", "pixels")``, and the world model filters ``o_{t+1}`` only, so storing it would double the bytes.
+REPLAY_KEYS = (
+    "action",
+    "is_init",
+    ("next", "pixels"),
+    ("next", "reward"),
+    ("next", "done"),
+    ("next", "terminated"),
+    ("next", "truncated"),
+    ("collector", "traj_ids"),
+)
+TRAJ_KEY = ("collector", "traj_ids")
+
+
+def env_factory(cfg: RunConfig, *, eval_mode: bool = False) -> functools.partial:
+    """A picklable ``() -> EnvBase`` for ``cfg.env`` (evaluation envs use the test video split on DMC)."""
+    kwargs = dict(cfg.env.kwargs)
+    if eval_mode and cfg.env.name.startswith("dmc_"):
+        kwargs.setdefault("video_split", "test")
+    return functools.partial(make_env, cfg.env.name, **kwargs)
+
+
+def action_dim_of(env: EnvBase) -> int:
+    """Width of the env's action vector."""
+    return int(env.action_spec.shape[-1])
+
+
+def make_collector(
+    cfg: RunConfig, policy, *, total_frames: int, init_random_frames: int, env_transform=None
+) -> Collector:
+    """TorchRL ``Collector``: one env in this process, or ``num_envs`` worker processes (or remote workers).
+
+    Args:
+        cfg: the run configuration (``env``, ``train.frames_per_batch``, ``train.collector_backend``).
+        policy: the acting policy (:class:`~isodream_rl.modules.IsoDreamPolicy`).
+        total_frames: agent steps still to collect (the whole run minus what a resumed run already has).
+        init_random_frames: random-policy steps still to collect (the prefill).
+        env_transform: ``() -> Transform`` appended to each env (the policy's recurrent-state primer).
+    """
+    train, num_envs = cfg.train, cfg.env.num_envs
+    make = env_factory(cfg)
+    if env_transform is not None:
+        make = functools.partial(_with_transform, make, env_transform)
+    backend = train.collector_backend
+    if backend == "sync":
+        backend = "direct" if num_envs == 1 else "process"
+    elif backend == "multiprocess":
+        backend = "process"
+    kwargs = {}
+    if backend != "direct":
+        kwargs.update(num_collectors=num_envs, sync=True)
+    collector = Collector(
+        make if backend == "direct" else [make] * num_envs,
+        policy,
+        backend=backend,
+        frames_per_batch=train.frames_per_batch,
+        total_frames=total_frames,
+        init_random_frames=init_random_frames,
+        device=train.device,
+        storing_device="cpu",
+        **kwargs,
+    )
+    collector.set_seed(train.seed)
+    return collector
+
+
+def _with_transform(make, transform_factory):
+    env = make()
+    env.append_transform(transform_factory())
+    return env
+
+
+def make_replay_buffer(cfg: RunConfig, *, scratch_dir: str | Path) -> TensorDictReplayBuffer:
+    """``TensorDictReplayBuffer(LazyMemmapStorage, SliceSampler)`` over episodes, windows of ``T`` steps.
+
+    The storage is ``[capacity / num_envs, num_envs]`` (``ndim=2``), so each env's steps stay contiguous and
+    a window never mixes envs; ``sample()`` returns ``[B * T]`` steps, ``B`` windows one after the other.
+    ``SliceSampler`` sets ``is_init`` at each window start, which the world model treats as a fresh start,
+    the same as its zero initial state.
+    """
+    train = cfg.train
+    storage = LazyMemmapStorage(
+        train.buffer_size, scratch_dir=str(scratch_dir), ndim=2 if cfg.env.num_envs > 1 else 1
+    )
+    sampler = SliceSampler(slice_len=train.sequence_length, traj_key=TRAJ_KEY, strict_length=True)
+    return TensorDictReplayBuffer(
+        storage=storage, sampler=sampler, batch_size=train.batch_size * train.sequence_length
+    )
+
+
+def make_world_model_config(cfg: RunConfig, *, action_dim: int) -> WorldModelConfig:
+    """``WorldModelConfig`` of the size preset with the algorithm's branch switches."""
+    return WorldModelConfig.from_preset(cfg.model.size, action_dim=action_dim, **world_model_overrides(cfg))
+
+
+def make_world_model_loss(cfg: RunConfig, *, action_dim: int) -> IsoDreamModelLoss:
+    """The world model and its loss (eq. 5) with the algorithm's weights and free-branch mode."""
+    world_model = IsoDreamWorldModel(
+        make_world_model_config(cfg, action_dim=action_dim), device=cfg.train.device
+    )
+    algo = cfg.algo
+    return IsoDreamModelLoss(
+        world_model,
+        lambda_reward=algo.lambda_reward,
+        lambda_inverse=algo.lambda_inverse,
+        free_nats=algo.free_nats,
+        kl_balance=algo.kl_balance,
+        free_branch=algo.free_branch_loss,
+    )
+
+
+def make_adam(params, *, lr: float, eps: float) -> torch.optim.Adam:
+    """Adam over ``params`` (the paper's optimiser for all three parameter groups)."""
+    params = list(params)
+    if not params:
+        raise ValueError("an optimiser needs at least one parameter")
+    return torch.optim.Adam(params, lr=lr, eps=eps)
+
+
+def make_logger(cfg: RunConfig, *, run_dir: str | Path) -> Logger:
+    """TorchRL logger (``get_logger``) writing under ``<run_dir>/logs``."""
+    return get_logger(cfg.logging.backend, logger_name=str(Path(run_dir) / "logs"), experiment_name="train")
+
+
+def count_parameters(module: nn.Module) -> int:
+    """Number of trainable parameters."""
+    return sum(p.numel() for p in module.parameters() if p.requires_grad)
+
+
+@dataclass
+class Behavior:
+    """The behaviour side of a run (paper §3.3-3.4): policy input, actor, value, their losses and the policy."""
+
+    policy_input: PolicyInput
+    actor_loss: IsoDreamActorLoss
+    value_loss: IsoDreamValueLoss
+    target_updater: object
+    policy: IsoDreamPolicy
+
+
+def make_behavior(cfg: RunConfig, world_model: IsoDreamWorldModel) -> Behavior:
+    """Future-state attention (or plain [s, h]), actor, value with its slow target, losses and acting policy."""
+    algo, model, device = cfg.algo, cfg.model, cfg.train.device
+    policy_input = PolicyInput.for_world_model(
+        world_model, mode=algo.policy_input, window=algo.attention_window, width=model.attention_dim
+    )
+    imagination = IsoDreamImagination(world_model, policy_input, horizon=algo.horizon)
+    value_loss = IsoDreamValueLoss(
+        IsoDreamValue(in_features=policy_input.out_features, num_cells=model.value_units, device=device),
+        imagination,
+    )
+    actor = IsoDreamActor(
+        in_features=policy_input.out_features,
+        action_dim=world_model.config.action_dim,
+        num_cells=model.actor_units,
+        device=device,
+    )
+    actor_loss = IsoDreamActorLoss(
+        actor, imagination, value_loss, gamma=algo.gamma, lmbda=algo.lmbda, entropy_bonus=algo.actor_entropy
+    )
+    return Behavior(
+        policy_input=policy_input,
+        actor_loss=actor_loss,
+        value_loss=value_loss,
+        target_updater=make_target_updater(value_loss, period=algo.slow_target_every),
+        policy=IsoDreamPolicy(world_model, actor, policy_input),
+    )

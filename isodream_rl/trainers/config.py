@@ -1,0 +1,299 @@
+"""Training configuration: typed dataclasses (the Hydra schema) and the cross-field checks run before training.
+
+The YAML groups in ``isodream_rl/configs`` (``env``, ``size``, ``algo``) fill these dataclasses; Hydra checks
+types against them, and :func:`validate_config` rejects impossible combinations with a message saying what to
+change, before any env or model is built.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from isodream_rl.modules.config import SIZE_PRESETS
+from isodream_rl.objectives.world_model import FREE_BRANCH_MODES
+
+POLICY_INPUTS = ("controllable", "attention", "concat")
+COLLECTOR_BACKENDS = ("sync", "multiprocess", "ray", "distributed")
+LOGGER_BACKENDS = ("csv", "tensorboard", "wandb")
+ALGO_NAMES = ("isodream", "dreamerv2", "isodream_no_inverse", "isodream_no_attention", "isodream_no_static")
+
+
+class ConfigError(ValueError):
+    """An invalid training configuration; the message names the field and what to change."""
+
+
+@dataclass
+class EnvConfig:
+    """Which environment to train on and how many copies to run."""
+
+    name: str = "sprites"
+    """``"sprites"``, ``"highway"`` or ``"dmc_<domain>_<task>"`` (see ``isodream_rl.envs.env_names``)."""
+    kwargs: dict[str, Any] = field(default_factory=dict)
+    """Constructor arguments of the env class (e.g. ``task``, ``vehicles_count``, ``background``)."""
+    num_envs: int = 1
+    """Envs collecting in parallel; above 1 a multi-process TorchRL collector runs one env per process."""
+    action_repeat: int = 1
+    """Simulator steps per agent step, as the env applies it (only used to report simulator frames)."""
+
+
+@dataclass
+class ModelConfig:
+    """World-model and behaviour sizes; ``size`` picks a preset of ``WorldModelConfig``."""
+
+    size: str = "small"
+    """``"paper"``, ``"small"`` or ``"tiny"`` (``isodream_rl.modules.SIZE_PRESETS``)."""
+    overrides: dict[str, Any] = field(default_factory=dict)
+    """Extra ``WorldModelConfig`` fields (e.g. ``precision: bf16``)."""
+    actor_units: int = 400
+    """Width of the actor MLP (4 layers in the paper)."""
+    value_units: int = 400
+    """Width of the value MLP (3 layers in the paper)."""
+    attention_dim: int = 500
+    """Width of the future-state attention's Q/K/V projections (500 in the authors' code)."""
+
+
+@dataclass
+class AlgoConfig:
+    """The algorithm variant: which branches exist, how they learn and what the policy reads."""
+
+    name: str = "isodream"
+    """Preset name, one of ``ALGO_NAMES`` (informational once the fields are set)."""
+    free_branch: bool = True
+    """The action-free (noncontrollable) branch."""
+    static_branch: bool = True
+    """The static background branch."""
+    inverse_dynamics: bool = True
+    """The inverse-dynamics cell and its loss."""
+    free_branch_loss: str = "kl"
+    """``"kl"`` (CARLA: the free branch has its KL term) or ``"recon_only"`` (DMC, paper §3.2)."""
+    reward_uses_free: bool = False
+    """Reward head on ``[s, h, z, h']`` (CARLA) instead of ``[s, h]`` (DMC)."""
+    policy_input: str = "attention"
+    """``"controllable"`` ([s, h], DMC), ``"attention"`` (eq. 6, CARLA) or ``"concat"`` ([s, h, z, h'])."""
+    attention_window: int = 5
+    """tau, the number of noncontrollable states the attention reads (current plus tau - 1 future)."""
+    horizon: int = 15
+    """L, the imagination horizon."""
+    gamma: float = 0.99
+    """Discount of the lambda-returns."""
+    lmbda: float = 0.95
+    """lambda of the lambda-returns."""
+    actor_entropy: float = 1e-4
+    """Entropy bonus of the actor loss."""
+    lambda_reward: float = 1.0
+    """Weight of the reward log-loss (``reward_scale``: 2 in the authors' DMC and CARLA configs)."""
+    lambda_inverse: float = 1.0
+    """alpha, the weight of the inverse-dynamics loss."""
+    free_nats: float = 1.0
+    """Free nats of each branch's KL."""
+    kl_balance: float = 0.8
+    """DreamerV2 KL balancing."""
+    slow_target_every: int = 100
+    """Updates between hard copies of the value network into its slow target."""
+
+
+@dataclass
+class TrainConfig:
+    """Collection schedule, replay, optimisers and fault handling (Algorithm 1 and Appendix E)."""
+
+    total_steps: int = 100_000
+    """Agent steps to collect (prefill included)."""
+    prefill_steps: int = 2500
+    """Random-policy steps before the first update."""
+    train_every: int = 5
+    """Agent steps per update (the train ratio)."""
+    frames_per_batch: int = 100
+    """Agent steps per collector batch, all envs together; a multiple of ``train_every * num_envs``."""
+    batch_size: int = 50
+    """Replay windows per update (B)."""
+    sequence_length: int = 50
+    """Length of each replay window (T)."""
+    buffer_size: int = 100_000
+    """Replay capacity in agent steps (uint8 pixels on disk: ~12 KB per step)."""
+    world_model_lr: float = 3e-4
+    """Adam learning rate of the world model."""
+    actor_lr: float = 8e-5
+    """Adam learning rate of the actor."""
+    value_lr: float = 8e-5
+    """Adam learning rate of the value network and the future-state attention."""
+    adam_eps: float = 1e-5
+    """Adam epsilon of all three optimisers."""
+    grad_clip: float = 100.0
+    """Gradient-norm clip of all three optimisers."""
+    max_nonfinite_updates: int = 5
+    """K: this many updates in a row with a NaN/inf loss or gradient stop the run."""
+    collector_backend: str = "sync"
+    """``"sync"`` (one process; a multi-process collector when ``num_envs > 1``), ``"multiprocess"``,
+    ``"ray"`` or ``"distributed"`` (TorchRL's distributed collectors, for more than one machine)."""
+    device: str = "cpu"
+    """Where the models train (``"cpu"`` or ``"cuda"``)."""
+    seed: int = 0
+    """Seeds torch, numpy, python and the envs."""
+    threads: int = 2
+    """``torch.set_num_threads``."""
+
+
+@dataclass
+class LoggingConfig:
+    """Where and how often to log."""
+
+    backend: str = "csv"
+    """TorchRL logger: ``"csv"``, ``"tensorboard"`` or ``"wandb"``."""
+    log_every: int = 500
+    """Agent steps between scalar logs."""
+    eval_every: int = 5000
+    """Agent steps between evaluations (episodes with the mode action plus an open-loop prediction GIF);
+    0 disables them."""
+    eval_episodes: int = 1
+    """Episodes per evaluation."""
+    video_context: int = 5
+    """Context frames of the open-loop prediction; the rest of the window is imagined."""
+    video_length: int = 20
+    """Frames per open-loop prediction (context included)."""
+    progress_bar: bool = True
+    """TorchRL's tqdm bar (env steps/s and updates/s in its description)."""
+
+
+@dataclass
+class CheckpointConfig:
+    """Checkpoint schedule and resume."""
+
+    every_updates: int = 500
+    """Updates between checkpoints (one is also written at the end and on SIGINT/SIGTERM)."""
+    keep: int = 2
+    """Checkpoints kept on disk (the newest ``keep``); at least 2, so a corrupted newest one has a fallback."""
+    replay: bool = True
+    """Save the replay buffer with each checkpoint (needed for an exact resume)."""
+    resume: bool = False
+    """Continue from the newest readable checkpoint in ``run_dir``."""
+
+
+@dataclass
+class RunConfig:
+    """The whole training configuration (the Hydra root)."""
+
+    env: EnvConfig = field(default_factory=EnvConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    algo: AlgoConfig = field(default_factory=AlgoConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    logging: LoggingConfig = field(default_factory=LoggingConfig)
+    checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+    size_name: str = "small"
+    """Name of the chosen ``size`` group (used in the default ``run_dir``)."""
+    run_dir: str = "runs/default"
+    """Logs, checkpoints and pictures go here; ``resume=true`` needs the same ``run_dir``."""
+    resume: bool = False
+    """Shortcut for ``checkpoint.resume``."""
+
+
+def _choice(errors: list[str], name: str, value, valid) -> None:
+    if value not in valid:
+        errors.append(f"{name}={value!r} is not one of {list(valid)}")
+
+
+def _positive(errors: list[str], name: str, value, minimum: int | float = 1) -> None:
+    if value < minimum:
+        errors.append(f"{name}={value} must be >= {minimum}")
+
+
+def validate_config(cfg: RunConfig) -> None:
+    """Check cross-field constraints; raise :class:`ConfigError` listing every problem and its fix.
+
+    Args:
+        cfg: a filled :class:`RunConfig`.
+
+    Raises:
+        ConfigError: with one line per problem, naming the field(s) and what to change.
+    """
+    errors: list[str] = []
+    algo, train, env = cfg.algo, cfg.train, cfg.env
+    _choice(errors, "model.size", cfg.model.size, SIZE_PRESETS)
+    _choice(errors, "algo.policy_input", algo.policy_input, POLICY_INPUTS)
+    _choice(errors, "algo.free_branch_loss", algo.free_branch_loss, FREE_BRANCH_MODES)
+    _choice(errors, "train.collector_backend", train.collector_backend, COLLECTOR_BACKENDS)
+    _choice(errors, "logging.backend", cfg.logging.backend, LOGGER_BACKENDS)
+    for name, value in (
+        ("env.num_envs", env.num_envs),
+        ("env.action_repeat", env.action_repeat),
+        ("train.total_steps", train.total_steps),
+        ("train.train_every", train.train_every),
+        ("train.frames_per_batch", train.frames_per_batch),
+        ("train.batch_size", train.batch_size),
+        ("train.sequence_length", train.sequence_length),
+        ("train.max_nonfinite_updates", train.max_nonfinite_updates),
+        ("train.threads", train.threads),
+        ("algo.horizon", algo.horizon),
+        ("algo.attention_window", algo.attention_window),
+        ("algo.slow_target_every", algo.slow_target_every),
+        ("checkpoint.every_updates", cfg.checkpoint.every_updates),
+        ("logging.log_every", cfg.logging.log_every),
+        ("logging.eval_episodes", cfg.logging.eval_episodes),
+    ):
+        _positive(errors, name, value)
+    _positive(errors, "checkpoint.keep", cfg.checkpoint.keep, 2)
+    _positive(errors, "train.prefill_steps", train.prefill_steps, 0)
+    _positive(errors, "logging.eval_every", cfg.logging.eval_every, 0)
+
+    if algo.policy_input in ("attention", "concat") and not algo.free_branch:
+        errors.append(
+            f"algo.policy_input={algo.policy_input!r} reads the noncontrollable branch, but "
+            "algo.free_branch=false: set algo.policy_input=controllable or algo.free_branch=true"
+        )
+    if algo.reward_uses_free and not algo.free_branch:
+        errors.append(
+            "algo.reward_uses_free=true needs the noncontrollable branch: set algo.reward_uses_free=false "
+            "or algo.free_branch=true"
+        )
+    if algo.free_branch_loss == "recon_only" and not algo.free_branch:
+        errors.append(
+            "algo.free_branch_loss=recon_only configures the noncontrollable branch, which is off "
+            "(algo.free_branch=false): set algo.free_branch_loss=kl or algo.free_branch=true"
+        )
+    if not 0.0 < algo.gamma <= 1.0 or not 0.0 <= algo.lmbda <= 1.0:
+        errors.append(f"algo.gamma={algo.gamma} must be in (0, 1] and algo.lmbda={algo.lmbda} in [0, 1]")
+    if train.frames_per_batch >= 1 and train.frames_per_batch % (train.train_every * env.num_envs):
+        errors.append(
+            f"train.frames_per_batch={train.frames_per_batch} must be a multiple of train.train_every * "
+            f"env.num_envs = {train.train_every * env.num_envs}"
+        )
+    if train.buffer_size < train.sequence_length * env.num_envs:
+        errors.append(
+            f"train.buffer_size={train.buffer_size} cannot hold one window per env "
+            f"(train.sequence_length * env.num_envs = {train.sequence_length * env.num_envs})"
+        )
+    if train.prefill_steps < train.sequence_length and train.prefill_steps < train.total_steps:
+        errors.append(
+            f"train.prefill_steps={train.prefill_steps} is shorter than one replay window "
+            f"(train.sequence_length={train.sequence_length}): raise the prefill or shorten the window"
+        )
+    if cfg.logging.video_context >= cfg.logging.video_length or cfg.logging.video_context < 1:
+        errors.append(
+            f"logging.video_context={cfg.logging.video_context} must be >= 1 and below "
+            f"logging.video_length={cfg.logging.video_length}"
+        )
+    if cfg.logging.video_length > train.sequence_length:
+        errors.append(
+            f"logging.video_length={cfg.logging.video_length} must not exceed train.sequence_length="
+            f"{train.sequence_length} (the prediction reads one replay window)"
+        )
+    if env.num_envs > 1 and train.collector_backend == "sync" and train.frames_per_batch < env.num_envs:
+        errors.append("train.frames_per_batch must be at least env.num_envs")
+    if errors:
+        raise ConfigError("invalid training configuration:\n  - " + "\n  - ".join(errors))
+
+
+def world_model_overrides(cfg: RunConfig) -> dict[str, Any]:
+    """The ``WorldModelConfig`` fields set by the algorithm preset, merged with ``model.overrides``."""
+    algo = cfg.algo
+    fields_from_algo = {
+        "free_branch": algo.free_branch,
+        "static_branch": algo.static_branch,
+        "inverse_dynamics": algo.inverse_dynamics,
+        "reward_uses_free": algo.reward_uses_free,
+    }
+    if not (algo.free_branch or algo.static_branch):
+        fields_from_algo["decoder_input"] = "posterior"
+    if not algo.static_branch:
+        fields_from_algo["mask_mode"] = "softmax"
+    return {**fields_from_algo, **dict(cfg.model.overrides)}

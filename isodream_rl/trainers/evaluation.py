@@ -1,0 +1,130 @@
+"""Evaluation episodes (mode actions) and the periodic evaluation hook with open-loop prediction GIFs."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.trainers import TrainerHookBase
+
+from isodream_rl.trainers.openloop import open_loop_prediction, prediction_frames, prediction_video, save_gif
+
+#: Upper bound on evaluation episode length; every env here truncates well before (sprites 200, highway 250,
+#: DMC 500 agent steps).
+MAX_EVAL_STEPS = 10_000
+
+
+@torch.no_grad()
+def run_episodes(policy, env: EnvBase, *, episodes: int, record: bool = False) -> tuple[list[float], list]:
+    """Run ``episodes`` episodes with the policy's mode action.
+
+    Args:
+        policy: the acting policy; ``env`` must carry its recurrent-state primer.
+        env: an unbatched env.
+        episodes: how many.
+        record: keep the first episode's frames (uint8 ``[3, H, W]`` each).
+
+    Returns:
+        ``(returns, frames)``.
+    """
+    returns, frames = [], []
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        for episode in range(episodes):
+            rollout = env.rollout(MAX_EVAL_STEPS, policy, break_when_any_done=True)
+            returns.append(float(rollout.get(("next", "reward")).sum()))
+            if record and episode == 0:
+                frames = list(rollout.get(("next", "pixels")).unbind(0))
+    return returns, frames
+
+
+def save_episode_gif(frames: list[torch.Tensor], path: str | Path, *, fps: int = 15, scale: int = 2) -> Path:
+    """Write uint8 ``[3, H, W]`` frames as a GIF (atomically)."""
+    images = [
+        Image.fromarray(np.ascontiguousarray(f.permute(1, 2, 0).cpu().numpy())).resize(
+            (f.shape[-1] * scale, f.shape[-2] * scale), Image.NEAREST
+        )
+        for f in frames
+    ]
+    return save_gif(images, path, fps=fps)
+
+
+class Evaluation(TrainerHookBase):
+    """``post_steps_log`` hook: every ``every`` agent steps, evaluation episodes and an open-loop prediction.
+
+    Logs ``eval_return`` and ``eval_return_std``; writes ``<pictures>/openloop_<steps>.gif`` (ground truth,
+    prediction, each branch's component and mask; ``context`` frames observed, then imagined) and logs the
+    same frames with ``logger.log_video``.
+
+    Args:
+        policy: the acting policy.
+        env_factory: ``() -> EnvBase`` (with the policy's primer) for evaluation episodes; built on first use.
+        world_model: the world model to predict with.
+        replay_buffer: source of the prediction windows.
+        sequence_length: replay window length T.
+        pictures: folder of the GIFs.
+        every: agent steps between evaluations.
+        episodes: episodes per evaluation.
+        context: observed frames of the open-loop prediction.
+        length: frames of the open-loop prediction.
+        logger: TorchRL logger for the video (TensorBoard, W&B), or ``None`` (the GIF is written either way).
+    """
+
+    def __init__(
+        self,
+        *,
+        policy,
+        env_factory,
+        world_model,
+        replay_buffer,
+        sequence_length: int,
+        pictures: Path,
+        every: int,
+        episodes: int,
+        context: int,
+        length: int,
+        logger=None,
+    ) -> None:
+        self.policy, self.env_factory, self.env = policy, env_factory, None
+        self.world_model, self.replay_buffer = world_model, replay_buffer
+        self.sequence_length, self.pictures = sequence_length, Path(pictures)
+        self.every, self.episodes = every, episodes
+        self.context, self.length, self.logger = context, length, logger
+        self.last = 0
+        self.last_gif: Path | None = None
+        self._trainer = None
+
+    def evaluate(self, step: int) -> dict:
+        """Run the evaluation now; returns the logged scalars."""
+        if self.env is None:
+            self.env = self.env_factory()
+        returns, _ = run_episodes(self.policy, self.env, episodes=self.episodes)
+        window = self.replay_buffer.sample().reshape(-1, self.sequence_length)[:1, : self.length]
+        prediction = open_loop_prediction(self.world_model, window, context=self.context)
+        self.last_gif = save_gif(prediction_frames(prediction), self.pictures / f"openloop_{step:08d}.gif")
+        if self.logger is not None:
+            self.logger.log_video("openloop_prediction", prediction_video(prediction), step=step)
+        mean = sum(returns) / len(returns)
+        std = math.sqrt(sum((r - mean) ** 2 for r in returns) / len(returns))
+        return {"eval_return": mean, "eval_return_std": std}
+
+    def __call__(self, batch) -> dict | None:
+        step = self._trainer.collected_frames
+        if step // self.every <= self.last // self.every or len(self.replay_buffer) < self.sequence_length:
+            return None
+        self.last = step
+        return self.evaluate(step)
+
+    def state_dict(self) -> dict:
+        return {"last": self.last}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self.last = state_dict["last"]
+
+    def register(self, trainer, name: str = "evaluation") -> None:
+        self._trainer = trainer
+        trainer.register_op("post_steps_log", self)

@@ -1,0 +1,194 @@
+"""TorchRL ``Trainer`` hooks of an Iso-Dream run: replay preparation, returns, throughput, signals, checkpoints."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import time
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.trainers import TrainerHookBase
+
+from isodream_rl.trainers.builders import REPLAY_KEYS, TRAJ_KEY
+
+logger = logging.getLogger(__name__)
+
+
+class ReplayPreparation(TrainerHookBase):
+    """``batch_process`` hook run before ``ReplayBufferTrainer.extend``: keep the replay keys, one row per env,
+    and trajectory ids that never repeat ids already stored (a resumed collector counts from 0 again).
+
+    Args:
+        num_envs: envs of the collector; batches are reshaped to ``[num_envs, T]`` when ``num_envs > 1``.
+    """
+
+    def __init__(self, *, num_envs: int) -> None:
+        self.num_envs = num_envs
+        self.traj_offset = 0
+
+    def __call__(self, batch: TensorDictBase) -> TensorDictBase:
+        batch = batch.select(*REPLAY_KEYS, strict=False)
+        if self.num_envs > 1 and batch.ndim == 1:
+            batch = batch.reshape(self.num_envs, -1)
+        elif self.num_envs == 1 and batch.ndim == 2:
+            batch = batch.reshape(-1)
+        if self.traj_offset:
+            batch.set(TRAJ_KEY, batch.get(TRAJ_KEY) + self.traj_offset)
+        return batch
+
+    def resume_after(self, replay_buffer) -> None:
+        """Offset new trajectory ids past every id in ``replay_buffer``."""
+        if len(replay_buffer):
+            stored = replay_buffer.storage[:].get(TRAJ_KEY)
+            self.traj_offset = int(stored.max()) + 1
+
+    def state_dict(self) -> dict:
+        return {"traj_offset": self.traj_offset}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self.traj_offset = state_dict["traj_offset"]
+
+    def register(self, trainer, name: str = "replay_preparation") -> None:
+        trainer.register_op("batch_process", self)
+        trainer.register_module(name, self)
+
+
+class EpisodeReturns(TrainerHookBase):
+    """``pre_steps_log`` hook: returns and lengths of the episodes that ended in the batch.
+
+    Keeps a running sum per env across collector batches, so episodes longer than a batch are counted whole.
+    Logs ``episode_return`` (mean over the episodes that ended) and ``episodes`` (total count).
+    """
+
+    def __init__(self) -> None:
+        self.running: torch.Tensor | None = None
+        self.episodes = 0
+        self.last_returns: list[float] = []
+
+    def __call__(self, batch: TensorDictBase | None) -> dict | None:
+        if batch is None:
+            return None
+        rows = batch if batch.ndim == 2 else batch.unsqueeze(0)
+        reward = rows.get(("next", "reward")).squeeze(-1)
+        done = rows.get(("next", "done")).squeeze(-1)
+        if self.running is None or self.running.shape[0] != rows.shape[0]:
+            self.running = torch.zeros(rows.shape[0])
+        ended = []
+        for t in range(rows.shape[1]):
+            self.running += reward[:, t].float()
+            for env in done[:, t].nonzero().flatten().tolist():
+                ended.append(float(self.running[env]))
+                self.running[env] = 0.0
+        if not ended:
+            return None
+        self.episodes += len(ended)
+        self.last_returns = ended
+        return {"episode_return": sum(ended) / len(ended), "episodes": self.episodes, "log_pbar": True}
+
+    def state_dict(self) -> dict:
+        return {"episodes": self.episodes}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self.episodes = state_dict["episodes"]
+
+    def register(self, trainer, name: str = "episode_returns") -> None:
+        trainer.register_op("pre_steps_log", self)
+        trainer.register_module(name, self)
+
+
+class Throughput(TrainerHookBase):
+    """``post_steps_log`` hook: env steps/s and updates/s since the previous batch, shown on the progress bar.
+
+    Args:
+        stepper: the optimisation stepper (its ``updates`` counter).
+    """
+
+    def __init__(self, stepper) -> None:
+        self.stepper = stepper
+        self._trainer = None
+        self._last: tuple[float, int, int] | None = None
+
+    def __call__(self, batch: TensorDictBase | None) -> dict | None:
+        now = time.perf_counter()
+        frames, updates = self._trainer.collected_frames, self.stepper.updates
+        last, self._last = self._last, (now, frames, updates)
+        if last is None or now <= last[0]:
+            return None
+        elapsed = now - last[0]
+        return {
+            "env_steps_per_s": (frames - last[1]) / elapsed,
+            "updates_per_s": (updates - last[2]) / elapsed,
+            "updates": updates,
+            "log_pbar": True,
+        }
+
+    def register(self, trainer, name: str = "throughput") -> None:
+        self._trainer = trainer
+        trainer.register_op("post_steps_log", self)
+
+
+class StopOnSignal:
+    """Turns the first SIGINT/SIGTERM into "checkpoint, then stop" at the end of the current batch.
+
+    A second signal of the same kind gets the default behaviour (immediate stop), for a user who insists.
+    Use as a context manager around ``trainer.train()``.
+    """
+
+    def __init__(self) -> None:
+        self.received: int | None = None
+        self._previous: dict[int, object] = {}
+
+    def _handle(self, signum, frame) -> None:
+        if self.received is not None:
+            signal.signal(signum, signal.SIG_DFL)
+            signal.raise_signal(signum)
+            return
+        self.received = signum
+        logger.warning(
+            "%s received: saving a checkpoint at the end of this batch, then stopping",
+            signal.Signals(signum).name,
+        )
+
+    def __enter__(self) -> StopOnSignal:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            self._previous[signum] = signal.signal(signum, self._handle)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+
+
+class PeriodicCheckpoint(TrainerHookBase):
+    """``post_steps`` hook: a checkpoint every ``every_updates`` updates and when a stop signal arrived.
+
+    Args:
+        save: ``() -> Path``, writes one checkpoint.
+        stepper: the optimisation stepper (its ``updates`` counter).
+        every_updates: updates between checkpoints.
+        signals: a :class:`StopOnSignal`; when it received a signal, the hook saves and asks the trainer to stop.
+    """
+
+    def __init__(self, *, save, stepper, every_updates: int, signals: StopOnSignal | None = None) -> None:
+        self.save = save
+        self.stepper = stepper
+        self.every_updates = every_updates
+        self.signals = signals
+        self.last_saved = stepper.updates
+        self._trainer = None
+
+    def __call__(self) -> None:
+        updates = self.stepper.updates
+        if self.signals is not None and self.signals.received is not None:
+            self.save()
+            self.last_saved = updates
+            self._trainer.request_stop(f"signal {signal.Signals(self.signals.received).name}")
+            return
+        if updates // self.every_updates > self.last_saved // self.every_updates:
+            self.save()
+            self.last_saved = updates
+
+    def register(self, trainer, name: str = "checkpoint") -> None:
+        self._trainer = trainer
+        trainer.register_op("post_steps", self)

@@ -1,0 +1,314 @@
+"""Algorithm 1 as a TorchRL ``Trainer``: assemble a run from a :class:`RunConfig`, train, resume, evaluate."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import random
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torchrl.trainers import ReplayBufferTrainer, Trainer, UpdateWeights
+
+from isodream_rl.trainers.builders import (
+    env_factory,
+    make_adam,
+    make_behavior,
+    make_collector,
+    make_logger,
+    make_replay_buffer,
+    make_world_model_loss,
+)
+from isodream_rl.trainers.checkpoint import CheckpointManager, rng_state, set_rng_state
+from isodream_rl.trainers.config import RunConfig, validate_config
+from isodream_rl.trainers.evaluation import Evaluation, run_episodes, save_episode_gif
+from isodream_rl.trainers.hooks import (
+    EpisodeReturns,
+    PeriodicCheckpoint,
+    ReplayPreparation,
+    StopOnSignal,
+    Throughput,
+)
+from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class RunResult:
+    """What a finished (or stopped) run produced."""
+
+    run_dir: Path
+    checkpoint: Path | None
+    logs: Path
+    pictures: Path
+    env_steps: int
+    updates: int
+    resumed_from: Path | None = None
+    metrics: dict[str, float] = field(default_factory=dict)
+
+
+def seed_everything(seed: int) -> None:
+    """Seed torch, numpy and python."""
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    random.seed(seed)
+
+
+def _probe_action_dim(cfg: RunConfig) -> int:
+    env = env_factory(cfg)()
+    try:
+        return int(env.action_spec.shape[-1])
+    finally:
+        env.close()
+
+
+class _Components:
+    """Models, losses, optimisers, stepper and replay buffer of a run (everything a checkpoint holds)."""
+
+    def __init__(self, cfg: RunConfig, *, action_dim: int, scratch_dir: Path) -> None:
+        train = cfg.train
+        self.model_loss = make_world_model_loss(cfg, action_dim=action_dim)
+        self.world_model = self.model_loss.world_model
+        self.behavior = make_behavior(cfg, self.world_model)
+        groups = self.behavior.actor_loss.parameter_groups()
+        self.stepper = IsoDreamOptimizationStepper(
+            model_loss=self.model_loss,
+            world_model_optimizer=make_adam(
+                groups["world_model"], lr=train.world_model_lr, eps=train.adam_eps
+            ),
+            actor_loss=self.behavior.actor_loss,
+            value_loss=self.behavior.value_loss,
+            actor_optimizer=make_adam(groups["actor"], lr=train.actor_lr, eps=train.adam_eps),
+            value_optimizer=make_adam(groups["value"], lr=train.value_lr, eps=train.adam_eps),
+            target_updater=self.behavior.target_updater,
+            sequence_length=train.sequence_length,
+            grad_clip=train.grad_clip,
+            max_nonfinite=train.max_nonfinite_updates,
+        )
+        self.replay_buffer = make_replay_buffer(cfg, scratch_dir=scratch_dir)
+        self.preparation = ReplayPreparation(num_envs=cfg.env.num_envs)
+        self.returns = EpisodeReturns()
+
+    def modules(self) -> dict[str, torch.nn.Module]:
+        return {
+            "world_model": self.world_model,
+            "actor_loss": self.behavior.actor_loss,
+            "value_loss": self.behavior.value_loss,
+        }
+
+    def state(self, cfg: RunConfig, *, env_steps: int, trainer: Trainer | None, evaluation=None) -> dict:
+        return {
+            "config": dataclasses.asdict(cfg),
+            "models": {name: module.state_dict() for name, module in self.modules().items()},
+            "stepper": self.stepper.state_dict(),
+            "counters": {
+                "env_steps": env_steps,
+                "optim_count": trainer._optim_count if trainer is not None else 0,
+                "last_log": dict(trainer._last_log) if trainer is not None else {},
+            },
+            "hooks": {
+                "preparation": self.preparation.state_dict(),
+                "returns": self.returns.state_dict(),
+                "evaluation": evaluation.state_dict() if evaluation is not None else None,
+            },
+            "rng": rng_state(),
+        }
+
+    def load_models(self, state: dict) -> None:
+        for name, module in self.modules().items():
+            module.load_state_dict(state["models"][name])
+
+
+def train(cfg: RunConfig) -> RunResult:
+    """Train (or resume) a run described by ``cfg``; see ``docs/recipes`` for the recipes.
+
+    Steps: check the config; build env probe, world model + loss, behaviour (actor, value, attention,
+    acting policy), three Adam optimisers in an :class:`IsoDreamOptimizationStepper`, a
+    ``TensorDictReplayBuffer(LazyMemmapStorage, SliceSampler)``, a TorchRL ``Collector`` (random prefill, then
+    the policy) and a TorchRL ``Trainer`` with hooks for replay, logging, evaluation and checkpoints; with
+    ``resume``, restore the newest readable checkpoint; train until ``train.total_steps`` or a signal.
+
+    Raises:
+        ConfigError: invalid configuration (before anything is built).
+        CheckpointError: ``resume`` without a readable checkpoint.
+        NonFiniteLossError: too many NaN/inf updates in a row.
+    """
+    validate_config(cfg)
+    train_cfg = cfg.train
+    torch.set_num_threads(train_cfg.threads)
+    seed_everything(train_cfg.seed)
+    run_dir = Path(cfg.run_dir)
+    pictures, logs = run_dir / "pictures", run_dir / "logs"
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "run_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
+
+    components = _Components(cfg, action_dim=_probe_action_dim(cfg), scratch_dir=run_dir / "replay_scratch")
+    stepper, policy = components.stepper, components.behavior.policy
+    checkpoints = CheckpointManager(run_dir / "checkpoints", keep=cfg.checkpoint.keep)
+    resumed_from, state = None, None
+    if cfg.resume or cfg.checkpoint.resume:
+        state, resumed_from = checkpoints.load_latest(
+            replay_buffer=components.replay_buffer if cfg.checkpoint.replay else None
+        )
+        components.load_models(state)
+        stepper.load_state_dict(state["stepper"])
+        components.preparation.load_state_dict(state["hooks"]["preparation"])
+        components.returns.load_state_dict(state["hooks"]["returns"])
+        components.preparation.resume_after(components.replay_buffer)
+        set_rng_state(state["rng"])
+        logger.info("resumed from %s (%d env steps)", resumed_from, state["counters"]["env_steps"])
+    env_steps = state["counters"]["env_steps"] if state else 0
+
+    if env_steps >= train_cfg.total_steps:
+        return RunResult(run_dir, resumed_from, logs, pictures, env_steps, stepper.updates, resumed_from)
+
+    collector = make_collector(
+        cfg,
+        policy,
+        total_frames=train_cfg.total_steps - env_steps,
+        init_random_frames=max(0, train_cfg.prefill_steps - env_steps),
+        env_transform=policy.make_tensordict_primer,
+    )
+    log = make_logger(cfg, run_dir=run_dir)
+    trainer = Trainer(
+        collector=collector,
+        total_frames=train_cfg.total_steps,
+        frame_skip=1,
+        optim_steps_per_batch=train_cfg.frames_per_batch // train_cfg.train_every,
+        loss_module=components.model_loss,
+        optimization_stepper=stepper,
+        logger=log,
+        progress_bar=cfg.logging.progress_bar,
+        log_interval=cfg.logging.log_every,
+        save_trainer_file=None,
+    )
+    trainer.collected_frames = env_steps
+    if state is not None:
+        trainer._optim_count = state["counters"]["optim_count"]
+        trainer._last_log = dict(state["counters"]["last_log"])
+        # The collector restarts its prefill count at 0; the Trainer compares against the remaining prefill.
+        collector.init_random_frames = max(0, train_cfg.prefill_steps - env_steps)
+
+    components.preparation.register(trainer)
+    ReplayBufferTrainer(components.replay_buffer, flatten_tensordicts=False).register(trainer)
+    components.returns.register(trainer)
+    Throughput(stepper).register(trainer)
+    if cfg.env.num_envs > 1 or train_cfg.collector_backend != "sync":
+        UpdateWeights(collector, update_weights_interval=1).register(trainer)
+    evaluation = None
+    if cfg.logging.eval_every > 0:
+
+        def eval_env():
+            env = env_factory(cfg, eval_mode=True)()
+            env.append_transform(policy.make_tensordict_primer())
+            return env
+
+        evaluation = Evaluation(
+            policy=policy,
+            env_factory=eval_env,
+            world_model=components.world_model,
+            replay_buffer=components.replay_buffer,
+            sequence_length=train_cfg.sequence_length,
+            pictures=pictures,
+            every=cfg.logging.eval_every,
+            episodes=cfg.logging.eval_episodes,
+            context=cfg.logging.video_context,
+            length=cfg.logging.video_length,
+            # The CSV logger can only write videos as MP4 through torchcodec (not a dependency); the GIF suffices.
+            logger=None if cfg.logging.backend == "csv" else log,
+        )
+        if state is not None and state["hooks"]["evaluation"] is not None:
+            evaluation.load_state_dict(state["hooks"]["evaluation"])
+        evaluation.register(trainer)
+    if cfg.logging.progress_bar and env_steps:
+        trainer.register_op("setup", lambda: trainer._pbar.update(env_steps))
+
+    last_checkpoint: list[Path | None] = [resumed_from]
+
+    def save() -> Path:
+        path = checkpoints.save(
+            stepper.updates,
+            components.state(cfg, env_steps=trainer.collected_frames, trainer=trainer, evaluation=evaluation),
+            replay_buffer=components.replay_buffer if cfg.checkpoint.replay else None,
+        )
+        last_checkpoint[0] = path
+        return path
+
+    with StopOnSignal() as signals:
+        PeriodicCheckpoint(
+            save=save, stepper=stepper, every_updates=cfg.checkpoint.every_updates, signals=signals
+        ).register(trainer)
+        try:
+            trainer.train()
+        finally:
+            collector.shutdown()
+        if signals.received is None:
+            save()
+    metrics = {
+        key: float(values[-1])
+        for key, values in trainer._log_dict.items()
+        if values and _is_scalar(values[-1])
+    }
+    return RunResult(
+        run_dir=run_dir,
+        checkpoint=last_checkpoint[0],
+        logs=logs,
+        pictures=pictures,
+        env_steps=trainer.collected_frames,
+        updates=stepper.updates,
+        resumed_from=resumed_from,
+        metrics=metrics,
+    )
+
+
+def _is_scalar(value) -> bool:
+    return isinstance(value, (int, float)) or (isinstance(value, torch.Tensor) and value.numel() == 1)
+
+
+def config_from_dict(data: dict) -> RunConfig:
+    """Rebuild a :class:`RunConfig` from ``dataclasses.asdict`` output (as stored in checkpoints)."""
+    sections = {f.name: f.type for f in dataclasses.fields(RunConfig)}
+    from isodream_rl.trainers import config as config_module
+
+    kwargs = {}
+    for name, value in data.items():
+        if name not in sections:
+            continue
+        section_type = getattr(config_module, str(sections[name]), None)
+        kwargs[name] = section_type(**value) if isinstance(value, dict) and section_type else value
+    return RunConfig(**kwargs)
+
+
+def evaluate_checkpoint(
+    run_dir: str | Path, *, episodes: int = 5, video: str | Path | None = None, seed: int = 0
+) -> tuple[float, float, list[float]]:
+    """Load the newest readable checkpoint of ``run_dir`` and run ``episodes`` mode-action episodes.
+
+    Returns:
+        ``(mean, std, returns)``; with ``video``, the first episode is written there as a GIF.
+    """
+    checkpoints = CheckpointManager(Path(run_dir) / "checkpoints", keep=2)
+    state, path = checkpoints.load_latest()
+    cfg = config_from_dict(state["config"])
+    torch.set_num_threads(cfg.train.threads)
+    seed_everything(seed)
+    components = _Components(
+        cfg, action_dim=_probe_action_dim(cfg), scratch_dir=Path(run_dir) / "eval_scratch"
+    )
+    components.load_models(state)
+    policy = components.behavior.policy
+    env = env_factory(cfg, eval_mode=True)()
+    env.append_transform(policy.make_tensordict_primer())
+    env.set_seed(seed)
+    try:
+        returns, frames = run_episodes(policy, env, episodes=episodes, record=video is not None)
+    finally:
+        env.close()
+    if video is not None:
+        save_episode_gif(frames, video)
+    mean = float(np.mean(returns))
+    return mean, float(np.std(returns)), returns

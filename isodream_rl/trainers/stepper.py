@@ -1,0 +1,203 @@
+"""One Iso-Dream update (Algorithm 1, lines 3-13) as a TorchRL ``OptimizationStepper``: three optimisers.
+
+TorchRL's ``DefaultOptimizationStepper`` sums every ``loss_*`` entry into one backward pass through one
+optimiser; Iso-Dream needs three (world model; actor; value + attention), each stepped on its own loss, with
+the world-model output feeding imagination, so the stepper is written here.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch import nn
+from torchrl.trainers import OptimizationStepper
+
+logger = logging.getLogger(__name__)
+
+
+class NonFiniteLossError(RuntimeError):
+    """Raised after ``max_nonfinite`` updates in a row had a NaN/inf loss or gradient."""
+
+
+def _loss_sum(losses: TensorDictBase) -> torch.Tensor:
+    return sum(value for key, value in losses.items() if key.startswith("loss"))
+
+
+class IsoDreamOptimizationStepper(OptimizationStepper):
+    """World-model, actor and value updates on one replay batch, with NaN/inf update skipping.
+
+    Per call of :meth:`step` (one update):
+
+    1. the flat replay sample ``[B * T]`` is reshaped to windows ``[B, T]``;
+    2. the world-model loss (eq. 5) is backpropagated and its optimiser stepped;
+    3. ``actor_loss(model_output)`` imagines from the detached posteriors (eq. 7) and steps the actor; the
+       value loss on the returned rollout steps the value network and attention;
+    4. the slow value target is updated (``target_updater.step()``, a TorchRL ``TargetNetUpdater``).
+
+    Each optimiser's parameters are clipped to a gradient norm of ``grad_clip``. An update whose loss or
+    gradient norm is not finite is skipped (no optimiser of that update steps after the fault; the skip is
+    logged as ``nonfinite_skipped``); ``max_nonfinite`` of them in a row raise :class:`NonFiniteLossError`.
+
+    Args:
+        model_loss: an :class:`~isodream_rl.objectives.IsoDreamModelLoss` (``td -> (losses, model_out)``).
+        world_model_optimizer: optimiser of the world-model parameters.
+        sequence_length: T, the replay window length.
+        actor_loss: :class:`~isodream_rl.objectives.IsoDreamActorLoss` (``model_out -> (losses, imagined)``),
+            or ``None`` to train the world model only.
+        value_loss: :class:`~isodream_rl.objectives.IsoDreamValueLoss` (``imagined -> (losses, _)``).
+        actor_optimizer: optimiser of the actor.
+        value_optimizer: optimiser of the value network and attention.
+        target_updater: object with ``step()`` updating the slow value target, or ``None``.
+        grad_clip: max gradient norm per optimiser.
+        max_nonfinite: K, consecutive non-finite updates that stop the run.
+    """
+
+    def __init__(
+        self,
+        *,
+        model_loss: nn.Module,
+        world_model_optimizer: torch.optim.Optimizer,
+        sequence_length: int,
+        actor_loss: nn.Module | None = None,
+        value_loss: nn.Module | None = None,
+        actor_optimizer: torch.optim.Optimizer | None = None,
+        value_optimizer: torch.optim.Optimizer | None = None,
+        target_updater=None,
+        grad_clip: float = 100.0,
+        max_nonfinite: int = 5,
+    ) -> None:
+        behavior = (actor_loss, value_loss, actor_optimizer, value_optimizer)
+        if any(x is None for x in behavior) and any(x is not None for x in behavior):
+            raise ValueError(
+                "actor_loss, value_loss, actor_optimizer and value_optimizer go together: give all four or none"
+            )
+        if max_nonfinite < 1:
+            raise ValueError(f"max_nonfinite must be >= 1, got {max_nonfinite}")
+        self.model_loss = model_loss
+        self.actor_loss, self.value_loss = actor_loss, value_loss
+        self.optimizers = {"world_model": world_model_optimizer}
+        if actor_loss is not None:
+            self.optimizers.update(actor=actor_optimizer, value=value_optimizer)
+        self.target_updater = target_updater
+        self.sequence_length = sequence_length
+        self.grad_clip = grad_clip
+        self.max_nonfinite = max_nonfinite
+        self.updates = 0
+        self.nonfinite_in_a_row = 0
+        self.nonfinite_total = 0
+        self._metric_keys: list[str] = []
+
+    # ------------------------------------------------------------------ checkpointing
+    def state_dict(self) -> dict:
+        return {
+            "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
+            "updates": self.updates,
+            "nonfinite_in_a_row": self.nonfinite_in_a_row,
+            "nonfinite_total": self.nonfinite_total,
+        }
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        missing = set(self.optimizers) - set(state_dict["optimizers"])
+        if missing:
+            raise KeyError(f"checkpoint has no optimiser state for {sorted(missing)}")
+        for name, opt in self.optimizers.items():
+            opt.load_state_dict(state_dict["optimizers"][name])
+        self.updates = state_dict["updates"]
+        self.nonfinite_in_a_row = state_dict["nonfinite_in_a_row"]
+        self.nonfinite_total = state_dict["nonfinite_total"]
+
+    # ------------------------------------------------------------------ one update
+    def _params(self, name: str) -> list[torch.Tensor]:
+        return [p for group in self.optimizers[name].param_groups for p in group["params"]]
+
+    def _apply(self, name: str, loss: torch.Tensor, metrics: dict[str, torch.Tensor]) -> bool:
+        """Backward ``loss`` into optimiser ``name``'s parameters and step it; ``False`` if not finite."""
+        optimizer = self.optimizers[name]
+        optimizer.zero_grad(set_to_none=True)
+        if not torch.isfinite(loss):
+            return False
+        loss.backward()
+        norm = nn.utils.clip_grad_norm_(self._params(name), self.grad_clip)
+        metrics[f"grad_norm_{name}"] = norm.detach()
+        if not torch.isfinite(norm):
+            optimizer.zero_grad(set_to_none=True)
+            return False
+        optimizer.step()
+        optimizer.zero_grad(set_to_none=True)
+        return True
+
+    def _run(self, batch: TensorDictBase, metrics: dict[str, torch.Tensor]) -> bool:
+        losses, model_out = self.model_loss(batch)
+        metrics.update({k: v.detach() for k, v in losses.items()})
+        if not self._apply("world_model", _loss_sum(losses), metrics):
+            return False
+        if self.actor_loss is None:
+            return True
+        # The actor loss holds the world model out and returns a detached rollout for the value loss, so the
+        # three backward passes touch disjoint parameter groups.
+        actor_losses, imagined = self.actor_loss(model_out)
+        metrics.update({k: v.detach() for k, v in actor_losses.items()})
+        if not self._apply("actor", _loss_sum(actor_losses), metrics):
+            return False
+        value_losses, _ = self.value_loss(imagined)
+        metrics.update({k: v.detach() for k, v in value_losses.items()})
+        return self._apply("value", _loss_sum(value_losses), metrics)
+
+    def step(self, trainer, sub_batch: TensorDictBase) -> TensorDictBase:
+        """One update on a flat ``[B * T]`` replay sample; returns detached scalar metrics."""
+        if sub_batch.numel() % self.sequence_length:
+            raise ValueError(
+                f"the replay sample has {sub_batch.numel()} steps, not a multiple of the window length "
+                f"{self.sequence_length}; sample with SliceSampler(slice_len={self.sequence_length}, "
+                "strict_length=True)"
+            )
+        batch = sub_batch.reshape(-1, self.sequence_length)
+        metrics: dict[str, torch.Tensor] = {}
+        finite = self._run(batch, metrics)
+        for opt in self.optimizers.values():
+            opt.zero_grad(set_to_none=True)
+        if finite:
+            self.nonfinite_in_a_row = 0
+            self.updates += 1
+            if self.target_updater is not None:
+                self.target_updater.step()
+        else:
+            self.nonfinite_in_a_row += 1
+            self.nonfinite_total += 1
+            logger.warning(
+                "non-finite loss or gradient: update skipped (%d in a row, limit %d)",
+                self.nonfinite_in_a_row,
+                self.max_nonfinite,
+            )
+            if self.nonfinite_in_a_row >= self.max_nonfinite:
+                raise NonFiniteLossError(
+                    f"{self.nonfinite_in_a_row} updates in a row had a NaN/inf loss or gradient "
+                    f"(train.max_nonfinite_updates={self.max_nonfinite}); the last losses were "
+                    f"{ {k: float(v) for k, v in metrics.items() if k.startswith('loss')} }. Lower the "
+                    "learning rates (train.world_model_lr, train.actor_lr, train.value_lr) or check the "
+                    "env's rewards for NaN/inf"
+                )
+        metrics["nonfinite_skipped"] = torch.tensor(float(not finite))
+        return self._complete(metrics)
+
+    def _complete(self, metrics: dict[str, torch.Tensor]) -> TensorDictBase:
+        """Same keys at every update (the Trainer averages them); absent ones are NaN."""
+        for key in metrics:
+            if key not in self._metric_keys:
+                self._metric_keys.append(key)
+        values = {k: metrics.get(k, torch.tensor(math.nan)).float().reshape(()) for k in self._metric_keys}
+        return TensorDict(values, [])
+
+
+def parameters_of(*modules: nn.Module | None) -> Sequence[nn.Parameter]:
+    """The unique parameters of ``modules`` (``None`` entries skipped), in order."""
+    seen: dict[int, nn.Parameter] = {}
+    for module in modules:
+        if module is not None:
+            for p in module.parameters():
+                seen.setdefault(id(p), p)
+    return list(seen.values())
