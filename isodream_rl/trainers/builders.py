@@ -41,9 +41,9 @@ REPLAY_KEYS = (
     ("next", "done"),
     ("next", "terminated"),
     ("next", "truncated"),
-    ("collector", "traj_ids"),
 )
-TRAJ_KEY = ("collector", "traj_ids")
+#: Written by ``ReplayPreparation``: windows never cross a change of this id (env, or buffer write cursor).
+STREAM_KEY = ("collector", "stream")
 
 
 def env_factory(cfg: RunConfig, *, eval_mode: bool = False) -> functools.partial:
@@ -107,16 +107,17 @@ def _with_transform(make, transform_factory):
 def make_replay_buffer(cfg: RunConfig, *, scratch_dir: str | Path) -> TensorDictReplayBuffer:
     """``TensorDictReplayBuffer(LazyMemmapStorage, SliceSampler)`` over episodes, windows of ``T`` steps.
 
-    The storage is ``[capacity / num_envs, num_envs]`` (``ndim=2``), so each env's steps stay contiguous and
-    a window never mixes envs; ``sample()`` returns ``[B * T]`` steps, ``B`` windows one after the other.
-    ``SliceSampler`` sets ``is_init`` at each window start, which the world model treats as a fresh start,
-    the same as its zero initial state.
+    With several envs the storage is ``[capacity / num_envs, num_envs]`` (``ndim=2``), so each env's steps
+    stay contiguous. Windows follow ``STREAM_KEY`` (see ``ReplayPreparation``): they may cross episode
+    boundaries, marked by ``is_init``, but never envs or the write cursor. ``sample()`` returns ``[B * T]``
+    steps, ``B`` windows one after the other. ``SliceSampler`` ORs ``is_init`` with a mark at each window
+    start, which the world model treats as a fresh start, the same as its zero initial state.
     """
     train = cfg.train
     storage = LazyMemmapStorage(
         train.buffer_size, scratch_dir=str(scratch_dir), ndim=2 if cfg.env.num_envs > 1 else 1
     )
-    sampler = SliceSampler(slice_len=train.sequence_length, traj_key=TRAJ_KEY, strict_length=True)
+    sampler = SliceSampler(slice_len=train.sequence_length, traj_key=STREAM_KEY, strict_length=True)
     return TensorDictReplayBuffer(
         storage=storage, sampler=sampler, batch_size=train.batch_size * train.sequence_length
     )

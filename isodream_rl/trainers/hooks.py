@@ -10,22 +10,30 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.trainers import TrainerHookBase
 
-from isodream_rl.trainers.builders import REPLAY_KEYS, TRAJ_KEY
+from isodream_rl.trainers.builders import REPLAY_KEYS, STREAM_KEY
 
 logger = logging.getLogger(__name__)
 
 
 class ReplayPreparation(TrainerHookBase):
     """``batch_process`` hook run before ``ReplayBufferTrainer.extend``: keep the replay keys, one row per env,
-    and trajectory ids that never repeat ids already stored (a resumed collector counts from 0 again).
+    and write the stream id that ``SliceSampler`` cuts windows by.
+
+    Windows may span episode boundaries, as in Dreamer: the stored ``is_init`` marks where an episode starts
+    and the world model resets its state there, so short episodes (a random driver leaving the road after a
+    few steps) still give full windows. What a window must not span is the buffer's write cursor, where the
+    newest steps sit next to the oldest. The stream id ``lap * num_envs + env`` changes exactly there
+    (``lap``: how many times this env's slice of the storage has been filled), and between envs.
 
     Args:
         num_envs: envs of the collector; batches are reshaped to ``[num_envs, T]`` when ``num_envs > 1``.
+        capacity_per_env: steps of storage per env (``buffer_size // num_envs``).
     """
 
-    def __init__(self, *, num_envs: int) -> None:
+    def __init__(self, *, num_envs: int, capacity_per_env: int) -> None:
         self.num_envs = num_envs
-        self.traj_offset = 0
+        self.capacity_per_env = capacity_per_env
+        self.written = 0
 
     def __call__(self, batch: TensorDictBase) -> TensorDictBase:
         batch = batch.select(*REPLAY_KEYS, strict=False)
@@ -33,21 +41,20 @@ class ReplayPreparation(TrainerHookBase):
             batch = batch.reshape(self.num_envs, -1)
         elif self.num_envs == 1 and batch.ndim == 2:
             batch = batch.reshape(-1)
-        if self.traj_offset:
-            batch.set(TRAJ_KEY, batch.get(TRAJ_KEY) + self.traj_offset)
+        time = batch.shape[-1]
+        lap = (self.written + torch.arange(time)) // self.capacity_per_env
+        stream = lap * self.num_envs
+        if batch.ndim == 2:
+            stream = stream[None, :] + torch.arange(self.num_envs)[:, None]
+        batch.set(STREAM_KEY, stream)
+        self.written += time
         return batch
 
-    def resume_after(self, replay_buffer) -> None:
-        """Offset new trajectory ids past every id in ``replay_buffer``."""
-        if len(replay_buffer):
-            stored = replay_buffer.storage[:].get(TRAJ_KEY)
-            self.traj_offset = int(stored.max()) + 1
-
     def state_dict(self) -> dict:
-        return {"traj_offset": self.traj_offset}
+        return {"written": self.written}
 
     def load_state_dict(self, state_dict: dict) -> None:
-        self.traj_offset = state_dict["traj_offset"]
+        self.written = state_dict["written"]
 
     def register(self, trainer, name: str = "replay_preparation") -> None:
         trainer.register_op("batch_process", self)

@@ -90,7 +90,9 @@ class _Components:
             max_nonfinite=train.max_nonfinite_updates,
         )
         self.replay_buffer = make_replay_buffer(cfg, scratch_dir=scratch_dir)
-        self.preparation = ReplayPreparation(num_envs=cfg.env.num_envs)
+        self.preparation = ReplayPreparation(
+            num_envs=cfg.env.num_envs, capacity_per_env=train.buffer_size // cfg.env.num_envs
+        )
         self.returns = EpisodeReturns()
 
     def modules(self) -> dict[str, torch.nn.Module]:
@@ -156,9 +158,9 @@ def train(cfg: RunConfig) -> RunResult:
         )
         components.load_models(state)
         stepper.load_state_dict(state["stepper"])
-        components.preparation.load_state_dict(state["hooks"]["preparation"])
+        if cfg.checkpoint.replay:  # stream ids follow the restored buffer's write cursor
+            components.preparation.load_state_dict(state["hooks"]["preparation"])
         components.returns.load_state_dict(state["hooks"]["returns"])
-        components.preparation.resume_after(components.replay_buffer)
         set_rng_state(state["rng"])
         logger.info("resumed from %s (%d env steps)", resumed_from, state["counters"]["env_steps"])
     env_steps = state["counters"]["env_steps"] if state else 0
@@ -194,7 +196,11 @@ def train(cfg: RunConfig) -> RunResult:
         collector.init_random_frames = max(0, train_cfg.prefill_steps - env_steps)
 
     components.preparation.register(trainer)
-    ReplayBufferTrainer(components.replay_buffer, flatten_tensordicts=False).register(trainer)
+    # ReplayBufferTrainer.register would also add a priority hook on the legacy post_loss stage, which the
+    # stepper path never runs: register its two useful ops directly.
+    replay_hook = ReplayBufferTrainer(components.replay_buffer, flatten_tensordicts=False)
+    trainer.register_op("batch_process", replay_hook.extend)
+    trainer.register_op("process_optim_batch", replay_hook.sample)
     components.returns.register(trainer)
     Throughput(stepper).register(trainer)
     if cfg.env.num_envs > 1 or train_cfg.collector_backend != "sync":

@@ -1,0 +1,95 @@
+"""Console entry points: ``isodream-train`` (Hydra overrides) and ``isodream-eval`` (a checkpoint's returns).
+
+Examples::
+
+    isodream-train                                   # sprites, small size, Iso-Dream
+    isodream-train env=highway size=tiny algo=dreamerv2 train.total_steps=500
+    isodream-train env=dmc_walker_walk size=paper run_dir=runs/walker
+    isodream-train run_dir=runs/walker resume=true   # continue after a crash or Ctrl-C
+    isodream-eval runs/walker --episodes 10 --video walker.gif
+
+``python -m isodream_rl.cli ...`` runs ``isodream-train``; ``python -m isodream_rl.cli eval ...`` runs
+``isodream-eval``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+# Before torchrl: sets the headless rendering defaults that mujoco reads at import time.
+import isodream_rl.envs  # noqa: F401  isort: skip
+import hydra
+from hydra.core.config_store import ConfigStore
+from omegaconf import DictConfig, OmegaConf
+
+from isodream_rl.trainers import run as run_module
+from isodream_rl.trainers.checkpoint import CheckpointError
+from isodream_rl.trainers.config import ConfigError, RunConfig
+from isodream_rl.trainers.stepper import NonFiniteLossError
+
+ConfigStore.instance().store(name="run_schema", node=RunConfig)
+
+
+def _summary(result: run_module.RunResult) -> str:
+    lines = [
+        f"run finished: {result.env_steps} env steps, {result.updates} updates"
+        + (f" (resumed from {result.resumed_from})" if result.resumed_from else ""),
+        f"  logs:        {result.logs}",
+        f"  checkpoint:  {result.checkpoint}",
+        f"  pictures:    {result.pictures}",
+    ]
+    for key in ("episode_return", "eval_return", "loss_model_reco", "env_steps_per_s", "updates_per_s"):
+        if key in result.metrics:
+            lines.append(f"  {key}: {result.metrics[key]:.4g}")
+    return "\n".join(lines)
+
+
+@hydra.main(version_base="1.3", config_path="configs", config_name="config")
+def _train_main(dict_cfg: DictConfig) -> None:
+    cfg: RunConfig = OmegaConf.to_object(dict_cfg)
+    try:
+        result = run_module.train(cfg)
+    except (ConfigError, CheckpointError, NonFiniteLossError) as err:
+        print(f"isodream-train: {err}", file=sys.stderr)
+        sys.exit(2)
+    print(_summary(result))
+
+
+def train() -> None:
+    """``isodream-train [hydra overrides]``: train or resume a run (see ``isodream-train --help``)."""
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    _train_main()
+
+
+def evaluate(argv: list[str] | None = None) -> tuple[float, float]:
+    """``isodream-eval RUN_DIR [--episodes N] [--video PATH] [--seed S]``: mean +- std return of a checkpoint."""
+    parser = argparse.ArgumentParser(
+        prog="isodream-eval", description="Evaluate the newest readable checkpoint of a run (mode actions)."
+    )
+    parser.add_argument("run_dir", help="the run folder given to isodream-train (holds checkpoints/)")
+    parser.add_argument("--episodes", type=int, default=5, help="episodes to run (default 5)")
+    parser.add_argument("--video", default=None, help="write the first episode as a GIF here")
+    parser.add_argument("--seed", type=int, default=0, help="env and policy seed (default 0)")
+    args = parser.parse_args(argv)
+    if args.episodes < 1:
+        parser.error(f"--episodes must be >= 1, got {args.episodes}")
+    try:
+        mean, std, returns = run_module.evaluate_checkpoint(
+            args.run_dir, episodes=args.episodes, video=args.video, seed=args.seed
+        )
+    except CheckpointError as err:
+        print(f"isodream-eval: {err}", file=sys.stderr)
+        sys.exit(2)
+    print(f"return over {len(returns)} episodes: {mean:.2f} +- {std:.2f}")
+    if args.video:
+        print(f"video: {args.video}")
+    return mean, std
+
+
+if __name__ == "__main__":
+    if len(sys.argv) > 1 and sys.argv[1] == "eval":
+        evaluate(sys.argv[2:])
+    else:
+        train()
