@@ -47,6 +47,11 @@ class _Branch(nn.Module):
             nn.LeakyReLU(0.2),
             nn.ConvTranspose2d(c1, out_channels, 4, stride=2, padding=1),
         )
+        if config.mask_composition:
+            # Start close to "copy the previous frame" (static mask ~0.9): a sensible prediction from
+            # the first update, which the branches then have to improve on.
+            with torch.no_grad():
+                self.decoder[-1].bias[-1] = -3.0
 
     def step(self, x, states, m, action):
         """One step of the stack; returns the top hidden state, new states, m and the decoupling term."""

@@ -1,0 +1,130 @@
+"""``isodream-video train|eval``: train a video-prediction variant, or evaluate a checkpoint.
+
+Examples::
+
+    isodream-video train --variant isodream --iterations 80000 --out-dir runs/isodream
+    isodream-video train --dataset bair --data-path /data/softmotion30_44k --variant no_action_free
+    isodream-video eval --checkpoint runs/isodream/checkpoint.pt --json eval.json --showcase fig.png
+    isodream-video eval --checkpoint ckpt.pt --dataset robonet --data-path /data/robonet_hdf5 \\
+        --test-frames 20 --sequence-length 20 --horizons 10 18
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import typing
+from dataclasses import MISSING, fields, replace
+from pathlib import Path
+
+import torch
+from torch.utils.data import DataLoader
+
+from isodream_rl.video_prediction.metrics import FrameMetrics
+from isodream_rl.video_prediction.trainer import TrainConfig, build_split, evaluate, load_checkpoint, train
+
+__all__ = ["main"]
+
+_EVAL_OVERRIDES = (
+    "dataset",
+    "data_path",
+    "cache_dir",
+    "test_sequences",
+    "sequence_length",
+    "test_frames",
+    "horizons",
+    "balls",
+    "batch_size",
+    "eval_batches",
+    "threads",
+)
+
+
+def _add_config_arguments(parser: argparse.ArgumentParser, names: typing.Iterable[str] | None = None) -> None:
+    hints = typing.get_type_hints(TrainConfig)
+    for f in fields(TrainConfig):
+        if names is not None and f.name not in names:
+            continue
+        flag = "--" + f.name.replace("_", "-")
+        default = f.default if f.default is not MISSING else f.default_factory()
+        hint = hints[f.name]
+        help_text = f"default: {default}"
+        if hint is bool:
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=help_text)
+        elif typing.get_origin(hint) is tuple:
+            parser.add_argument(flag, type=int, nargs="+", default=None, help=help_text)
+        else:
+            base = [a for a in typing.get_args(hint) if a is not type(None)] or [hint]
+            parser.add_argument(flag, type=base[0], default=None, help=help_text)
+
+
+def _overrides(args: argparse.Namespace, names: typing.Iterable[str]) -> dict:
+    return {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="isodream-video", description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    train_p = sub.add_parser("train", help="train one variant (see TrainConfig for every option)")
+    _add_config_arguments(train_p)
+    train_p.add_argument("--result-json", type=Path, help="write iterations, metrics and curves here")
+    train_p.add_argument("--no-progress", action="store_true", help="disable the tqdm bar")
+    eval_p = sub.add_parser("eval", help="evaluate a checkpoint on the test split (per-frame PSNR/SSIM)")
+    eval_p.add_argument("--checkpoint", type=Path, required=True)
+    _add_config_arguments(eval_p, _EVAL_OVERRIDES)
+    eval_p.add_argument("--json", type=Path, help="write the summary and the per-frame curves here")
+    eval_p.add_argument("--showcase", type=Path, help="write a Figure-6-style PNG of the first test clip")
+    eval_p.add_argument("--curves", type=Path, help="write a PNG of PSNR/SSIM per predicted frame")
+    return parser
+
+
+def _train(args: argparse.Namespace) -> dict:
+    config = TrainConfig.from_dict(_overrides(args, [f.name for f in fields(TrainConfig)]))
+    result = train(config, progress=not args.no_progress)
+    result["config"] = {k: v for k, v in vars(config).items()}
+    if args.result_json is not None:
+        args.result_json.write_text(json.dumps(result, indent=2, default=list))
+    return result
+
+
+def _eval(args: argparse.Namespace) -> dict:
+    model, config, _ = load_checkpoint(args.checkpoint)
+    config = replace(config, **_overrides(args, _EVAL_OVERRIDES))
+    config.__post_init__()
+    torch.set_num_threads(config.threads)
+    test_set = build_split(config, "test")
+    loader = DataLoader(test_set, batch_size=config.batch_size)
+    curves = evaluate(
+        model, loader, context=config.context, device=config.device, max_batches=config.eval_batches
+    )
+    result = {
+        "metrics": FrameMetrics.summarize(curves, config.horizons),
+        "curves": {k: [round(float(x), 5) for x in v] for k, v in curves.items()},
+    }
+    if args.json is not None:
+        args.json.write_text(json.dumps(result, indent=2))
+    if args.showcase is not None:
+        from isodream_rl.video_prediction.showcase import save_showcase, showcase_rows
+
+        clip = test_set[0]
+        save_showcase(
+            args.showcase, showcase_rows(model, clip["frames"], clip["actions"], context=config.context)
+        )
+    if args.curves is not None:
+        from isodream_rl.video_prediction.showcase import save_metric_curves
+
+        save_metric_curves(args.curves, {config.variant: result["curves"]})
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``isodream-video``."""
+    args = _parser().parse_args(argv)
+    result = _train(args) if args.command == "train" else _eval(args)
+    print(json.dumps(result["metrics"], indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

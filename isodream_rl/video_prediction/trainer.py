@@ -1,0 +1,349 @@
+"""Training and evaluation loop of the video predictor: datasets, optimisation, TorchRL logging,
+atomic checkpoints and the per-frame evaluation protocol (train 2 -> 10, test 2 -> 28 / 2 -> 18)."""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict
+from torch.utils.data import DataLoader
+from tqdm.auto import tqdm
+
+from isodream_rl.data import (
+    ArraySequences,
+    BAIRDataset,
+    BouncingBalls,
+    RoboNetDataset,
+    VideoClips,
+    load_pusher_dataset,
+)
+from isodream_rl.video_prediction.config import PredictorConfig, variant_config
+from isodream_rl.video_prediction.metrics import FrameMetrics
+from isodream_rl.video_prediction.objective import VideoPredictionLoss
+from isodream_rl.video_prediction.predictor import ThreeBranchPredictor
+
+__all__ = [
+    "TrainConfig",
+    "build_split",
+    "build_predictor",
+    "evaluate",
+    "train",
+    "save_checkpoint",
+    "load_checkpoint",
+]
+
+_DATASETS = ("pusher", "bair", "robonet")
+
+
+@dataclass
+class TrainConfig:
+    """Everything a training run needs; the defaults are the paper's BAIR setting (Appendix D)."""
+
+    variant: str = "isodream"
+    """One of ``isodream``, ``no_action_free``, ``no_inverse``, ``predrnn``."""
+    dataset: str = "pusher"
+    """``pusher`` (local BAIR-like set, generated and cached), ``bair`` or ``robonet``."""
+    data_path: str | None = None
+    """``bair``: the ``softmotion30_44k`` directory (with ``train/`` and ``test/``); ``robonet``: a
+    directory of ``.hdf5`` files (the first 80% train, the rest test, as in Iso-Dream)."""
+    cache_dir: str | None = None
+    """Cache of the generated pusher set (default ``$ISODREAM_DATA_DIR`` or ``~/.cache/isodream_rl``)."""
+    train_sequences: int = 1000
+    """Pusher sequences for training."""
+    test_sequences: int = 128
+    """Pusher sequences for testing (generated from a disjoint random stream)."""
+    sequence_length: int = 30
+    """Frames per source sequence (BAIR: 30; RoboNet-protocol tests use 20)."""
+    balls: bool = True
+    """Overlay bouncing balls (fixed per clip on the test split)."""
+    seed: int = 0
+    """Seeds the model init, data order, training balls, test balls and the pusher set."""
+    context: int = 2
+    """Observed frames."""
+    train_frames: int = 12
+    """Frames per training clip (2 observed + 10 predicted)."""
+    test_frames: int = 30
+    """Frames per test clip (BAIR: 2 + 28; RoboNet: 2 + 18)."""
+    batch_size: int = 8
+    lr: float = 1e-4
+    grad_clip: float = 10.0
+    """Max gradient norm."""
+    iterations: int = 80_000
+    max_minutes: float | None = None
+    """Stop training after this wall time even if ``iterations`` are not done."""
+    eval_every: int = 5_000
+    eval_batches: int | None = None
+    """Batches of the test split per evaluation (``None``: all)."""
+    log_every: int = 50
+    hidden_channels: int = 64
+    num_layers: int = 2
+    kernel_size: int = 5
+    encoder_channels: tuple[int, int] = (32, 64)
+    action_embedding: int = 64
+    lambda_action: float = 1e-4
+    lambda_decouple: float = 0.1
+    out_dir: str = "runs/video"
+    logger: str = "csv"
+    """``csv``, ``tensorboard`` (needs the ``logging`` extra) or ``""`` for none."""
+    device: str = "cpu"
+    threads: int = 2
+    """Torch intra-op threads."""
+    horizons: tuple[int, ...] = field(default=(10, 28))
+    """Predicted-frame horizons summarised after evaluation (``psnr_10``, ``psnr_28``, ...)."""
+
+    def __post_init__(self) -> None:
+        if self.dataset not in _DATASETS:
+            raise ValueError(f"dataset must be one of {_DATASETS}, got {self.dataset!r}")
+        if self.dataset != "pusher" and not self.data_path:
+            raise ValueError(f"dataset={self.dataset!r} needs data_path")
+        if not self.context < self.train_frames <= self.sequence_length:
+            raise ValueError(
+                f"need context < train_frames <= sequence_length, got {self.context}, "
+                f"{self.train_frames}, {self.sequence_length}"
+            )
+        if not self.context < self.test_frames <= self.sequence_length:
+            raise ValueError(
+                f"need context < test_frames <= sequence_length, got {self.context}, "
+                f"{self.test_frames}, {self.sequence_length}"
+            )
+        if max(self.horizons) > self.test_frames - self.context:
+            raise ValueError(
+                f"horizons {self.horizons} exceed the {self.test_frames - self.context} predicted test frames"
+            )
+
+    def predictor_config(self, action_dim: int) -> PredictorConfig:
+        return variant_config(
+            self.variant,
+            action_dim=action_dim,
+            hidden_channels=self.hidden_channels,
+            num_layers=self.num_layers,
+            kernel_size=self.kernel_size,
+            encoder_channels=tuple(self.encoder_channels),
+            action_embedding=self.action_embedding,
+        )
+
+    @classmethod
+    def from_dict(cls, values: dict) -> TrainConfig:
+        names = {f.name for f in fields(cls)}
+        unknown = set(values) - names
+        if unknown:
+            raise KeyError(f"unknown TrainConfig fields {sorted(unknown)}")
+        values = dict(values)
+        for key in ("encoder_channels", "horizons"):
+            if key in values:
+                values[key] = tuple(values[key])
+        return cls(**values)
+
+
+def _sources(config: TrainConfig, split: str):
+    if config.dataset == "pusher":
+        count = config.train_sequences if split == "train" else config.test_sequences
+        arrays = load_pusher_dataset(
+            count,
+            config.sequence_length,
+            seed=config.seed,
+            split=split,
+            cache_dir=config.cache_dir,
+            workers=2,
+        )
+        return ArraySequences(arrays)
+    if config.dataset == "bair":
+        return BAIRDataset(Path(config.data_path) / split, num_frames=config.sequence_length)
+    files = sorted(Path(config.data_path).glob("*.hdf5"))
+    if len(files) < 2:
+        raise FileNotFoundError(f"need at least 2 .hdf5 files under {config.data_path}, found {len(files)}")
+    cut = max(1, int(0.8 * len(files)))
+    return RoboNetDataset(files[:cut] if split == "train" else files[cut:])
+
+
+def build_split(config: TrainConfig, split: str) -> VideoClips:
+    """Clips of one split.
+
+    ``"train"``: every window of ``train_frames``, new random balls on every draw. ``"test"``: one clip of
+    ``test_frames`` per sequence, with balls fixed per clip (a seed disjoint from the training one).
+    """
+    if split not in ("train", "test"):
+        raise ValueError(f"split must be 'train' or 'test', got {split!r}")
+    source = _sources(config, split)
+    if split == "train":
+        balls = BouncingBalls(seed=config.seed) if config.balls else None
+        return VideoClips(
+            source, clip_length=config.train_frames, sequence_length=config.sequence_length, distractor=balls
+        )
+    balls = BouncingBalls(seed=config.seed + 10_007, fixed=True) if config.balls else None
+    return VideoClips(
+        source,
+        clip_length=config.test_frames,
+        sequence_length=config.sequence_length,
+        stride=config.sequence_length,
+        distractor=balls,
+    )
+
+
+def build_predictor(config: TrainConfig, action_dim: int) -> ThreeBranchPredictor:
+    return ThreeBranchPredictor(config=config.predictor_config(action_dim)).to(config.device)
+
+
+@torch.no_grad()
+def evaluate(
+    model: ThreeBranchPredictor,
+    loader: DataLoader,
+    *,
+    context: int = 2,
+    device: str | torch.device = "cpu",
+    max_batches: int | None = None,
+) -> dict[str, torch.Tensor]:
+    """Per-predicted-frame PSNR / SSIM (both flavours, see :mod:`~isodream_rl.video_prediction.metrics`).
+
+    Returns:
+        ``{"psnr": [T - context], "ssim": ..., "psnr_uint8": ..., "ssim_uint8": ...}``.
+    """
+    was_training = model.training
+    model.eval()
+    metrics = FrameMetrics()
+    for i, batch in enumerate(loader):
+        if max_batches is not None and i >= max_batches:
+            break
+        frames, actions = batch["frames"].to(device), batch["actions"].to(device)
+        out = model(frames, actions, context=context)
+        # Frames 1 .. context-1 were one-step predictions from observed frames: not part of the score.
+        metrics.update(out["frames"][:, context - 1 :], frames[:, context:])
+    model.train(was_training)
+    return metrics.compute()
+
+
+def save_checkpoint(path: str | os.PathLike, state: dict) -> None:
+    """``torch.save`` to a temporary file, then ``os.replace``: a crash never leaves a partial file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(
+    path: str | os.PathLike, *, device: str = "cpu"
+) -> tuple[ThreeBranchPredictor, TrainConfig, dict]:
+    """Rebuild the model of a checkpoint written by :func:`train`; returns ``(model, config, state)``."""
+    state = torch.load(path, map_location=device, weights_only=False)
+    for key in ("model", "train_config", "predictor_config"):
+        if key not in state:
+            raise KeyError(f"{path} is not a video-prediction checkpoint: missing '{key}'")
+    config = TrainConfig.from_dict({**state["train_config"], "device": device})
+    model = ThreeBranchPredictor(
+        config=PredictorConfig(
+            **{
+                **state["predictor_config"],
+                "encoder_channels": tuple(state["predictor_config"]["encoder_channels"]),
+            }
+        )
+    )
+    model.load_state_dict(state["model"])
+    return model.to(device), config, state
+
+
+def _make_logger(config: TrainConfig, out_dir: Path):
+    if not config.logger:
+        return None
+    from torchrl.record.loggers import get_logger
+
+    return get_logger(config.logger, logger_name=str(out_dir / "logs"), experiment_name=config.variant)
+
+
+def train(config: TrainConfig, *, progress: bool = True) -> dict:
+    """Train one variant, evaluating and checkpointing every ``eval_every`` iterations and at the end.
+
+    Writes ``<out_dir>/checkpoint.pt`` and TorchRL logger files under ``<out_dir>/logs``.
+
+    Returns:
+        ``{"iterations", "train_seconds", "metrics": {"psnr_10": .., ...}, "curves": {"psnr": [...], ..},
+        "checkpoint": path}``.
+    """
+    torch.set_num_threads(config.threads)
+    torch.manual_seed(config.seed)
+    out_dir = Path(config.out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    train_set, test_set = build_split(config, "train"), build_split(config, "test")
+    action_dim = train_set[0]["actions"].shape[-1]
+    model = build_predictor(config, action_dim)
+    loss_fn = VideoPredictionLoss(
+        model,
+        lambda_action=config.lambda_action,
+        lambda_decouple=config.lambda_decouple,
+        context=config.context,
+    )
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
+    generator = torch.Generator().manual_seed(config.seed)
+    train_loader = DataLoader(
+        train_set, batch_size=config.batch_size, shuffle=True, drop_last=True, generator=generator
+    )
+    test_loader = DataLoader(test_set, batch_size=config.batch_size)
+    logger = _make_logger(config, out_dir)
+    checkpoint = out_dir / "checkpoint.pt"
+
+    def run_eval(step: int) -> dict[str, torch.Tensor]:
+        curves = evaluate(
+            model, test_loader, context=config.context, device=config.device, max_batches=config.eval_batches
+        )
+        summary = FrameMetrics.summarize(curves, config.horizons)
+        if logger is not None:
+            for key, value in summary.items():
+                logger.log_scalar(f"eval/{key}", value, step=step)
+        save_checkpoint(
+            checkpoint,
+            {
+                "model": model.state_dict(),
+                "optimizer": optimizer.state_dict(),
+                "iteration": step,
+                "train_config": asdict(config),
+                "predictor_config": model.config.to_dict(),
+                "metrics": summary,
+            },
+        )
+        return curves
+
+    start = time.monotonic()
+    deadline = math.inf if config.max_minutes is None else start + 60 * config.max_minutes
+    step = 0
+    bar = tqdm(total=config.iterations, disable=not progress, desc=config.variant)
+    model.train()
+    while step < config.iterations and time.monotonic() < deadline:
+        for batch in train_loader:
+            td = TensorDict(
+                {"frames": batch["frames"].to(config.device), "actions": batch["actions"].to(config.device)},
+                batch_size=[config.batch_size],
+            )
+            losses = loss_fn(td)
+            total = sum(losses.values())
+            optimizer.zero_grad(set_to_none=True)
+            total.backward()
+            grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+            step += 1
+            bar.update(1)
+            if step % config.log_every == 0 or step == 1:
+                bar.set_postfix(loss=f"{float(total.detach()):.4f}")
+                if logger is not None:
+                    for key, value in losses.items():
+                        logger.log_scalar(f"train/{key}", float(value.detach()), step=step)
+                    logger.log_scalar("train/grad_norm", float(grad_norm), step=step)
+                    logger.log_scalar("train/iterations_per_s", step / (time.monotonic() - start), step=step)
+            optimizer.step()
+            if step % config.eval_every == 0 and step < config.iterations:
+                run_eval(step)
+            if step >= config.iterations or time.monotonic() >= deadline:
+                break
+    bar.close()
+    train_seconds = time.monotonic() - start
+    curves = run_eval(step)
+    return {
+        "iterations": step,
+        "train_seconds": train_seconds,
+        "metrics": FrameMetrics.summarize(curves, config.horizons),
+        "curves": {k: [round(float(x), 5) for x in v] for k, v in curves.items()},
+        "checkpoint": str(checkpoint),
+    }
