@@ -1,0 +1,1 @@
+"""Hydra configuration groups of ``isodream-train`` (env, size, algo); see ``config.yaml``."""

@@ -1,0 +1,134 @@
+"""The real CLI (``python -m isodream_rl.cli``) with tiny overrides, SheepRL-style, and its config errors."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+import isodream_rl.cli  # noqa: F401  (registers the config schema)
+from isodream_rl.trainers import ConfigError, RunConfig, validate_config
+
+CONFIGS = Path(isodream_rl.cli.__file__).parent / "configs"
+ENVS = sorted(p.stem for p in (CONFIGS / "env").glob("*.yaml"))
+ALGOS = sorted(p.stem for p in (CONFIGS / "algo").glob("*.yaml"))
+SIZES = sorted(p.stem for p in (CONFIGS / "size").glob("*.yaml"))
+TINY = ["size=tiny", "train.threads=1", "logging.progress_bar=false"]
+
+
+def run_cli(args, cwd, timeout=300):
+    env = dict(os.environ, OMP_NUM_THREADS="1", HYDRA_FULL_ERROR="0")
+    return subprocess.run(
+        [sys.executable, "-m", "isodream_rl.cli", *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def composed(*overrides) -> RunConfig:
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        return OmegaConf.to_object(compose(config_name="config", overrides=list(overrides)))
+
+
+def test_groups_hold_the_presets_the_paper_needs():
+    assert set(ALGOS) == {
+        "isodream",
+        "dreamerv2",
+        "isodream_no_inverse",
+        "isodream_no_attention",
+        "isodream_no_static",
+    }
+    assert set(SIZES) == {"paper", "small", "tiny"}
+    assert {"sprites", "highway", "dmc_walker_walk"} <= set(ENVS)
+
+
+@pytest.mark.parametrize("env", ENVS)
+@pytest.mark.parametrize("algo", ALGOS)
+def test_every_env_algo_preset_composes_to_a_valid_config(env, algo):
+    cfg = composed(f"env={env}", f"algo={algo}", "size=tiny")
+    validate_config(cfg)
+    assert cfg.env.name == env and cfg.algo.name == algo
+
+
+def test_domain_presets_follow_the_paper():
+    dmc = composed("env=dmc_walker_walk")
+    assert (dmc.algo.free_branch_loss, dmc.algo.policy_input, dmc.algo.reward_uses_free) == (
+        "recon_only",
+        "controllable",
+        False,
+    )
+    highway = composed("env=highway")
+    assert (highway.algo.free_branch_loss, highway.algo.policy_input, highway.algo.reward_uses_free) == (
+        "kl",
+        "attention",
+        True,
+    )
+    assert highway.algo.attention_window == 5 and highway.env.action_repeat == 4
+    paper = composed("size=paper")
+    assert (paper.train.batch_size, paper.train.sequence_length, paper.train.prefill_steps) == (50, 50, 2500)
+    assert paper.train.train_every == 5
+
+
+def test_wrong_type_fails_naming_the_key():
+    with pytest.raises(Exception, match="train.total_steps"):
+        composed("train.total_steps=many")
+
+
+def test_impossible_combination_says_what_to_change():
+    cfg = composed("algo=dreamerv2", "algo.policy_input=attention")
+    with pytest.raises(ConfigError, match="set algo.policy_input=controllable or algo.free_branch=true"):
+        validate_config(cfg)
+
+
+def test_unknown_group_option_fails_before_training_with_the_valid_options(tmp_path):
+    out = run_cli(["env=carla", *TINY], tmp_path)
+    assert out.returncode != 0
+    assert "Could not find 'env/carla'" in out.stderr
+    assert "sprites" in out.stderr and "highway" in out.stderr
+    assert not (tmp_path / "runs").exists()
+
+
+def test_impossible_combination_fails_in_the_cli_before_training(tmp_path):
+    out = run_cli(["algo=dreamerv2", "algo.policy_input=attention", *TINY], tmp_path)
+    assert out.returncode == 2
+    assert "set algo.policy_input=controllable or algo.free_branch=true" in out.stderr
+    assert not list(tmp_path.glob("runs/*/checkpoints"))
+
+
+def test_every_algo_trains_on_sprites_and_evaluates(tmp_path):
+    sweep = ",".join(ALGOS)
+    args = ["-m", f"algo={sweep}", *TINY, "train.total_steps=60", "train.prefill_steps=20"]
+    args += ["train.frames_per_batch=20", "logging.eval_every=40", "env.kwargs.max_steps=30"]
+    out = run_cli(args, tmp_path, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.count("run finished: 60 env steps, 12 updates") == len(ALGOS)
+    for algo in ALGOS:
+        run = tmp_path / "runs" / f"sprites-{algo}-tiny"
+        assert list((run / "checkpoints").glob("step_00000012")), algo
+        assert list((run / "pictures").glob("openloop_*.gif")), algo
+        assert list((run / "logs").rglob("*.csv")), algo
+
+    video = tmp_path / "eval.gif"
+    out = run_cli(
+        ["eval", str(tmp_path / "runs" / "sprites-isodream-tiny"), "--episodes", "2", "--video", str(video)],
+        tmp_path,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "return over 2 episodes:" in out.stdout and "+-" in out.stdout
+    assert video.stat().st_size > 0
+
+
+@pytest.mark.parametrize("env", ["highway", "dmc_walker_walk"])
+def test_every_algo_trains_on_the_simulated_envs(env, tmp_path):
+    sweep = ",".join(ALGOS)
+    args = ["-m", f"env={env}", f"algo={sweep}", *TINY, "train.total_steps=10", "train.prefill_steps=10"]
+    args += ["train.frames_per_batch=10"]
+    out = run_cli(args, tmp_path, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.count("run finished: 10 env steps, 2 updates") == len(ALGOS)
