@@ -19,20 +19,40 @@ class TestFutureStateAttention:
         torch.testing.assert_close(attention(s, z), expected)
         assert list(attention.parameters()) == []
 
-    def test_projected_form_equals_standard_attention_with_any_key_bias(self):
+    @staticmethod
+    def textbook(attention, q, window, key_bias):
+        """Attention with every projection applied explicitly (a key bias shifts all scores equally)."""
+        queries = q @ attention.query.weight.T + attention.query.bias
+        keys = window @ attention.key.weight.T + key_bias
+        values = window @ attention.value.weight.T + attention.value.bias
+        scores = (keys @ queries[..., None]).squeeze(-1) / math.sqrt(attention.width)
+        weights = torch.softmax(scores, dim=-1)
+        pooled = (weights[..., None] * values).sum(-2)
+        return pooled @ attention.output.weight.T + attention.output.bias + q, weights
+
+    @pytest.mark.parametrize("rows", [1, 7])
+    def test_projected_form_equals_standard_attention_with_any_key_bias(self, rows):
         torch.manual_seed(1)
         attention = FutureStateAttention(query_dim=3, key_dim=4, width=5)
-        q, window = torch.randn(7, 3), torch.randn(7, 6, 4)
-        # Textbook attention with every projection applied explicitly; a key bias (which the module omits)
-        # shifts all scores of a window equally and so changes nothing.
-        queries = q @ attention.query.weight.T + attention.query.bias  # [7, 5]
-        keys = window @ attention.key.weight.T + torch.randn(5)  # [7, 6, 5]
-        values = window @ attention.value.weight.T + attention.value.bias
-        weights = torch.softmax((keys @ queries[:, :, None]).squeeze(-1) / math.sqrt(5), dim=-1)
-        pooled = (weights[:, :, None] * values).sum(1)
-        expected = pooled @ attention.output.weight.T + attention.output.bias + q
+        assert attention._fold_pays(rows) == (rows > 1), "both evaluation paths are covered"
+        q, window = torch.randn(rows, 3), torch.randn(rows, 6, 4)
+        expected, weights = self.textbook(attention, q, window, torch.randn(5))
         torch.testing.assert_close(attention(q, window), expected, rtol=1e-5, atol=1e-5)
         torch.testing.assert_close(attention.weights(q, window), weights, rtol=1e-5, atol=1e-6)
+
+    def test_folded_projections_give_the_standard_gradients(self):
+        torch.manual_seed(2)
+        attention = FutureStateAttention(query_dim=3, key_dim=4, width=5)
+        q, window = torch.randn(7, 3, requires_grad=True), torch.randn(7, 6, 4)
+        weight = torch.randn(7, 3)
+        grads = []
+        for out in (
+            attention(q, window, folded=attention.fold()),
+            self.textbook(attention, q, window, 0.0)[0],
+        ):
+            grads.append(torch.autograd.grad((out * weight).sum(), [q, *attention.parameters()]))
+        for folded, plain in zip(*grads):
+            torch.testing.assert_close(folded, plain, rtol=1e-4, atol=1e-5)
 
     def test_weights_sum_to_one_over_the_window(self):
         attention = FutureStateAttention(query_dim=4, key_dim=4, width=8)

@@ -168,17 +168,18 @@ class IsoDreamImagination(nn.Module):
             free = self._free_branch(free_state.detach(), free_belief.detach())
         free_states, free_beliefs, free_features, windows = free if free is not None else (None,) * 4
 
+        input_grad = actor_input_grad and torch.is_grad_enabled()
+        with torch.set_grad_enabled(input_grad):
+            folded = self.policy_input.fold()  # once for all steps
         states, beliefs, inputs, actions, log_probs = [state], [belief], [], [], []
         for j in range(horizon):
             control = torch.cat([state, belief], dim=-1).detach()
-            with (
-                torch.set_grad_enabled(actor_input_grad and torch.is_grad_enabled()),
-                self.autocast(device_type),
-            ):
+            with torch.set_grad_enabled(input_grad), self.autocast(device_type):
                 features = self.policy_input(
                     control,
                     None if free_features is None else free_features[:, j],
                     None if windows is None else windows[:, j],
+                    folded=folded,
                 ).float()
             with self.autocast(device_type):
                 distribution = actor.distribution(features)
