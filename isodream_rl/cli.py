@@ -46,8 +46,26 @@ def _summary(result: run_module.RunResult) -> str:
     return "\n".join(lines)
 
 
+def _log_to_stderr() -> None:
+    """Warnings of this package (checkpoint fallback, skipped updates, signals) on stderr.
+
+    Hydra's logging setup disables the loggers that existed before it ran, ours included; turn them back on.
+    """
+    for name, item in logging.root.manager.loggerDict.items():
+        if name.startswith("isodream_rl") and isinstance(item, logging.Logger):
+            item.disabled = False
+    package = logging.getLogger("isodream_rl")
+    if not package.handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+        package.addHandler(handler)
+        package.setLevel(logging.INFO)
+        package.propagate = False
+
+
 @hydra.main(version_base="1.3", config_path="configs", config_name="config")
 def _train_main(dict_cfg: DictConfig) -> None:
+    _log_to_stderr()
     cfg: RunConfig = OmegaConf.to_object(dict_cfg)
     try:
         result = run_module.train(cfg)
@@ -59,7 +77,6 @@ def _train_main(dict_cfg: DictConfig) -> None:
 
 def train() -> None:
     """``isodream-train [hydra overrides]``: train or resume a run (see ``isodream-train --help``)."""
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     _train_main()
 
 

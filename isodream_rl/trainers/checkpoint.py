@@ -105,8 +105,9 @@ class CheckpointManager:
     def load_latest(self, *, replay_buffer=None) -> tuple[dict[str, Any], Path]:
         """Load the newest readable checkpoint, falling back to older ones.
 
-        An unreadable checkpoint (truncated or corrupted ``state.pt`` or replay data) is reported with a
-        warning naming it and the error, and the previous one is tried.
+        An unreadable ``state.pt`` (truncated, corrupted) is reported with a warning naming the checkpoint and
+        the error, and the previous one is tried. Unreadable replay data of an otherwise readable checkpoint
+        raises :class:`CheckpointError` naming the folder to delete.
 
         Args:
             replay_buffer: filled with ``loads`` from the checkpoint's replay data when given.
@@ -115,7 +116,7 @@ class CheckpointManager:
             ``(state, path)``.
 
         Raises:
-            CheckpointError: no checkpoint, or none readable.
+            CheckpointError: no checkpoint, none readable, or unreadable replay data.
         """
         candidates = self.checkpoints()
         if not candidates:
@@ -129,8 +130,6 @@ class CheckpointManager:
                 state = torch.load(path / _STATE_FILE, map_location="cpu", weights_only=False)
                 if not isinstance(state, dict):
                     raise TypeError(f"expected a dict, got {type(state).__name__}")
-                if replay_buffer is not None and (path / _REPLAY_DIR).exists():
-                    replay_buffer.loads(path / _REPLAY_DIR)
             except Exception as err:  # any unreadable file: try the previous checkpoint
                 failures.append(f"{path.name}: {type(err).__name__}: {err}")
                 logger.warning(
@@ -140,5 +139,14 @@ class CheckpointManager:
                     err,
                 )
                 continue
+            if replay_buffer is not None and (path / _REPLAY_DIR).exists():
+                # A half-loaded memmap storage cannot take a second attempt: stop with the fix instead.
+                try:
+                    replay_buffer.loads(path / _REPLAY_DIR)
+                except Exception as err:
+                    raise CheckpointError(
+                        f"the replay buffer of {path} is unreadable ({type(err).__name__}: {err}); delete "
+                        f"{path} to resume from the previous checkpoint"
+                    ) from err
             return state, path
         raise CheckpointError(f"no readable checkpoint in {self.directory}:\n  " + "\n  ".join(failures))

@@ -6,6 +6,7 @@ import dataclasses
 import json
 import logging
 import random
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -148,7 +149,11 @@ def train(cfg: RunConfig) -> RunResult:
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "run_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
 
-    components = _Components(cfg, action_dim=_probe_action_dim(cfg), scratch_dir=run_dir / "replay_scratch")
+    scratch = run_dir / "replay_scratch"
+    # The memmap files of an earlier process of this run (killed, or finished) are stale: the replay data
+    # that matters is in the checkpoints.
+    shutil.rmtree(scratch, ignore_errors=True)
+    components = _Components(cfg, action_dim=_probe_action_dim(cfg), scratch_dir=scratch)
     stepper, policy = components.stepper, components.behavior.policy
     checkpoints = CheckpointManager(run_dir / "checkpoints", keep=cfg.checkpoint.keep)
     resumed_from, state = None, None
