@@ -178,3 +178,16 @@ def test_missing_primer_and_bad_configuration_are_reported():
     dreamer = IsoDreamWorldModel(WorldModelConfig.dreamerv2("tiny", action_dim=A))
     with pytest.raises(ValueError, match="free branch"):
         IsoDreamPolicy(dreamer, policy.actor, policy.policy_input)
+
+
+def test_single_branch_world_model_acts_on_the_controllable_state():
+    wm = IsoDreamWorldModel(WorldModelConfig.dreamerv2("tiny", action_dim=A))
+    policy_input = PolicyInput.for_world_model(wm, mode="controllable")
+    actor = IsoDreamActor(in_features=policy_input.out_features, action_dim=A, num_cells=8, depth=2)
+    policy = IsoDreamPolicy(wm, actor, policy_input)
+    assert set(policy.recurrent_spec().keys()) == {"state", "belief", "previous_action"}
+    env = TransformedEnv(make_env("sprites", seed=0, max_steps=MAX_STEPS), policy.make_tensordict_primer())
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        rollout = env.rollout(3, policy)
+    features = torch.cat([rollout["next", "state"], rollout["next", "belief"]], dim=-1)
+    torch.testing.assert_close(rollout["action"], actor.mode(features))

@@ -77,6 +77,7 @@ class IsoDreamActorLoss(LossModule):
 
     Examples:
         >>> import torch
+        >>> from tensordict import TensorDict
         >>> from isodream_rl.modules import (IsoDreamActor, IsoDreamValue, IsoDreamWorldModel, PolicyInput,
         ...                                  WorldModelConfig)
         >>> from isodream_rl.objectives import IsoDreamActorLoss, IsoDreamImagination, IsoDreamValueLoss

@@ -128,7 +128,7 @@ class IsoDreamImagination(nn.Module):
         horizon, tau = self.horizon, self.policy_input.window
         attention = self.policy_input.mode == "attention"
         chain_steps = horizon + tau - 1 if attention and self.attention_window == "start" else horizon
-        states, beliefs = self.roll_free(free_state, free_belief, max(chain_steps, horizon))
+        states, beliefs = self.roll_free(free_state, free_belief, chain_steps)
         features = torch.cat([states, beliefs], dim=-1)
         windows = None
         if attention and self.attention_window == "start":
