@@ -161,7 +161,7 @@ def test_unbatched_env_and_torchrl_primer_discovery():
     policy = build_policy("concat")
     primer = get_primers_from_module(policy)
     assert set(primer.primers.keys()) == {"state", "belief", "free_state", "free_belief", "previous_action"}
-    env = TransformedEnv(make_env("sprites", seed=0, max_steps=MAX_STEPS), primer)
+    env = make_env("sprites", seed=0, max_steps=MAX_STEPS).append_transform(primer)
     rollout = env.rollout(4, policy)
     assert rollout["action"].shape == (4, A) and rollout["next", "state"].shape == (4, 8)
 
@@ -186,7 +186,7 @@ def test_single_branch_world_model_acts_on_the_controllable_state():
     actor = IsoDreamActor(in_features=policy_input.out_features, action_dim=A, num_cells=8, depth=2)
     policy = IsoDreamPolicy(wm, actor, policy_input)
     assert set(policy.recurrent_spec().keys()) == {"state", "belief", "previous_action"}
-    env = TransformedEnv(make_env("sprites", seed=0, max_steps=MAX_STEPS), policy.make_tensordict_primer())
+    env = make_env("sprites", seed=0, max_steps=MAX_STEPS).append_transform(policy.make_tensordict_primer())
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         rollout = env.rollout(3, policy)
     features = torch.cat([rollout["next", "state"], rollout["next", "belief"]], dim=-1)
