@@ -149,6 +149,7 @@ def test_collect_train_and_act_end_to_end(mode):
         total = model_loss.total(losses) + actor_losses["loss_actor"] + value_losses["loss_value"]
         assert torch.isfinite(total)
         total.backward()
+        assert all(any(p.grad is not None for p in params) for params in groups.values())
         for optimiser in optimisers.values():
             optimiser.step()
             optimiser.zero_grad()
