@@ -192,3 +192,23 @@ def test_single_branch_world_model_acts_on_the_controllable_state():
         rollout = env.rollout(3, policy)
     features = torch.cat([rollout["next", "state"], rollout["next", "belief"]], dim=-1)
     torch.testing.assert_close(rollout["action"], actor.mode(features))
+
+
+def test_exploration_noise_is_added_to_sampled_actions_only():
+    policy = build_policy()
+    noisy = IsoDreamPolicy(policy.world_model, policy.actor, policy.policy_input, exploration_noise=10.0)
+    td = policy.make_tensordict_primer().primers.zero().expand(64).clone()
+    td.update(
+        {
+            "pixels": torch.zeros(64, 3, 64, 64, dtype=torch.uint8),
+            "is_init": torch.ones(64, 1, dtype=torch.bool),
+        }
+    )
+    with set_exploration_type(ExplorationType.RANDOM):
+        assert (policy(td.clone())["action"].abs() < 1).all()
+        assert (noisy(td.clone())["action"].abs() == 1).float().mean() > 0.5  # clamped to [-1, 1]
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        torch.manual_seed(0)
+        clean = policy(td.clone())["action"]
+        torch.manual_seed(0)
+        torch.testing.assert_close(noisy(td.clone())["action"], clean)
