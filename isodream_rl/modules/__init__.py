@@ -8,6 +8,7 @@ from isodream_rl.modules.decoder import ConvDecoder
 from isodream_rl.modules.encoder import BranchedEncoder
 from isodream_rl.modules.heads import make_discount_head, make_reward_head
 from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
+from isodream_rl.modules.policy import IsoDreamPolicy
 from isodream_rl.modules.rssm import ActionConditionedRSSM, ActionFreeRSSM, LayerNormGRUCell, RSSMCell
 from isodream_rl.modules.value import IsoDreamValue
 from isodream_rl.modules.world_model import IsoDreamWorldModel
@@ -20,6 +21,7 @@ __all__ = [
     "FutureStateAttention",
     "InverseDynamicsCell",
     "IsoDreamActor",
+    "IsoDreamPolicy",
     "IsoDreamValue",
     "IsoDreamWorldModel",
     "LayerNormGRUCell",
