@@ -112,9 +112,9 @@ def main() -> None:
     out = Path(args.out)
 
     # 1. Environment: 64x64 frames (uint8 "pixels") whose sky/floor show a moving natural video; the
-    #    evaluation env would use the held-out videos (video_split="test").
-    def env_fn():
-        return make_env(f"dmc_{args.task}", background="video_easy", action_repeat=2)
+    #    evaluation env uses the held-out videos (video_split="eval").
+    def env_fn(split: str = "train"):
+        return make_env(f"dmc_{args.task}", background="video_easy", action_repeat=2, video_split=split)
 
     probe = env_fn()
     action_dim = probe.action_spec.shape[-1]
@@ -140,8 +140,8 @@ def main() -> None:
     policy = IsoDreamPolicy(world_model, actor, policy_input)
 
     # 5. Collector: random prefill, then the policy; a TensorDictPrimer adds the recurrent keys to the env.
-    def primed_env():
-        env = env_fn()
+    def primed_env(split: str = "train"):
+        env = env_fn(split)
         env.append_transform(policy.make_tensordict_primer())
         return env
 
@@ -201,7 +201,7 @@ def main() -> None:
 
     # 9. One evaluation episode with the mode action, and an open-loop prediction GIF (5 frames observed,
     #    then imagined: truth, prediction, each branch's component and mask).
-    eval_env = primed_env()
+    eval_env = primed_env("eval")
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         episode = eval_env.rollout(1000, policy, break_when_any_done=True)
     eval_env.close()

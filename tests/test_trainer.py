@@ -208,3 +208,16 @@ class TestReplayPreparation:
         windows = rb.sample()["action"][:, 0].reshape(-1, 4)
         # Consecutive steps only: the wrapped steps 12..15 (stored at 0..3) never join 4..11.
         assert ((windows[:, 1:] - windows[:, :-1]) == 1).all()
+
+
+def test_dmc_evaluation_env_uses_the_held_out_videos(tmp_path):
+    from isodream_rl.trainers.builders import env_factory
+
+    cfg = tiny_config(tmp_path)
+    cfg.env.name = "dmc_walker_walk"
+    make = env_factory(cfg, eval_mode=True)
+    assert make.keywords["video_split"] == "eval"
+    assert "video_split" not in env_factory(cfg).keywords
+    env = make()
+    assert env.reset()["pixels"].shape == (3, 64, 64)
+    env.close()

@@ -47,10 +47,10 @@ STREAM_KEY = ("collector", "stream")
 
 
 def env_factory(cfg: RunConfig, *, eval_mode: bool = False) -> functools.partial:
-    """A picklable ``() -> EnvBase`` for ``cfg.env`` (evaluation envs use the test video split on DMC)."""
+    """A picklable ``() -> EnvBase`` for ``cfg.env`` (evaluation envs use the held-out "eval" video split on DMC)."""
     kwargs = dict(cfg.env.kwargs)
     if eval_mode and cfg.env.name.startswith("dmc_"):
-        kwargs.setdefault("video_split", "test")
+        kwargs.setdefault("video_split", "eval")
     return functools.partial(make_env, cfg.env.name, **kwargs)
 
 
