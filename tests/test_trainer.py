@@ -125,6 +125,15 @@ class TestStepper:
         stepper.step(None, replay_batch())
         assert stepper.nonfinite_in_a_row == 0
 
+    def test_a_first_skipped_update_returns_the_keys_of_a_full_one(self, tmp_path):
+        # The Trainer averages the updates of a batch key by key from the first one's keys.
+        stepper = _Components(tiny_config(tmp_path), action_dim=2, scratch_dir=tmp_path / "rb").stepper
+        bad = replay_batch()
+        bad.set(("next", "reward"), torch.full_like(bad.get(("next", "reward")), float("nan")))
+        skipped, full = stepper.step(None, bad), stepper.step(None, replay_batch())
+        assert list(skipped.keys()) == list(full.keys())
+        assert math.isnan(float(skipped["loss_actor"])) and math.isfinite(float(full["loss_actor"]))
+
     def test_sample_not_a_multiple_of_the_window_is_rejected(self, components):
         with pytest.raises(ValueError, match="not a multiple of the window length"):
             components.stepper.step(None, replay_batch()[:-1])

@@ -156,6 +156,8 @@ class IsoDreamOptimizationStepper(OptimizationStepper):
                 "strict_length=True)"
             )
         batch = sub_batch.reshape(-1, self.sequence_length)
+        if not self._metric_keys:
+            self._discover_keys(batch[:1, : min(2, self.sequence_length)].clone())
         metrics: dict[str, torch.Tensor] = {}
         finite = self._run(batch, metrics)
         for opt in self.optimizers.values():
@@ -184,13 +186,25 @@ class IsoDreamOptimizationStepper(OptimizationStepper):
         metrics["nonfinite_skipped"] = torch.tensor(float(not finite))
         return self._complete(metrics)
 
+    @torch.no_grad()
+    def _discover_keys(self, batch: TensorDictBase) -> None:
+        """The metric names of a full update, from the losses on a ``[1, 2]`` slice of the first batch.
+
+        The Trainer averages the metrics of the updates of a batch key by key, starting from the first
+        update's keys, so every update must return the same keys, a skipped one included.
+        """
+        losses, model_out = self.model_loss(batch)
+        keys = [*losses.keys(), "grad_norm_world_model"]
+        if self.actor_loss is not None:
+            actor_losses, imagined = self.actor_loss(model_out)
+            value_losses, _ = self.value_loss(imagined)
+            keys += [*actor_losses.keys(), "grad_norm_actor", *value_losses.keys(), "grad_norm_value"]
+        self._metric_keys = [*keys, "nonfinite_skipped"]
+
     def _complete(self, metrics: dict[str, torch.Tensor]) -> TensorDictBase:
-        """Same keys at every update (the Trainer averages them); absent ones are NaN."""
-        for key in metrics:
-            if key not in self._metric_keys:
-                self._metric_keys.append(key)
-        values = {k: metrics.get(k, torch.tensor(math.nan)).float().reshape(()) for k in self._metric_keys}
-        return TensorDict(values, [])
+        """The metrics under the fixed key set; those an update did not reach (skipped early) are NaN."""
+        nan = torch.tensor(math.nan)
+        return TensorDict({k: metrics.get(k, nan).float().reshape(()) for k in self._metric_keys}, [])
 
 
 def parameters_of(*modules: nn.Module | None) -> Sequence[nn.Parameter]:
