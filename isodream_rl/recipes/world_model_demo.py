@@ -44,6 +44,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--lr", type=float, default=6e-4)
     p.add_argument("--precision", choices=["fp32", "bf16"], default=None, help="default: bf16 where fast")
     p.add_argument("--device", default="cpu")
+    p.add_argument("--eval-every", type=int, default=200, help="updates between pictures / mask scores")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="runs/world_model_demo", help="output folder (logs, PNG, checkpoint)")
     return p.parse_args(argv)
@@ -104,11 +105,13 @@ def main(argv=None) -> dict:
             for key, value in values.items():
                 logger.log_scalar(key, value, step=step)
             bar.set_postfix(loss=f"{total.item():.1f}", mse=f"{values['reco_mse']:.4f}")
+        if (step + 1) % args.eval_every == 0 or step == args.steps - 1:
+            scores, out = evaluate(loss, held_out, window=args.window, device=device)
+            for key, value in scores.items():
+                logger.log_scalar(key, value, step=step + 1)
+            picture = save_png(branch_grid(out, sample=0, steps=args.window), out_dir / "branches.png")
+            bar.write(f"update {step + 1}: " + ", ".join(f"{k} {v:.3f}" for k, v in scores.items()))
 
-    scores, out = evaluate(loss, held_out, window=args.window, device=device)
-    for key, value in scores.items():
-        logger.log_scalar(key, value, step=args.steps)
-    picture = save_png(branch_grid(out, sample=0, steps=args.window), out_dir / "branches.png")
     checkpoint = out_dir / "world_model.pt"
     tmp = checkpoint.with_suffix(".tmp")
     torch.save(
