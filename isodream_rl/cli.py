@@ -80,8 +80,11 @@ def train() -> None:
     _train_main()
 
 
-def evaluate(argv: list[str] | None = None) -> tuple[float, float]:
-    """``isodream-eval RUN_DIR [--episodes N] [--video PATH] [--seed S]``: mean +- std return of a checkpoint."""
+def evaluate(argv: list[str] | None = None) -> None:
+    """``isodream-eval RUN_DIR [--episodes N] [--video PATH] [--seed S]``: mean +- std return of a checkpoint.
+
+    Returns ``None`` (a console-script return value becomes the exit status).
+    """
     parser = argparse.ArgumentParser(
         prog="isodream-eval", description="Evaluate the newest readable checkpoint of a run (mode actions)."
     )
@@ -102,7 +105,6 @@ def evaluate(argv: list[str] | None = None) -> tuple[float, float]:
     print(f"return over {len(returns)} episodes: {mean:.2f} +- {std:.2f}")
     if args.video:
         print(f"video: {args.video}")
-    return mean, std
 
 
 if __name__ == "__main__":

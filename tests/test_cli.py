@@ -1,6 +1,7 @@
 """The real CLI (``python -m isodream_rl.cli``) with tiny overrides, SheepRL-style, and its config errors."""
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -115,11 +116,11 @@ def test_every_algo_trains_on_sprites_and_evaluates(tmp_path, capsys):
 
     # isodream-eval's entry point, in this process (its start-up would double the test's time).
     video = tmp_path / "eval.gif"
-    mean, std = isodream_rl.cli.evaluate(
+    isodream_rl.cli.evaluate(
         [str(tmp_path / "runs" / "sprites-isodream-tiny"), "--episodes", "2", "--video", str(video)]
     )
-    assert "return over 2 episodes:" in capsys.readouterr().out
-    assert std >= 0 and video.stat().st_size > 0
+    assert re.search(r"return over 2 episodes: -?[0-9.]+ \+- [0-9.]+", capsys.readouterr().out)
+    assert video.stat().st_size > 0
 
 
 @pytest.mark.parametrize("env", ["highway", "dmc_walker_walk"])

@@ -6,10 +6,9 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from isodream_rl.trainers import ConfigError, NonFiniteLossError, RunConfig, validate_config
+from isodream_rl.trainers import ConfigError, NonFiniteLossError, RunComponents, RunConfig, validate_config
 from isodream_rl.trainers.hooks import ReplayPreparation
 from isodream_rl.trainers.openloop import open_loop_prediction, prediction_frames, save_gif
-from isodream_rl.trainers.run import _Components
 
 
 def tiny_config(tmp_path, **algo) -> RunConfig:
@@ -40,7 +39,7 @@ def replay_batch(batch: int = 2, time: int = 6, action_dim: int = 2) -> TensorDi
 def components(tmp_path_factory):
     torch.manual_seed(0)
     cfg = tiny_config(tmp_path_factory.mktemp("run"))
-    return _Components(cfg, action_dim=2, scratch_dir=tmp_path_factory.mktemp("scratch"))
+    return RunComponents(cfg, action_dim=2, scratch_dir=tmp_path_factory.mktemp("scratch"))
 
 
 class TestConfig:
@@ -127,7 +126,7 @@ class TestStepper:
 
     def test_a_first_skipped_update_returns_the_keys_of_a_full_one(self, tmp_path):
         # The Trainer averages the updates of a batch key by key from the first one's keys.
-        stepper = _Components(tiny_config(tmp_path), action_dim=2, scratch_dir=tmp_path / "rb").stepper
+        stepper = RunComponents(tiny_config(tmp_path), action_dim=2, scratch_dir=tmp_path / "rb").stepper
         bad = replay_batch()
         bad.set(("next", "reward"), torch.full_like(bad.get(("next", "reward")), float("nan")))
         skipped, full = stepper.step(None, bad), stepper.step(None, replay_batch())

@@ -14,7 +14,7 @@ from isodream_rl.trainers.config import (
     TrainConfig,
     validate_config,
 )
-from isodream_rl.trainers.run import RunResult, evaluate_checkpoint, train
+from isodream_rl.trainers.run import RunComponents, RunResult, evaluate_checkpoint, train
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper, NonFiniteLossError
 
 __all__ = [
@@ -28,6 +28,7 @@ __all__ = [
     "LoggingConfig",
     "ModelConfig",
     "NonFiniteLossError",
+    "RunComponents",
     "RunConfig",
     "RunResult",
     "TrainConfig",

@@ -67,8 +67,19 @@ def _probe_action_dim(cfg: RunConfig) -> int:
         env.close()
 
 
-class _Components:
-    """Models, losses, optimisers, stepper and replay buffer of a run (everything a checkpoint holds)."""
+class RunComponents:
+    """Models, losses, optimisers, stepper and replay buffer of a run (everything a checkpoint holds).
+
+    Args:
+        cfg: the run configuration.
+        action_dim: width of the env's action.
+        scratch_dir: folder of the replay buffer's memmap files.
+
+    Attributes:
+        model_loss, world_model, behavior (:class:`~isodream_rl.trainers.builders.Behavior`), stepper
+        (:class:`IsoDreamOptimizationStepper`), replay_buffer, preparation, returns (the replay and
+        episode-return hooks).
+    """
 
     def __init__(self, cfg: RunConfig, *, action_dim: int, scratch_dir: Path) -> None:
         train = cfg.train
@@ -153,7 +164,7 @@ def train(cfg: RunConfig) -> RunResult:
     # The memmap files of an earlier process of this run (killed, or finished) are stale: the replay data
     # that matters is in the checkpoints.
     shutil.rmtree(scratch, ignore_errors=True)
-    components = _Components(cfg, action_dim=_probe_action_dim(cfg), scratch_dir=scratch)
+    components = RunComponents(cfg, action_dim=_probe_action_dim(cfg), scratch_dir=scratch)
     stepper, policy = components.stepper, components.behavior.policy
     checkpoints = CheckpointManager(run_dir / "checkpoints", keep=cfg.checkpoint.keep)
     resumed_from, state = None, None
@@ -307,7 +318,7 @@ def evaluate_checkpoint(
     cfg = config_from_dict(state["config"])
     torch.set_num_threads(cfg.train.threads)
     seed_everything(seed)
-    components = _Components(
+    components = RunComponents(
         cfg, action_dim=_probe_action_dim(cfg), scratch_dir=Path(run_dir) / "eval_scratch"
     )
     components.load_models(state)
