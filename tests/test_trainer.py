@@ -67,6 +67,12 @@ class TestConfig:
         with pytest.raises(ConfigError, match="train.prefill_steps=3 is shorter than one replay window"):
             validate_config(cfg)
 
+    def test_resume_without_the_replay_buffer_is_rejected(self, tmp_path):
+        cfg = tiny_config(tmp_path)
+        cfg.resume, cfg.checkpoint.replay = True, False
+        with pytest.raises(ConfigError, match="set checkpoint.replay=true"):
+            validate_config(cfg)
+
 
 class TestStepper:
     def test_optimisers_have_the_paper_settings(self, components):

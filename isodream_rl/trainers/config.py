@@ -279,6 +279,11 @@ def validate_config(cfg: RunConfig) -> None:
         )
     if env.num_envs > 1 and train.collector_backend == "sync" and train.frames_per_batch < env.num_envs:
         errors.append("train.frames_per_batch must be at least env.num_envs")
+    if (cfg.resume or cfg.checkpoint.resume) and not cfg.checkpoint.replay:
+        errors.append(
+            "resume=true restores the replay buffer from the checkpoint: set checkpoint.replay=true (a resumed "
+            "run with an empty buffer would sample windows that do not exist)"
+        )
     if errors:
         raise ConfigError("invalid training configuration:\n  - " + "\n  - ".join(errors))
 

@@ -169,13 +169,10 @@ def train(cfg: RunConfig) -> RunResult:
     checkpoints = CheckpointManager(run_dir / "checkpoints", keep=cfg.checkpoint.keep)
     resumed_from, state = None, None
     if cfg.resume or cfg.checkpoint.resume:
-        state, resumed_from = checkpoints.load_latest(
-            replay_buffer=components.replay_buffer if cfg.checkpoint.replay else None
-        )
+        state, resumed_from = checkpoints.load_latest(replay_buffer=components.replay_buffer)
         components.load_models(state)
         stepper.load_state_dict(state["stepper"])
-        if cfg.checkpoint.replay:  # stream ids follow the restored buffer's write cursor
-            components.preparation.load_state_dict(state["hooks"]["preparation"])
+        components.preparation.load_state_dict(state["hooks"]["preparation"])
         components.returns.load_state_dict(state["hooks"]["returns"])
         set_rng_state(state["rng"])
         logger.info("resumed from %s (%d env steps)", resumed_from, state["counters"]["env_steps"])
