@@ -120,10 +120,7 @@ class CheckpointManager:
         """
         candidates = self.checkpoints()
         if not candidates:
-            raise CheckpointError(
-                f"resume=true but there is no checkpoint in {self.directory}; start without resume or "
-                "point run_dir at the run to continue"
-            )
+            raise CheckpointError(f"no checkpoint in {self.directory}")
         failures = []
         for path in reversed(candidates):
             try:

@@ -23,7 +23,7 @@ from isodream_rl.trainers.builders import (
     make_replay_buffer,
     make_world_model_loss,
 )
-from isodream_rl.trainers.checkpoint import CheckpointManager, rng_state, set_rng_state
+from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager, rng_state, set_rng_state
 from isodream_rl.trainers.config import RunConfig, validate_config
 from isodream_rl.trainers.evaluation import Evaluation, run_episodes, save_episode_gif
 from isodream_rl.trainers.hooks import (
@@ -169,6 +169,11 @@ def train(cfg: RunConfig) -> RunResult:
     checkpoints = CheckpointManager(run_dir / "checkpoints", keep=cfg.checkpoint.keep)
     resumed_from, state = None, None
     if cfg.resume or cfg.checkpoint.resume:
+        if not checkpoints.checkpoints():
+            raise CheckpointError(
+                f"resume=true but there is no checkpoint in {checkpoints.directory}; start without resume or "
+                "point run_dir at the run to continue"
+            )
         state, resumed_from = checkpoints.load_latest(replay_buffer=components.replay_buffer)
         components.load_models(state)
         stepper.load_state_dict(state["stepper"])
@@ -311,6 +316,10 @@ def evaluate_checkpoint(
         ``(mean, std, returns)``; with ``video``, the first episode is written there as a GIF.
     """
     checkpoints = CheckpointManager(Path(run_dir) / "checkpoints", keep=2)
+    if not checkpoints.checkpoints():
+        raise CheckpointError(
+            f"no checkpoint in {checkpoints.directory}: give the run_dir that isodream-train wrote"
+        )
     state, path = checkpoints.load_latest()
     cfg = config_from_dict(state["config"])
     torch.set_num_threads(cfg.train.threads)
