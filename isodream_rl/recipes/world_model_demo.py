@@ -35,13 +35,13 @@ def default_precision(device: torch.device) -> str:
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--steps", type=int, default=800, help="world-model updates")
-    p.add_argument("--batch-size", type=int, default=16, help="windows per update")
+    p.add_argument("--steps", type=int, default=600, help="world-model updates")
+    p.add_argument("--batch-size", type=int, default=8, help="windows per update")
     p.add_argument("--window", type=int, default=16, help="steps per window (T)")
     p.add_argument("--size", default="small", choices=["paper", "small", "tiny"], help="model size preset")
     p.add_argument("--episodes", type=int, default=60, help="random-action training episodes")
     p.add_argument("--episode-length", type=int, default=96, help="a multiple of --window")
-    p.add_argument("--lr", type=float, default=6e-4)
+    p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--precision", choices=["fp32", "bf16"], default=None, help="default: bf16 where fast")
     p.add_argument("--device", default="cpu")
     p.add_argument("--eval-every", type=int, default=200, help="updates between pictures / mask scores")
