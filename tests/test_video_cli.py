@@ -1,0 +1,68 @@
+"""``isodream-video train|eval`` end to end on tiny BAIR-format files."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from isodream_rl.data import write_bair_tfrecord
+from isodream_rl.video_prediction.cli import main
+from isodream_rl.video_prediction.trainer import TrainConfig, load_checkpoint
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+@pytest.fixture
+def bair_root(tmp_path):
+    rng = np.random.default_rng(0)
+    for split, n in (("train", 3), ("test", 2)):
+        (tmp_path / split).mkdir()
+        write_bair_tfrecord(
+            tmp_path / split / "traj.tfrecords",
+            rng.integers(0, 256, (n, 5, 64, 64, 3), dtype=np.uint8),
+            rng.normal(size=(n, 5, 4)).astype(np.float32),
+            rng.normal(size=(n, 5, 3)).astype(np.float32),
+        )
+    return tmp_path
+
+
+TINY = ["--hidden-channels", "4", "--encoder-channels", "4", "4", "--kernel-size", "3", "--num-layers", "1",
+        "--action-embedding", "4", "--batch-size", "2", "--threads", "1"]  # fmt: skip
+
+
+def test_train_then_eval_writes_checkpoint_logs_metrics_and_figures(bair_root, tmp_path):
+    out = tmp_path / "run"
+    args = ["train", "--dataset", "bair", "--data-path", str(bair_root), "--sequence-length", "5",
+            "--train-frames", "4", "--test-frames", "5", "--horizons", "2", "3", "--iterations", "2",
+            "--out-dir", str(out), "--result-json", str(out / "result.json"), "--no-progress", *TINY]  # fmt: skip
+    assert main(args) == 0
+    result = json.loads((out / "result.json").read_text())
+    assert result["iterations"] == 2 and set(result["metrics"]) >= {"psnr_2", "ssim_3", "psnr_uint8_3"}
+    assert len(result["curves"]["psnr"]) == 3
+    assert (out / "checkpoint.pt").exists() and not list(out.glob(".*.tmp"))
+    assert list((out / "logs").rglob("loss_image.csv"))
+
+    model, config, state = load_checkpoint(out / "checkpoint.pt")
+    assert config.variant == "isodream" and state["iteration"] == 2
+    eval_args = ["eval", "--checkpoint", str(out / "checkpoint.pt"), "--horizons", "3", "--no-balls",
+                 "--json", str(tmp_path / "e.json"), "--showcase", str(tmp_path / "s.png"),
+                 "--curves", str(tmp_path / "c.png")]  # fmt: skip
+    assert main(eval_args) == 0
+    assert set(json.loads((tmp_path / "e.json").read_text())["metrics"]) >= {"psnr_3", "ssim_uint8_3"}
+    assert (tmp_path / "s.png").stat().st_size > 0 and (tmp_path / "c.png").stat().st_size > 0
+
+
+def test_config_rejects_inconsistent_protocol():
+    with pytest.raises(ValueError, match="train_frames"):
+        TrainConfig(train_frames=40)
+    with pytest.raises(ValueError, match="data_path"):
+        TrainConfig(dataset="bair")
+    with pytest.raises(KeyError, match="unknown"):
+        TrainConfig.from_dict({"colour": 1})
