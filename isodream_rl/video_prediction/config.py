@@ -57,6 +57,11 @@ class PredictorConfig:
     def to_dict(self) -> dict:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
+    @classmethod
+    def from_dict(cls, values: dict) -> PredictorConfig:
+        """Inverse of :meth:`to_dict` (accepts lists where tuples are expected, e.g. from JSON)."""
+        return cls(**{**values, "encoder_channels": tuple(values["encoder_channels"])})
+
 
 VARIANTS: dict[str, dict] = {
     "isodream": {},

@@ -235,14 +235,7 @@ def load_checkpoint(
         if key not in state:
             raise KeyError(f"{path} is not a video-prediction checkpoint: missing '{key}'")
     config = TrainConfig.from_dict({**state["train_config"], "device": device})
-    model = ThreeBranchPredictor(
-        config=PredictorConfig(
-            **{
-                **state["predictor_config"],
-                "encoder_channels": tuple(state["predictor_config"]["encoder_channels"]),
-            }
-        )
-    )
+    model = ThreeBranchPredictor(config=PredictorConfig.from_dict(state["predictor_config"]))
     model.load_state_dict(state["model"])
     return model.to(device), config, state
 
