@@ -280,7 +280,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
                 free_proj = self.free_rssm.project_embedding(free_embed)
             static_out = None
             if self.static_decoder is not None:
-                static_out = self._static_branch(features.reshape(batch, time, *features.shape[1:])).float()
+                static_out = self.static_background(features.reshape(batch, time, *features.shape[1:])).float()
         latents = self._rollout(
             control_proj.float(), None if free_proj is None else free_proj.float(), action, is_init
         )
@@ -337,7 +337,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             tensordict.set("background", colors["static"].expand(batch, time, -1, -1, -1))
         return tensordict
 
-    def _static_branch(self, features: torch.Tensor) -> torch.Tensor:
+    def static_background(self, features: torch.Tensor) -> torch.Tensor:
         """``Dec_phi3(Enc_{theta,phi3}(o_{1:K}))`` (eq. 4): one background ``[B, C, 64, 64]`` per window.
 
         ``features``: trunk features ``[B, T, C', 14, 14]``. Windows shorter than K repeat their last frame.

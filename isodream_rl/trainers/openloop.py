@@ -89,7 +89,7 @@ def open_loop_prediction(
         trunk = world_model.encoder.trunk_features(
             pixels.reshape(-1, *IMAGE_SHAPE), channels_last=cfg.channels_last
         )
-        static = world_model._static_branch(trunk.reshape(batch, context, *trunk.shape[1:])).float()
+        static = world_model.static_background(trunk.reshape(batch, context, *trunk.shape[1:])).float()
         colors["static"] = static[:, None, :3]
         if static.shape[1] == 4:
             logits["static"] = static[:, None, 3:]
