@@ -360,23 +360,28 @@ def structured_batch(batch=2, time=8, seed=0):
     )
 
 
-@pytest.mark.parametrize("precision", ["fp32", "bf16"])
-def test_total_loss_falls_when_overfitting_one_batch(precision):
-    torch.manual_seed(0)
-    loss = IsoDreamModelLoss(IsoDreamWorldModel(tiny(precision=precision)))
-    optimizer = torch.optim.Adam(loss.parameters(), lr=3e-3)
-    td = structured_batch()
-    history = []
-    for _ in range(250):
-        losses, _ = loss(td.clone())
-        total = loss.total(losses)
-        optimizer.zero_grad()
-        total.backward()
-        optimizer.step()
-        history.append(total.item())
+@pytest.mark.parametrize(("precision", "steps", "lr"), [("fp32", 120, 5e-3), ("bf16", 60, 1e-2)])
+def test_total_loss_falls_when_overfitting_one_batch(precision, steps, lr):
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # tiny tensors: one thread is faster and immune to a loaded machine
+    try:
+        torch.manual_seed(0)
+        loss = IsoDreamModelLoss(IsoDreamWorldModel(tiny(precision=precision)))
+        optimizer = torch.optim.Adam(loss.parameters(), lr=lr)
+        td = structured_batch(time=6)
+        history = []
+        for _ in range(steps):
+            losses, _ = loss(td.clone())
+            total = loss.total(losses)
+            optimizer.zero_grad()
+            total.backward()
+            optimizer.step()
+            history.append(total.item())
+    finally:
+        torch.set_num_threads(threads)
     assert all(math.isfinite(h) for h in history)
     first, last = np.mean(history[:5]), np.mean(history[-5:])
-    assert last < 0.5 * first, (first, last)
+    assert last < 0.3 * first, (first, last)
 
 
 def test_decoder_matmul_first_layer_equals_the_transposed_convolution():
