@@ -22,9 +22,6 @@ from isodream_rl.modules.heads import make_discount_head, make_reward_head
 from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
 from isodream_rl.modules.rssm import ActionConditionedRSSM, ActionFreeRSSM
 
-#: Latent outputs of one branch's filtering step, in the order the rollout stacks them.
-_STEP_KEYS = ("belief", "prior_mean", "prior_std", "prior_state", "posterior_mean", "posterior_std", "state")
-
 
 def _next(key: str) -> tuple[str, str]:
     return ("next", key)
