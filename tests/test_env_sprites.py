@@ -155,3 +155,38 @@ def test_other_image_sizes_render_consistently():
     env = SpritesEnv(image_size=32, task="reach")
     obs, info = env.reset(seed=0)
     assert obs.shape == (32, 32, 3) and info["mask_agent"].shape == (32, 32)
+
+
+def _background(env: SpritesEnv, seed: int) -> np.ndarray:
+    obs, info = env.reset(seed=seed)
+    visible = ~(info["mask_agent"] | info["mask_distractors"] | info["mask_target"])
+    return obs, visible
+
+
+def test_background_pool_repeats_a_fixed_set_of_backgrounds():
+    env = SpritesEnv(num_backgrounds=2, background_seed=3)
+    pool = env._background_pool
+    assert pool.shape == (2, 64, 64, 3) and not np.array_equal(pool[0], pool[1])
+    used = set()
+    for seed in range(12):
+        obs, visible = _background(env, seed)
+        matches = [i for i in range(2) if np.array_equal(obs[visible], pool[i][visible])]
+        assert len(matches) == 1, "every episode shows exactly one background of the pool"
+        used.add(matches[0])
+    assert used == {0, 1}
+    # The same background seed gives the same pool in another env; another seed a different one.
+    assert np.array_equal(SpritesEnv(num_backgrounds=2, background_seed=3)._background_pool, pool)
+    assert not np.array_equal(SpritesEnv(num_backgrounds=2, background_seed=4)._background_pool, pool)
+
+
+def test_default_draws_a_new_background_per_episode():
+    env = SpritesEnv()
+    first, visible_a = _background(env, 0)
+    second, visible_b = _background(env, 1)
+    both = visible_a & visible_b
+    assert np.abs(first[both].astype(int) - second[both].astype(int)).mean() > 5
+
+
+def test_bad_background_pool_size_is_rejected():
+    with pytest.raises(ValueError, match="num_backgrounds"):
+        SpritesEnv(num_backgrounds=0)

@@ -49,8 +49,10 @@ class SpritesEnv(gym.Env):
     - **distractors** (noncontrollable): ``num_distractors`` coloured discs of the same radius, each moving
       with a constant speed ``distractor_speed * S`` pixels per step in a random direction, reflected by the
       borders.
-    - **background** (static): a smooth random colour field plus a faint oriented stripe texture, drawn from
-      the episode's random generator at reset and fixed for the whole episode.
+    - **background** (static): a smooth random colour field plus a faint oriented stripe texture, fixed for
+      the whole episode. By default every episode draws a new one from its random generator at reset; with
+      ``num_backgrounds=N`` the episodes pick one of ``N`` backgrounds made once from ``background_seed``
+      (a scene family whose backgrounds a world model can learn, like a DMC floor).
     - **target** (``task="reach"`` only): a green ring that the agent has to reach; it respawns elsewhere
       when reached.
 
@@ -87,6 +89,10 @@ class SpritesEnv(gym.Env):
         reach_reward (float, optional): reward for reaching the target. Defaults to 1.0.
         contact_penalty (float, optional): penalty per step touching a distractor. Defaults to 0.5.
         render_mode (str, optional): ``None`` or ``"rgb_array"``. Defaults to ``None``.
+        num_backgrounds (int, optional): size of a fixed pool of backgrounds that episodes draw from;
+            ``None`` draws a new background every episode. Defaults to ``None``.
+        background_seed (int, optional): seed of the background pool (ignored without
+            ``num_backgrounds``). Defaults to 0.
 
     Observation: ``Box(0, 255, (S, S, 3), uint8)``, HWC. Action: ``Box(-1, 1, (2,), float32)``, ``(dx, dy)``.
 
@@ -112,6 +118,8 @@ class SpritesEnv(gym.Env):
         reach_reward: float = 1.0,
         contact_penalty: float = 0.5,
         render_mode: str | None = None,
+        num_backgrounds: int | None = None,
+        background_seed: int = 0,
     ) -> None:
         if task not in SPRITES_TASKS:
             raise ValueError(f"Unknown sprites task {task!r}; expected one of {SPRITES_TASKS}.")
@@ -127,6 +135,8 @@ class SpritesEnv(gym.Env):
             raise ValueError(
                 f"speeds must be >= 0, got agent {agent_speed} and distractor {distractor_speed}."
             )
+        if num_backgrounds is not None and (not isinstance(num_backgrounds, int) or num_backgrounds < 1):
+            raise ValueError(f"num_backgrounds must be None or an int >= 1, got {num_backgrounds!r}.")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}.")
         self.image_size = image_size
@@ -152,6 +162,13 @@ class SpritesEnv(gym.Env):
         self.observation_space = gym.spaces.Box(0, 255, (image_size, image_size, 3), dtype=np.uint8)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), dtype=np.float32)
 
+        self.num_backgrounds = num_backgrounds
+        self._background_pool = None
+        if num_backgrounds is not None:
+            pool_rng = np.random.default_rng(background_seed)
+            self._background_pool = np.stack(
+                [self._make_background(pool_rng) for _ in range(num_backgrounds)]
+            )
         self._background = np.zeros((image_size, image_size, 3), dtype=np.uint8)
         self._frame = self._background
         self._agent = np.zeros(2)
@@ -161,7 +178,7 @@ class SpritesEnv(gym.Env):
         self._steps = -1  # -1 until the first reset
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
-        """Starts an episode: new background, sprite positions, distractor velocities and target.
+        """Starts an episode: background, sprite positions, distractor velocities and target.
 
         Args:
             seed (int, optional): seeds the episode generator; the same seed gives the same episode under
@@ -173,7 +190,10 @@ class SpritesEnv(gym.Env):
         """
         super().reset(seed=seed)
         rng = self.np_random
-        self._background = self._make_background(rng)
+        if self._background_pool is None:
+            self._background = self._make_background(rng)
+        else:
+            self._background = self._background_pool[rng.integers(len(self._background_pool))]
         self._agent = rng.uniform(self._lo, self._hi, size=2)
         self._distractors = rng.uniform(self._lo, self._hi, size=(self.num_distractors, 2))
         angles = rng.uniform(0.0, 2.0 * np.pi, size=self.num_distractors)

@@ -41,6 +41,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--size", default="small", choices=["paper", "small", "tiny"], help="model size preset")
     p.add_argument("--episodes", type=int, default=60, help="random-action training episodes")
     p.add_argument("--episode-length", type=int, default=96, help="a multiple of --window")
+    p.add_argument(
+        "--backgrounds",
+        type=int,
+        default=8,
+        help="size of the scene's background pool shared by training and held-out episodes (0: a new one each)",
+    )
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--precision", choices=["fp32", "bf16"], default=None, help="default: bf16 where fast")
     p.add_argument("--device", default="cpu")
@@ -79,8 +85,11 @@ def main(argv=None) -> dict:
         )
 
     print(f"collecting {args.episodes} random-action sprites episodes of {args.episode_length} steps ...")
-    train = collect_sprites_episodes(episodes=args.episodes, steps=args.episode_length, seed=args.seed)
-    held_out = collect_sprites_episodes(episodes=4, steps=args.episode_length, seed=args.seed + 1)
+    scene = {"num_backgrounds": args.backgrounds or None, "background_seed": args.seed}
+    train = collect_sprites_episodes(
+        episodes=args.episodes, steps=args.episode_length, seed=args.seed, **scene
+    )
+    held_out = collect_sprites_episodes(episodes=4, steps=args.episode_length, seed=args.seed + 1, **scene)
     buffer = make_window_buffer(train, batch_size=args.batch_size, window=args.window)
 
     config = WorldModelConfig.from_preset(args.size, action_dim=2, precision=precision)
