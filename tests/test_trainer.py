@@ -6,7 +6,14 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from isodream_rl.trainers import ConfigError, NonFiniteLossError, RunComponents, RunConfig, validate_config
+from isodream_rl.trainers import (
+    ConfigError,
+    IsoDreamOptimizationStepper,
+    NonFiniteLossError,
+    RunComponents,
+    RunConfig,
+    validate_config,
+)
 from isodream_rl.trainers.hooks import ReplayPreparation
 from isodream_rl.trainers.openloop import open_loop_prediction, prediction_frames, save_gif
 
@@ -138,6 +145,56 @@ class TestStepper:
         skipped, full = stepper.step(None, bad), stepper.step(None, replay_batch())
         assert list(skipped.keys()) == list(full.keys())
         assert math.isnan(float(skipped["loss_actor"])) and math.isfinite(float(full["loss_actor"]))
+
+    @staticmethod
+    def attention_after_one_sgd_update(tmp_path, *, through_actor: bool, actor_scale: float = 1.0):
+        """The attention's parameters after one update with plain SGD (lr 1: the step is the gradient)."""
+        torch.manual_seed(0)
+        parts = RunComponents(
+            tiny_config(tmp_path, attention_through_actor=through_actor), action_dim=2, scratch_dir=tmp_path
+        )
+        groups = parts.behavior.actor_loss.parameter_groups()
+        actor_loss = parts.behavior.actor_loss
+
+        def scaled_actor_loss(model_out):
+            losses, imagined = actor_loss(model_out)
+            losses["loss_actor"] = losses["loss_actor"] * actor_scale
+            return losses, imagined
+
+        stepper = IsoDreamOptimizationStepper(
+            model_loss=parts.model_loss,
+            world_model_optimizer=torch.optim.SGD(groups["world_model"], lr=1e-3),
+            actor_loss=scaled_actor_loss,
+            value_loss=parts.behavior.value_loss,
+            actor_optimizer=torch.optim.SGD(groups["actor"], lr=1.0),
+            value_optimizer=torch.optim.SGD(groups["value"], lr=1.0),
+            sequence_length=6,
+        )
+        torch.manual_seed(1)
+        batch = replay_batch()
+        before = [p.detach().clone() for p in parts.behavior.policy_input.parameters()]
+        assert stepper.step(None, batch)["nonfinite_skipped"] == 0
+        return [a.detach() - b for a, b in zip(parts.behavior.policy_input.parameters(), before)]
+
+    def test_attention_through_actor_adds_the_actor_gradient_to_the_attention_update(self, tmp_path):
+        plain = self.attention_after_one_sgd_update(tmp_path / "a", through_actor=False)
+        without_actor = self.attention_after_one_sgd_update(
+            tmp_path / "b", through_actor=False, actor_scale=0.0
+        )
+        through = self.attention_after_one_sgd_update(tmp_path / "c", through_actor=True)
+        assert any(step.abs().sum() > 0 for step in plain)
+        # Without the option the actor loss contributes nothing to the attention ...
+        for a, b in zip(plain, without_actor):
+            torch.testing.assert_close(a, b)
+        # ... with it, its gradient is added to the value loss's before the value optimiser steps.
+        assert any(not torch.allclose(a, b) for a, b in zip(plain, through))
+
+    def test_attention_through_actor_needs_the_attention_policy_input(self, tmp_path):
+        cfg = tiny_config(tmp_path, attention_through_actor=True, policy_input="controllable")
+        with pytest.raises(
+            ConfigError, match="set algo.policy_input=attention or algo.attention_through_actor"
+        ):
+            validate_config(cfg)
 
     def test_sample_not_a_multiple_of_the_window_is_rejected(self, components):
         with pytest.raises(ValueError, match="not a multiple of the window length"):

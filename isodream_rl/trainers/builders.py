@@ -191,7 +191,13 @@ def make_behavior(cfg: RunConfig, world_model: IsoDreamWorldModel) -> Behavior:
         device=device,
     )
     actor_loss = IsoDreamActorLoss(
-        actor, imagination, value_loss, gamma=algo.gamma, lmbda=algo.lmbda, entropy_bonus=algo.actor_entropy
+        actor,
+        imagination,
+        value_loss,
+        gamma=algo.gamma,
+        lmbda=algo.lmbda,
+        entropy_bonus=algo.actor_entropy,
+        attention_through_actor=algo.attention_through_actor,
     )
     return Behavior(
         policy_input=policy_input,

@@ -71,6 +71,8 @@ class AlgoConfig:
     """Reward head on ``[s, h, z, h']`` (CARLA) instead of ``[s, h]`` (DMC)."""
     policy_input: str = "attention"
     """``"controllable"`` ([s, h], DMC), ``"attention"`` (eq. 6, CARLA) or ``"concat"`` ([s, h, z, h'])."""
+    attention_through_actor: bool = False
+    """Let the actor loss train the attention too (the authors train it with the value loss only)."""
     attention_window: int = 5
     """tau, the number of noncontrollable states the attention reads (current plus tau - 1 future)."""
     horizon: int = 15
@@ -239,6 +241,11 @@ def validate_config(cfg: RunConfig) -> None:
         errors.append(
             f"algo.policy_input={algo.policy_input!r} reads the noncontrollable branch, but "
             "algo.free_branch=false: set algo.policy_input=controllable or algo.free_branch=true"
+        )
+    if algo.attention_through_actor and algo.policy_input != "attention":
+        errors.append(
+            f"algo.attention_through_actor=true trains the future-state attention, but algo.policy_input="
+            f"{algo.policy_input!r} has none: set algo.policy_input=attention or algo.attention_through_actor=false"
         )
     if algo.reward_uses_free and not algo.free_branch:
         errors.append(

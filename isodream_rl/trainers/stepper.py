@@ -34,8 +34,10 @@ class IsoDreamOptimizationStepper(OptimizationStepper):
 
     1. the flat replay sample ``[B * T]`` is reshaped to windows ``[B, T]``;
     2. the world-model loss (eq. 5) is backpropagated and its optimiser stepped;
-    3. ``actor_loss(model_output)`` imagines from the detached posteriors (eq. 7) and steps the actor; the
-       value loss on the returned rollout steps the value network and attention;
+    3. ``actor_loss(model_output)`` imagines from the detached posteriors (eq. 7) and ``value_loss`` regresses
+       the value on the returned rollout; both losses are backpropagated (their sum) before the actor and the
+       value + attention optimisers step, so that with ``attention_through_actor=True`` the actor loss's
+       gradient on the attention is kept and added to the value loss's;
     4. the slow value target is updated (``target_updater.step()``, a TorchRL ``TargetNetUpdater``).
 
     Each optimiser's parameters are clipped to a gradient norm of ``grad_clip``. An update whose loss or
@@ -114,38 +116,48 @@ class IsoDreamOptimizationStepper(OptimizationStepper):
     def _params(self, name: str) -> list[torch.Tensor]:
         return [p for group in self.optimizers[name].param_groups for p in group["params"]]
 
-    def _apply(self, name: str, loss: torch.Tensor, metrics: dict[str, torch.Tensor]) -> bool:
-        """Backward ``loss`` into optimiser ``name``'s parameters and step it; ``False`` if not finite."""
-        optimizer = self.optimizers[name]
-        optimizer.zero_grad(set_to_none=True)
+    def _backward(self, loss: torch.Tensor, names: Sequence[str]) -> bool:
+        """Zero the grads of optimisers ``names`` and backpropagate ``loss``; ``False`` if it is not finite."""
+        for name in names:
+            self.optimizers[name].zero_grad(set_to_none=True)
         if not torch.isfinite(loss):
             return False
         loss.backward()
-        norm = nn.utils.clip_grad_norm_(self._params(name), self.grad_clip)
-        metrics[f"grad_norm_{name}"] = norm.detach()
-        if not torch.isfinite(norm):
-            optimizer.zero_grad(set_to_none=True)
-            return False
-        optimizer.step()
-        optimizer.zero_grad(set_to_none=True)
+        return True
+
+    def _clip_and_step(self, names: Sequence[str], metrics: dict[str, torch.Tensor]) -> bool:
+        """Clip each optimiser's gradient and step them all, or none if any norm is not finite."""
+        for name in names:
+            norm = nn.utils.clip_grad_norm_(self._params(name), self.grad_clip)
+            metrics[f"grad_norm_{name}"] = norm.detach()
+            if not torch.isfinite(norm):
+                return False
+        for name in names:
+            self.optimizers[name].step()
         return True
 
     def _run(self, batch: TensorDictBase, metrics: dict[str, torch.Tensor]) -> bool:
         losses, model_out = self.model_loss(batch)
         metrics.update({k: v.detach() for k, v in losses.items()})
-        if not self._apply("world_model", _loss_sum(losses), metrics):
+        if not self._backward(_loss_sum(losses), ["world_model"]):
+            return False
+        if not self._clip_and_step(["world_model"], metrics):
             return False
         if self.actor_loss is None:
             return True
-        # The actor loss holds the world model out and returns a detached rollout for the value loss, so the
-        # three backward passes touch disjoint parameter groups.
         actor_losses, imagined = self.actor_loss(model_out)
         metrics.update({k: v.detach() for k, v in actor_losses.items()})
-        if not self._apply("actor", _loss_sum(actor_losses), metrics):
-            return False
         value_losses, _ = self.value_loss(imagined)
         metrics.update({k: v.detach() for k, v in value_losses.items()})
-        return self._apply("value", _loss_sum(value_losses), metrics)
+        # Both backward passes run before either step: with ``attention_through_actor`` the actor loss's
+        # gradient reaches the attention, which the value optimiser steps, so its grads must not be zeroed
+        # between the two passes. The world model is held out of the actor loss and the rollout given to the
+        # value loss is detached, so nothing else is shared.
+        behaviour = ["actor", "value"]
+        total = _loss_sum(actor_losses) + _loss_sum(value_losses)
+        if not self._backward(total, behaviour):
+            return False
+        return self._clip_and_step(behaviour, metrics)
 
     def step(self, trainer, sub_batch: TensorDictBase) -> TensorDictBase:
         """One update on a flat ``[B * T]`` replay sample; returns detached scalar metrics."""
