@@ -53,6 +53,10 @@ class WorldModelConfig:
     (§3.2, against collapse); ``"posterior"``: both from posteriors."""
     static_frames: int = 10
     """K, the number of first frames of a window that the static branch reads (clamped to the window)."""
+    static_mask_bias: float = 0.0
+    """Initial bias of the static branch's mask logit (softmax mode). A positive value starts training with
+    the background owning most of every pixel (3.0: 91 %), so the dynamic branches grow masks only where
+    the background cannot explain the frame, instead of all three blending at 1/3 each."""
     reward_uses_free: bool = False
     """Reward head on [s, h, z, h'] (CARLA-style) instead of [s, h] (DMC-style)."""
     discount_head: bool = False
@@ -77,6 +81,8 @@ class WorldModelConfig:
             raise ValueError("reward_uses_free=True needs the action-free branch (free_branch=True)")
         if self.mask_mode == "sigmoid" and not self.static_branch:
             raise ValueError("mask_mode='sigmoid' needs the static branch (its mask is 1 - M^s - M^z)")
+        if self.static_mask_bias and not (self.static_branch and self.mask_mode == "softmax"):
+            raise ValueError("static_mask_bias needs the static branch with mask_mode='softmax'")
         if self.static_frames < 1:
             raise ValueError(f"static_frames must be >= 1, got {self.static_frames}")
 

@@ -103,6 +103,9 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             if cfg.static_branch
             else None
         )
+        if cfg.static_mask_bias:
+            with torch.no_grad():
+                self.static_decoder.deconv[-1].bias[3] += cfg.static_mask_bias
         self.composition = MaskComposition(mask_mode=cfg.mask_mode)
         self.inverse_cell = (
             InverseDynamicsCell(

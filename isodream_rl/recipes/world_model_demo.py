@@ -47,6 +47,9 @@ def parse_args(argv=None) -> argparse.Namespace:
         default=8,
         help="size of the scene's background pool shared by training and held-out episodes (0: a new one each)",
     )
+    p.add_argument(
+        "--static-mask-bias", type=float, default=3.0, help="initial bias of the background's mask logit"
+    )
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--precision", choices=["fp32", "bf16"], default=None, help="default: bf16 where fast")
     p.add_argument("--device", default="cpu")
@@ -92,7 +95,9 @@ def main(argv=None) -> dict:
     held_out = collect_sprites_episodes(episodes=4, steps=args.episode_length, seed=args.seed + 1, **scene)
     buffer = make_window_buffer(train, batch_size=args.batch_size, window=args.window)
 
-    config = WorldModelConfig.from_preset(args.size, action_dim=2, precision=precision)
+    config = WorldModelConfig.from_preset(
+        args.size, action_dim=2, precision=precision, static_mask_bias=args.static_mask_bias
+    )
     loss = IsoDreamModelLoss(IsoDreamWorldModel(config, device=device))
     optimizer = torch.optim.Adam(loss.parameters(), lr=args.lr, eps=1e-5)
     logger = CSVLogger(exp_name="world_model_demo", log_dir=str(out_dir))
