@@ -1,0 +1,35 @@
+import pytest
+import torch
+from tensordict import TensorDict
+
+from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
+
+
+def _masks(bias: float) -> dict[str, float]:
+    torch.manual_seed(0)
+    model = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2, static_mask_bias=bias))
+    td = TensorDict(
+        {
+            "action": torch.zeros(2, 4, 2),
+            ("next", "pixels"): torch.randint(0, 256, (2, 4, 3, 64, 64), dtype=torch.uint8),
+        },
+        [2, 4],
+    )
+    with torch.no_grad():
+        out = model(td)["next"]
+    return {name: out[f"mask_{name}"].mean().item() for name in ("control", "free", "static")}
+
+
+def test_static_mask_bias_gives_the_background_most_of_the_image_at_init():
+    plain, biased = _masks(0.0), _masks(3.0)
+    assert 0.2 < plain["static"] < 0.5
+    # softmax with logits (b, 0, 0) and small decoder outputs: about e^3 / (e^3 + 2) = 0.91.
+    assert biased["static"] > 0.85
+    assert biased["control"] < 0.1 and biased["free"] < 0.1
+
+
+def test_static_mask_bias_needs_a_static_softmax_mask():
+    with pytest.raises(ValueError, match="static_mask_bias"):
+        WorldModelConfig.from_preset("tiny", action_dim=2, static_mask_bias=1.0, static_branch=False)
+    with pytest.raises(ValueError, match="static_mask_bias"):
+        WorldModelConfig.from_preset("tiny", action_dim=2, static_mask_bias=1.0, mask_mode="sigmoid")
