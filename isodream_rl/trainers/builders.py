@@ -8,7 +8,6 @@ from pathlib import Path
 
 import torch
 from torch import nn
-from torchrl.collectors import Collector
 from torchrl.data import LazyMemmapStorage, SliceSampler, TensorDictReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger, get_logger
@@ -57,51 +56,6 @@ def env_factory(cfg: RunConfig, *, eval_mode: bool = False) -> functools.partial
 def action_dim_of(env: EnvBase) -> int:
     """Width of the env's action vector."""
     return int(env.action_spec.shape[-1])
-
-
-def make_collector(
-    cfg: RunConfig, policy, *, total_frames: int, init_random_frames: int, env_transform=None
-) -> Collector:
-    """TorchRL ``Collector``: one env in this process, or ``num_envs`` worker processes (or remote workers).
-
-    Args:
-        cfg: the run configuration (``env``, ``train.frames_per_batch``, ``train.collector_backend``).
-        policy: the acting policy (:class:`~isodream_rl.modules.IsoDreamPolicy`).
-        total_frames: agent steps still to collect (the whole run minus what a resumed run already has).
-        init_random_frames: random-policy steps still to collect (the prefill).
-        env_transform: ``() -> Transform`` appended to each env (the policy's recurrent-state primer).
-    """
-    train, num_envs = cfg.train, cfg.env.num_envs
-    make = env_factory(cfg)
-    if env_transform is not None:
-        make = functools.partial(_with_transform, make, env_transform)
-    backend = train.collector_backend
-    if backend == "sync":
-        backend = "direct" if num_envs == 1 else "process"
-    elif backend == "multiprocess":
-        backend = "process"
-    kwargs = {}
-    if backend != "direct":
-        kwargs.update(num_collectors=num_envs, sync=True)
-    collector = Collector(
-        make if backend == "direct" else [make] * num_envs,
-        policy,
-        backend=backend,
-        frames_per_batch=train.frames_per_batch,
-        total_frames=total_frames,
-        init_random_frames=init_random_frames,
-        device=train.device,
-        storing_device="cpu",
-        **kwargs,
-    )
-    collector.set_seed(train.seed)
-    return collector
-
-
-def _with_transform(make, transform_factory):
-    env = make()
-    env.append_transform(transform_factory())
-    return env
 
 
 def make_replay_buffer(cfg: RunConfig, *, scratch_dir: str | Path) -> TensorDictReplayBuffer:

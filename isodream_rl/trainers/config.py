@@ -7,6 +7,7 @@ change, before any env or model is built.
 
 from __future__ import annotations
 
+import importlib.util
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -15,6 +16,9 @@ from isodream_rl.objectives.world_model import FREE_BRANCH_MODES
 
 POLICY_INPUTS = ("controllable", "attention", "concat")
 COLLECTOR_BACKENDS = ("sync", "multiprocess", "ray", "distributed")
+REMOTE_BACKENDS = ("ray", "distributed")
+DISTRIBUTED_LAUNCHERS = ("mp", "submitit", "submitit_delayed")
+DISTRIBUTED_BACKENDS = ("gloo", "nccl", "mpi", "ucc")
 LOGGER_BACKENDS = ("csv", "tensorboard", "wandb")
 ALGO_NAMES = ("isodream", "dreamerv2", "isodream_no_inverse", "isodream_no_attention", "isodream_no_static")
 
@@ -127,7 +131,22 @@ class TrainConfig:
     """K: this many updates in a row with a NaN/inf loss or gradient stop the run."""
     collector_backend: str = "sync"
     """``"sync"`` (one process; a multi-process collector when ``num_envs > 1``), ``"multiprocess"``,
-    ``"ray"`` or ``"distributed"`` (TorchRL's distributed collectors, for more than one machine)."""
+    ``"ray"`` or ``"distributed"`` (TorchRL's distributed collectors, for more than one machine); each of the
+    ``env.num_envs`` workers runs one env."""
+    ray_address: str = ""
+    """``ray``: address of a running Ray cluster (``"auto"``, ``"ray://head:10001"``); empty starts a local one."""
+    collector_cpus: int = 2
+    """``ray`` without an address: CPUs of the local Ray cluster (one per worker)."""
+    distributed_launcher: str = "mp"
+    """``distributed``: ``"mp"`` (worker processes on this machine), ``"submitit"`` or ``"submitit_delayed"``
+    (SLURM jobs on other nodes; needs ``pip install submitit``)."""
+    distributed_backend: str = "gloo"
+    """``distributed``: the ``torch.distributed`` backend (``"gloo"`` on CPU; ``"nccl"`` between GPUs)."""
+    distributed_port: int = 10003
+    """``distributed``: TCP port of the rendezvous on this (the learner's) machine; the next two ports are used
+    too."""
+    slurm_kwargs: dict[str, Any] = field(default_factory=dict)
+    """``distributed`` with submitit: the SLURM executor's parameters (``timeout_min``, ``slurm_partition``...)."""
     device: str = "cpu"
     """Where the models train (``"cpu"`` or ``"cuda"``)."""
     seed: int = 0
@@ -215,6 +234,8 @@ def validate_config(cfg: RunConfig) -> None:
     _choice(errors, "algo.free_branch_loss", algo.free_branch_loss, FREE_BRANCH_MODES)
     _choice(errors, "train.collector_backend", train.collector_backend, COLLECTOR_BACKENDS)
     _choice(errors, "logging.backend", cfg.logging.backend, LOGGER_BACKENDS)
+    _choice(errors, "train.distributed_launcher", train.distributed_launcher, DISTRIBUTED_LAUNCHERS)
+    _choice(errors, "train.distributed_backend", train.distributed_backend, DISTRIBUTED_BACKENDS)
     for name, value in (
         ("env.num_envs", env.num_envs),
         ("env.action_repeat", env.action_repeat),
@@ -225,6 +246,7 @@ def validate_config(cfg: RunConfig) -> None:
         ("train.sequence_length", train.sequence_length),
         ("train.max_nonfinite_updates", train.max_nonfinite_updates),
         ("train.threads", train.threads),
+        ("train.collector_cpus", train.collector_cpus),
         ("algo.horizon", algo.horizon),
         ("algo.attention_window", algo.attention_window),
         ("algo.slow_target_every", algo.slow_target_every),
@@ -269,10 +291,11 @@ def validate_config(cfg: RunConfig) -> None:
             f"train.buffer_size={train.buffer_size} cannot hold one window per env "
             f"(train.sequence_length * env.num_envs = {train.sequence_length * env.num_envs})"
         )
-    if train.prefill_steps < train.sequence_length and train.prefill_steps < train.total_steps:
+    window_steps = train.sequence_length * env.num_envs
+    if train.prefill_steps < window_steps and train.prefill_steps < train.total_steps:
         errors.append(
-            f"train.prefill_steps={train.prefill_steps} is shorter than one replay window "
-            f"(train.sequence_length={train.sequence_length}): raise the prefill or shorten the window"
+            f"train.prefill_steps={train.prefill_steps} is shorter than one replay window per env "
+            f"(train.sequence_length * env.num_envs = {window_steps}): raise the prefill or shorten the window"
         )
     if cfg.logging.video_context >= cfg.logging.video_length or cfg.logging.video_context < 1:
         errors.append(
@@ -286,6 +309,30 @@ def validate_config(cfg: RunConfig) -> None:
         )
     if env.num_envs > 1 and train.collector_backend == "sync" and train.frames_per_batch < env.num_envs:
         errors.append("train.frames_per_batch must be at least env.num_envs")
+    if train.collector_backend == "ray":
+        if importlib.util.find_spec("ray") is None:
+            errors.append(
+                "train.collector_backend=ray needs Ray: pip install 'isodream-rl[distributed]' (or 'ray[default]')"
+            )
+        if not train.ray_address and train.collector_cpus < env.num_envs:
+            errors.append(
+                f"train.collector_cpus={train.collector_cpus} is fewer than the env.num_envs={env.num_envs} Ray "
+                "workers (one CPU each): raise train.collector_cpus or give train.ray_address"
+            )
+    if (
+        train.collector_backend == "distributed"
+        and train.distributed_launcher.startswith("submitit")
+        and importlib.util.find_spec("submitit") is None
+    ):
+        errors.append(
+            f"train.distributed_launcher={train.distributed_launcher} needs submitit: pip install submitit, or "
+            "set train.distributed_launcher=mp to start the workers on this machine"
+        )
+    if train.collector_backend in REMOTE_BACKENDS and cfg.model.overrides.get("channels_last", False):
+        errors.append(
+            f"model.overrides.channels_last=true cannot be used with train.collector_backend="
+            f"{train.collector_backend}: its weight transfer sends dense tensors only; drop the override"
+        )
     if (cfg.resume or cfg.checkpoint.resume) and not cfg.checkpoint.replay:
         errors.append(
             "resume=true restores the replay buffer from the checkpoint: set checkpoint.replay=true (a resumed "
@@ -308,4 +355,7 @@ def world_model_overrides(cfg: RunConfig) -> dict[str, Any]:
         fields_from_algo["decoder_input"] = "posterior"
     if not algo.static_branch:
         fields_from_algo["mask_mode"] = "softmax"
+    if cfg.train.collector_backend in REMOTE_BACKENDS:
+        # Ray's and torch.distributed's weight transfers send dense tensors only.
+        fields_from_algo["channels_last"] = False
     return {**fields_from_algo, **dict(cfg.model.overrides)}

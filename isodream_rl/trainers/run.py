@@ -18,12 +18,12 @@ from isodream_rl.trainers.builders import (
     env_factory,
     make_adam,
     make_behavior,
-    make_collector,
     make_logger,
     make_replay_buffer,
     make_world_model_loss,
 )
 from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager, rng_state, set_rng_state
+from isodream_rl.trainers.collectors import make_collector
 from isodream_rl.trainers.config import RunConfig, validate_config
 from isodream_rl.trainers.evaluation import Evaluation, run_episodes, save_episode_gif
 from isodream_rl.trainers.hooks import (

@@ -1,0 +1,120 @@
+"""The TorchRL collector of a run, on one machine or several (``train.collector_backend``).
+
+``sync``/``multiprocess`` collect in this process or in local worker processes; ``ray`` hands the workers to a
+Ray cluster (``torchrl.collectors.distributed.RayCollector``); ``distributed`` starts them with
+``torch.distributed`` (``torchrl.collectors.distributed.DistributedCollector``, gloo by default), launched as
+local processes (``launcher=mp``) or as SLURM jobs through submitit. Both remote backends send the policy
+weights to their workers with ``torch.distributed``, which takes dense tensors only: ``world_model_overrides``
+turns the world model's ``channels_last`` off for them.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+from torchrl.collectors import BaseCollector, Collector
+
+from isodream_rl.trainers.builders import env_factory
+from isodream_rl.trainers.config import RunConfig
+
+
+def _with_transform(make, transform_factory):
+    env = make()
+    env.append_transform(transform_factory())
+    return env
+
+
+def _seeded(make, seed: int):
+    env = make()
+    env.set_seed(seed)
+    return env
+
+
+def _backend_options(cfg: RunConfig) -> dict[str, Any]:
+    train = cfg.train
+    options: dict[str, Any] = {}
+    if train.collector_backend == "ray":
+        if train.ray_address:
+            options["ray_init_config"] = {"address": train.ray_address}
+        else:
+            options["ray_init_config"] = {
+                "num_cpus": train.collector_cpus,
+                "include_dashboard": False,
+                # The workers print their collector at start-up; keep the console to the progress bar.
+                "log_to_driver": False,
+            }
+        # One CPU per worker and no memory reservation (TorchRL's default reserves 2 GB per worker).
+        gpus = 0.2 if train.device.startswith("cuda") else 0
+        options["remote_configs"] = {"num_cpus": 1, "num_gpus": gpus, "memory": None}
+    elif train.collector_backend == "distributed":
+        options.update(
+            launcher=train.distributed_launcher,
+            tcp_port=train.distributed_port,
+            backend=train.distributed_backend,
+        )
+        if train.slurm_kwargs:
+            options["slurm_kwargs"] = dict(train.slurm_kwargs)
+    return options
+
+
+def make_collector(
+    cfg: RunConfig, policy, *, total_frames: int, init_random_frames: int, env_transform=None
+) -> BaseCollector:
+    """TorchRL ``Collector``: one env in this process, ``num_envs`` local worker processes, or remote workers.
+
+    Args:
+        cfg: the run configuration (``env``, ``train.frames_per_batch``, ``train.collector_backend`` and the
+            ``train`` fields of the chosen backend).
+        policy: the acting policy (:class:`~isodream_rl.modules.IsoDreamPolicy`).
+        total_frames: agent steps still to collect (the whole run minus what a resumed run already has).
+        init_random_frames: random-policy steps still to collect (the prefill).
+        env_transform: ``() -> Transform`` appended to each env (the policy's recurrent-state primer).
+
+    Returns:
+        The collector; with ``ray``/``distributed`` each of the ``env.num_envs`` workers collects
+        ``frames_per_batch / num_envs`` steps per batch (``sync=True``: one batch stacks them all).
+    """
+    train, num_envs = cfg.train, cfg.env.num_envs
+    make = env_factory(cfg)
+    if env_transform is not None:
+        make = functools.partial(_with_transform, make, env_transform)
+    backend = train.collector_backend
+    if backend == "sync":
+        backend = "direct" if num_envs == 1 else "process"
+    elif backend == "multiprocess":
+        backend = "process"
+    kwargs: dict[str, Any] = {}
+    if backend != "direct":
+        kwargs.update(num_collectors=num_envs, sync=True)
+    options = _backend_options(cfg)
+    if options:
+        kwargs["backend_options"] = options
+    if backend in ("ray", "distributed"):
+        # Each remote worker seeds its own env: torchrl 0.14's DistributedCollector.set_seed fails on the
+        # workers (it parses the seed message as a list), and Ray's would seed them all alike.
+        makes = [functools.partial(_seeded, make, train.seed + i) for i in range(num_envs)]
+    else:
+        makes = make if backend == "direct" else [make] * num_envs
+    collector = Collector(
+        makes,
+        policy,
+        backend=backend,
+        frames_per_batch=train.frames_per_batch,
+        total_frames=total_frames,
+        init_random_frames=init_random_frames,
+        device=train.device,
+        storing_device="cpu",
+        **kwargs,
+    )
+    if backend in ("ray", "distributed"):
+        # The workers start from the pickled policy; this sets up the weight transfer the Trainer's
+        # UpdateWeights hook uses after every batch.
+        collector.update_policy_weights_()
+    else:
+        collector.set_seed(train.seed)
+    # TorchRL's Trainer starts optimising once ``collected_frames >= collector.init_random_frames``; the remote
+    # collectors pass the prefill to their workers without keeping it themselves.
+    if not hasattr(collector, "init_random_frames"):
+        collector.init_random_frames = init_random_frames
+    return collector
