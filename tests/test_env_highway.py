@@ -4,7 +4,8 @@ import pytest
 from highway_env.envs.highway_env import HighwayEnv
 from highway_env.vehicle.kinematics import Vehicle
 
-from isodream_rl.envs.highway import HIGHWAY_VIEWS, HighwayIsoEnv, _HighwaySimulator
+from isodream_rl.envs.highway import HIGHWAY_VIEWS, HighwayIsoEnv
+from isodream_rl.envs.highway_sim import FastIDMVehicle, HighwaySimulator
 
 STRAIGHT = np.zeros(2, dtype=np.float32)
 
@@ -70,26 +71,30 @@ def test_same_seed_gives_same_episode_and_other_seed_differs():
     assert not np.array_equal(frames[0], frames_other[0])
 
 
-def test_fast_road_reproduces_highway_env_trajectories():
+def test_fast_simulator_reproduces_highway_env_trajectories():
     config = {
         "action": {"type": "ContinuousAction"},
         "simulation_frequency": 20,
         "policy_frequency": 20,
         "vehicles_count": 12,
     }
-    trajectories = []
-    for simulator in (HighwayEnv(config=config), _HighwaySimulator(config=config)):
+    trajectories, lane_changes = [], []
+    for simulator in (HighwayEnv(config=config), HighwaySimulator(config=config)):
         simulator.reset(seed=9)
-        states = []
+        states, changing = [], 0
         for tick in range(100):
             # Full throttle rams the traffic ahead (at tick 34 with this seed): crash handling is compared too.
             simulator.action_type.act(np.array([1.0, 0.02 * np.sin(tick / 10)]))
             simulator.road.act()
             simulator.road.step(0.05)
             states.append([[*v.position, v.heading, v.speed, v.crashed] for v in simulator.road.vehicles])
+            changing += sum(v.lane_index != v.target_lane_index for v in simulator.road.vehicles[1:])
         trajectories.append(np.array(states))
+        lane_changes.append(changing)
     stock, fast = trajectories
+    assert isinstance(simulator.road.vehicles[1], FastIDMVehicle)
     assert stock[-1, 0, 4] == 1.0, "the ego should have crashed"
+    assert lane_changes[0] > 0, "MOBIL lane changes should be compared too"
     np.testing.assert_array_equal(stock, fast)
 
 
@@ -245,4 +250,13 @@ def test_bad_inputs_raise_clear_errors():
         env.step(np.zeros(3, dtype=np.float32))
     with pytest.raises(ValueError, match="finite"):
         env.step(np.array([np.nan, 0.0]))
+    env.close()
+
+
+def test_first_person_renderer_makes_its_gl_context_at_the_first_render():
+    env = HighwayIsoEnv(vehicles_count=2)
+    renderer = env._renderer._renderer
+    assert renderer.backend is None  # nothing to inherit through fork from a constructed env
+    env.reset(seed=0)
+    assert renderer.backend in ("egl", "osmesa", "glfw")
     env.close()

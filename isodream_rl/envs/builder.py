@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
 from typing import Any
 
 import gymnasium as gym
@@ -329,15 +330,32 @@ def make_parallel_env(
             ``set_seed`` chain derives from the previous one (distinct and deterministic).
         device (torch.device or str, optional): device of the output tensors. Defaults to ``"cpu"``.
         mp_start_method (str, optional): ``"fork"`` starts workers in about a second; TorchRL's default
-            (``"spawn"``) re-imports torch in each worker, which takes 10+ s on a busy 2-core machine.
+            (``"spawn"``) re-imports torch in each worker, which takes 10+ s on a busy 2-core machine. Envs
+            rendered with OpenGL (DMC, highway first-person) can fork only with ``LP_NUM_THREADS=0``, the default
+            ``isodream_rl.envs`` sets.
         **cfg: passed to ``make_env``.
 
     Returns:
         ParallelEnv: batch size ``[num_workers]``, same keys as ``make_env``.
+
+    Raises:
+        ValueError: for ``num_workers < 1``, an unknown name, or ``"fork"`` with an OpenGL env while llvmpipe
+            runs worker threads (a forked worker would hang at its first render).
     """
     if num_workers < 1:
         raise ValueError(f"num_workers must be >= 1, got {num_workers}.")
     _check_name(name)  # here, with the list of valid names, rather than inside a worker
+    uses_gl = name.startswith("dmc_") or (
+        name == "highway" and cfg.get("view", "first_person") == "first_person"
+    )
+    llvmpipe_threads = os.environ.get("LP_NUM_THREADS", "")
+    if mp_start_method == "fork" and uses_gl and llvmpipe_threads != "0":
+        raise ValueError(
+            f"mp_start_method='fork' with {name!r}, which renders with OpenGL, needs LP_NUM_THREADS=0 (got "
+            f"{llvmpipe_threads or 'unset'}): Mesa's llvmpipe worker threads do not survive fork and a forked "
+            "worker hangs at its first render. Set LP_NUM_THREADS=0 before importing isodream_rl.envs, or use "
+            "mp_start_method='spawn'."
+        )
     env = ParallelEnv(
         num_workers,
         EnvCreator(functools.partial(make_env, name, device=device, **cfg)),

@@ -20,9 +20,10 @@ from __future__ import annotations
 import os
 from typing import Any
 
-# One llvmpipe thread renders 64x64 frames as fast as two and leaves the second core to torch. Mesa reads
-# this when the first GL context is created, so it must be set before any render.
-os.environ.setdefault("LP_NUM_THREADS", "1")
+# llvmpipe rasterising in the calling thread renders 64x64 frames as fast as with worker threads, leaves the
+# second core to torch and survives fork (see isodream_rl/envs/__init__.py). Mesa reads this when dm_control
+# initialises EGL, at import.
+os.environ.setdefault("LP_NUM_THREADS", "0")
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import gymnasium  # noqa: E402
@@ -152,16 +153,24 @@ class DMCBackgroundEnv(gymnasium.Env):
         if not 0 <= camera_id < model.ncam:
             raise ValueError(f"camera_id must be in [0, {model.ncam}) for {domain}, got {camera_id}")
         self.camera_id = camera_id
-        # Fast llvmpipe settings (same picture within 1/255): no MSAA, small shadow map. The GL context
-        # reads them, and the skybox texture, when it is created by the first Camera.
-        model.vis.quality.offsamples = 0
-        model.vis.quality.shadowsize = 256
+        # Fast llvmpipe settings, the same picture within 1/255 (docs/envs/dmc.md): no MSAA, a 256 px shadow map,
+        # capsules and spheres of 16 x 8 facets instead of 28 x 16 (at 64x64, llvmpipe spends most of a frame
+        # transforming vertices) and an offscreen buffer of the image size instead of 640x480. The GL context
+        # reads them, and the skybox texture, when the first Camera creates it.
+        quality = model.vis.quality
+        quality.offsamples = 0
+        quality.shadowsize = 256
+        quality.numslices = min(quality.numslices, 16)
+        quality.numstacks = min(quality.numstacks, 8)
+        model.vis.global_.offwidth = model.vis.global_.offheight = image_size
         if not shadows:
             model.light_castshadow[:] = 0
         if background != "none":
             _paint_key(model, background)
-        # One Camera reused for the whole life of the env: physics.render() would rebuild it every frame.
-        self._camera = Camera(physics, height=image_size, width=image_size, camera_id=camera_id)
+        self.image_size = image_size
+        # One Camera reused for the whole life of the env (physics.render() would rebuild it every frame), made
+        # with its GL context at the first render: a ParallelEnv builds an env in the parent only to read specs.
+        self._camera: Camera | None = None
 
         self._videos = (
             BackgroundVideos(split=video_split, size=image_size, video_source=video_source)
@@ -191,6 +200,10 @@ class DMCBackgroundEnv(gymnasium.Env):
         self._last_obs = np.zeros(self.observation_space.shape, np.uint8)
 
     def _observe(self) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        if self._camera is None:
+            self._camera = Camera(
+                self._env.physics, height=self.image_size, width=self.image_size, camera_id=self.camera_id
+            )
         # Camera.render returns a view of its internal buffer, which the next render overwrites.
         obs = self._camera.render().copy()
         if self._video is None:

@@ -5,169 +5,27 @@ simulation, continuous [steer, throttle/brake] actions repeated for 4 ticks, and
 r = v_ego . u_lane * dt - xi1 * I - xi2 * |steer|. Observations are 64x64 RGB frames from a forward camera on the
 ego's roof (``view="first_person"``) or from an ego-centred top-down chase view (``view="top_down"``).
 
-highway-env is slow at 20 Hz with 30 vehicles (about 6 ms per tick on this CPU, 80 % of it in lane geometry and
-neighbour search), so the road used here is a drop-in replacement specialised to straight lanes along +x that
-returns bit-identical vehicle trajectories (``tests/test_env_highway.py`` checks it) about 3x faster.
+highway-env is slow at 20 Hz with 30 vehicles, so the simulation runs on :mod:`isodream_rl.envs.highway_sim`: the
+same road, vehicles and models specialised to straight lanes, with bit-identical trajectories and several times
+faster.
 """
 
 from __future__ import annotations
 
-from bisect import bisect_left
-from typing import Any
-
 import gymnasium as gym
 import numpy as np
 from highway_env import utils
-from highway_env.envs.highway_env import HighwayEnv
-from highway_env.road.lane import LineType, StraightLane
-from highway_env.road.road import LaneIndex, Road, RoadNetwork
+from highway_env.road.road import Road
 from highway_env.vehicle.kinematics import Vehicle
 
 from isodream_rl.envs.highway_render import ChaseViewRenderer, FirstPersonRenderer
+from isodream_rl.envs.highway_sim import HighwaySimulator
 
 HIGHWAY_VIEWS = ("first_person", "top_down")
 """Observation views of :class:`HighwayIsoEnv`."""
 
 SIMULATION_FREQUENCY = 20
 """Simulation ticks per second (dt = 0.05 s), as the authors' synchronous CARLA."""
-
-_LANE_WIDTH = StraightLane.DEFAULT_WIDTH
-_ROAD_LENGTH = 10_000.0  # metres; an ego at the 40 m/s speed cap covers 2 km in a 1000-tick episode
-
-
-class _AxisLane(StraightLane):
-    """A straight lane along +x: its lane coordinates are plain differences instead of two dot products.
-
-    The results are bit-identical: the direction vectors are exactly (1, 0) and (-0, 1).
-    """
-
-    def __init__(self, start: np.ndarray, end: np.ndarray, **kwargs: Any) -> None:
-        super().__init__(start, end, **kwargs)
-        if self.start[1] != self.end[1] or self.end[0] <= self.start[0]:
-            raise ValueError(f"an _AxisLane runs along +x, got start={self.start} and end={self.end}")
-        self._x0, self._y0 = float(self.start[0]), float(self.start[1])
-
-    def local_coordinates(self, position: np.ndarray) -> tuple[float, float]:
-        return float(position[0]) - self._x0, float(position[1]) - self._y0
-
-
-class _StraightHighwayNetwork(RoadNetwork):
-    """Parallel lanes along +x, like ``RoadNetwork.straight_road_network``, with a constant-time closest lane.
-
-    The lanes share their heading and extent, so the heading and end terms of ``RoadNetwork``'s lane distance are
-    equal for all lanes and the closest lane is the one with the nearest centre line (first one on a tie).
-    """
-
-    def __init__(self, *, lanes_count: int, speed_limit: float = 30.0) -> None:
-        super().__init__()
-        self._centres = [lane * _LANE_WIDTH for lane in range(lanes_count)]
-        for lane, y in enumerate(self._centres):
-            line_types = (
-                LineType.CONTINUOUS_LINE if lane == 0 else LineType.STRIPED,
-                LineType.CONTINUOUS_LINE if lane == lanes_count - 1 else LineType.NONE,
-            )
-            self.add_lane(
-                "0",
-                "1",
-                _AxisLane([0.0, y], [_ROAD_LENGTH, y], line_types=line_types, speed_limit=speed_limit),
-            )
-
-    def get_closest_lane_index(self, position: np.ndarray, heading: float | None = None) -> LaneIndex:
-        y = float(position[1])
-        distances = [abs(y - centre) for centre in self._centres]
-        return "0", "1", distances.index(min(distances))
-
-
-class _StraightHighwayRoad(Road):
-    """highway-env's ``Road`` with the two O(n^2) hot spots replaced, for a road of ``_AxisLane``s only.
-
-    - ``neighbour_vehicles`` (front and rear vehicle in a lane, called ~35 times per tick by IDM and MOBIL): while
-      ``act`` runs positions are fixed, so each lane's vehicles are sorted once per tick and searched by bisection.
-      Ties resolve as in ``Road``: the last of equal front vehicles, the first of equal rear ones.
-    - the collision checks after ``step``: one vectorised distance test selects the pairs that ``Road`` would not
-      dismiss by its own distance pre-check, and only those get the exact polygon check, in ``Road``'s order.
-    """
-
-    _lanes_at_act: dict[LaneIndex, list[tuple[float, int]]] | None = None
-    _index_at_act: dict[int, int] | None = None
-
-    def act(self) -> None:
-        self._lanes_at_act, self._index_at_act = {}, {id(v): i for i, v in enumerate(self.vehicles)}
-        try:
-            super().act()
-        finally:
-            self._lanes_at_act = self._index_at_act = None
-
-    def _sorted_lane(self, lane_index: LaneIndex) -> list[tuple[float, int]]:
-        entries = self._lanes_at_act.get(lane_index)
-        if entries is None:
-            lane = self.network.get_lane(lane_index)
-            entries = []
-            for i, vehicle in enumerate(self.vehicles):
-                s, lateral = lane.local_coordinates(vehicle.position)
-                # Road.neighbour_vehicles counts vehicles within a 1 m margin of the lane.
-                if lane.on_lane(vehicle.position, s, lateral, margin=1):
-                    entries.append((s, i))
-            entries.sort()
-            self._lanes_at_act[lane_index] = entries
-        return entries
-
-    def neighbour_vehicles(
-        self, vehicle: Vehicle, lane_index: LaneIndex | None = None
-    ) -> tuple[Vehicle | None, Vehicle | None]:
-        lane_index = lane_index or vehicle.lane_index
-        if self._lanes_at_act is None or self.objects or not lane_index:
-            return super().neighbour_vehicles(vehicle, lane_index)
-        entries = self._sorted_lane(lane_index)
-        me = self._index_at_act.get(id(vehicle), -1)
-        s = self.network.get_lane(lane_index).local_coordinates(vehicle.position)[0]
-        k = bisect_left(entries, (s, -1))  # entries[k:] have s_v >= s: the front side
-        front = s_front = None
-        for s_v, i in entries[k:]:
-            if i == me:
-                continue
-            if s_front is not None and s_v != s_front:
-                break
-            front, s_front = i, s_v
-        rear = None
-        if k > 0:
-            j = k - 1
-            while j > 0 and entries[j - 1][0] == entries[k - 1][0]:
-                j -= 1
-            rear = entries[j][1]
-        return (
-            self.vehicles[front] if front is not None else None,
-            self.vehicles[rear] if rear is not None else None,
-        )
-
-    def step(self, dt: float) -> None:
-        if self.objects:
-            super().step(dt)
-            return
-        for vehicle in self.vehicles:
-            vehicle.step(dt)
-        xy = np.array([v.position for v in self.vehicles], dtype=np.float64).reshape(-1, 2)
-        half_diagonal = np.array([v.diagonal for v in self.vehicles]) / 2
-        speed = np.array([v.speed for v in self.vehicles], dtype=np.float64)
-        distance = np.sqrt(((xy[:, None, :] - xy[None, :, :]) ** 2).sum(-1))
-        # Road's pre-check dismisses a pair (i, j), i < j, when distance > half diagonals + speed_i * dt; the
-        # 1e-6 m slack only admits extra pairs, which the exact check then dismisses itself.
-        reach = half_diagonal[:, None] + half_diagonal[None, :] + speed[:, None] * dt + 1e-6
-        rows, cols = np.nonzero(np.triu(distance <= reach, k=1))
-        for i, j in zip(rows.tolist(), cols.tolist()):
-            self.vehicles[i].handle_collisions(self.vehicles[j], dt)
-
-
-class _HighwaySimulator(HighwayEnv):
-    """highway-env's ``highway-v0`` on the fast straight road. Only its scene (``road``, ``vehicle``) and reset are
-    used: :class:`HighwayIsoEnv` runs the ticks itself, skipping highway-env's per-step observation and reward."""
-
-    def _create_road(self) -> None:
-        self.road = _StraightHighwayRoad(
-            network=_StraightHighwayNetwork(lanes_count=self.config["lanes_count"]),
-            np_random=self.np_random,
-            record_history=self.config["show_trajectories"],
-        )
 
 
 class HighwayIsoEnv(gym.Env):
@@ -277,7 +135,7 @@ class HighwayIsoEnv(gym.Env):
         self.observation_space = gym.spaces.Box(0, 255, (self.image_size, self.image_size, 3), np.uint8)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
 
-        self._sim = _HighwaySimulator(
+        self._sim = HighwaySimulator(
             config={
                 "action": {"type": "ContinuousAction"},
                 # highway-env's default Kinematics observation (pandas) would take 70 % of every reset.

@@ -10,7 +10,6 @@ is right-handed with z up, so a highway-env point (x, y) maps to (x, -y, z) and 
 from __future__ import annotations
 
 import io
-import weakref
 from collections.abc import Sequence
 
 import mujoco
@@ -20,6 +19,8 @@ from highway_env.road.graphics import LaneGraphics, RoadGraphics, WorldSurface
 from highway_env.road.road import Road
 from highway_env.vehicle.kinematics import Vehicle
 from PIL import Image
+
+from isodream_rl.envs.mujoco_render import OffscreenRenderer
 
 # Distinct car paints, cycled over the other vehicles (RGB in [0, 1]).
 _CAR_COLOURS = (
@@ -122,10 +123,8 @@ class FirstPersonRenderer:
         self._scene_option = mujoco.MjvOption()
         self._scene_option.geomgroup[_HIDDEN_GROUP] = 0
         self._sky = _sky_gradient(image_size)
-        self._renderer = mujoco.Renderer(self._model, image_size, image_size)
-        # Frees the GL context at garbage collection or, at the latest, at interpreter exit: later, EGL is already
-        # torn down and mujoco's own __del__ prints errors.
-        self._release = weakref.finalize(self, self._renderer.close)
+        # Makes its GL context at the first render (see mujoco_render): construction stays fork-safe.
+        self._renderer = OffscreenRenderer(self._model, width=image_size, height=image_size)
 
     def render(self, ego: Vehicle, others: Sequence[Vehicle]) -> np.ndarray:
         """Draws the view from the ego's roof.
@@ -161,14 +160,13 @@ class FirstPersonRenderer:
         # mj_kinematics places the bodies; cameras are only moved by mj_camlight.
         mujoco.mj_kinematics(model, data)
         mujoco.mj_camlight(model, data)
-        self._renderer.update_scene(data, camera=self._camera, scene_option=self._scene_option)
-        frame = self._renderer.render()
+        frame = self._renderer.render(data, camera_id=self._camera, scene_option=self._scene_option)
         np.copyto(frame, self._sky, where=(frame == 0).all(axis=-1, keepdims=True))
         return frame
 
     def close(self) -> None:
         """Releases the GL context."""
-        self._release()
+        self._renderer.close()
 
 
 def _yaw_quaternion(heading: np.ndarray) -> np.ndarray:
