@@ -107,8 +107,22 @@ def make_adam(params, *, lr: float, eps: float) -> torch.optim.Adam:
 
 
 def make_logger(cfg: RunConfig, *, run_dir: str | Path) -> Logger:
-    """TorchRL logger (``get_logger``) writing under ``<run_dir>/logs``."""
-    return get_logger(cfg.logging.backend, logger_name=str(Path(run_dir) / "logs"), experiment_name="train")
+    """TorchRL logger (``get_logger``) writing under ``<run_dir>/logs``: CSV, TensorBoard or W&B."""
+    kwargs = {}
+    if cfg.logging.backend == "wandb":
+        kwargs["wandb_kwargs"] = {"project": cfg.logging.project, "offline": cfg.logging.offline}
+    return get_logger(
+        cfg.logging.backend, logger_name=str(Path(run_dir) / "logs"), experiment_name="train", **kwargs
+    )
+
+
+def close_logger(logger: Logger) -> None:
+    """Flush and close the logger's writer (TensorBoard's event file, W&B's run); CSV writes as it goes."""
+    experiment = getattr(logger, "experiment", None)
+    for method in ("finish", "close"):  # W&B run, TensorBoard SummaryWriter
+        if callable(getattr(experiment, method, None)):
+            getattr(experiment, method)()
+            return
 
 
 def count_parameters(module: nn.Module) -> int:

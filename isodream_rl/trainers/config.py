@@ -172,6 +172,10 @@ class LoggingConfig:
     """Context frames of the open-loop prediction; the rest of the window is imagined."""
     video_length: int = 20
     """Frames per open-loop prediction (context included)."""
+    project: str = "isodream-rl"
+    """W&B project."""
+    offline: bool = False
+    """W&B without a server: the run is written under ``<run_dir>/logs/wandb`` (as ``WANDB_MODE=offline``)."""
     progress_bar: bool = True
     """TorchRL's tqdm bar (env steps/s and updates/s in its description)."""
 

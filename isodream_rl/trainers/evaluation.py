@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import math
 from pathlib import Path
 
@@ -10,6 +11,7 @@ import torch
 from PIL import Image
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.record.loggers import Logger
 from torchrl.trainers import TrainerHookBase
 
 from isodream_rl.trainers.openloop import open_loop_prediction, prediction_frames, prediction_video, save_gif
@@ -42,6 +44,31 @@ def run_episodes(policy, env: EnvBase, *, episodes: int, record: bool = False) -
     return returns, frames
 
 
+def log_prediction(logger: Logger, name: str, video: torch.Tensor, *, step: int) -> None:
+    """Log an open-loop prediction: as a video when moviepy is installed, else as one image, frames top to bottom.
+
+    TorchRL's TensorBoard and W&B loggers encode videos with moviepy, which is not a dependency of this package.
+
+    Args:
+        logger: a TorchRL logger (TensorBoard or W&B; any other gets ``log_video``).
+        name: the logged key.
+        video: uint8 ``[1, T, 3, H, W]`` (:func:`~isodream_rl.trainers.openloop.prediction_video`).
+        step: agent steps.
+    """
+    kind = type(logger).__name__
+    if importlib.util.find_spec("moviepy") is not None or kind not in ("TensorboardLogger", "WandbLogger"):
+        logger.log_video(name, video, step=step)
+        return
+    strip = torch.cat(list(video[0]), dim=-2)  # [3, T * H, W]
+    if kind == "TensorboardLogger":
+        logger.experiment.add_image(name, strip, global_step=step)
+    else:
+        import wandb
+
+        # log_scalar hands the value to wandb as it is, with the logger's step bookkeeping.
+        logger.log_scalar(name, wandb.Image(strip.permute(1, 2, 0).numpy()), step=step)
+
+
 def save_episode_gif(frames: list[torch.Tensor], path: str | Path, *, fps: int = 15, scale: int = 2) -> Path:
     """Write uint8 ``[3, H, W]`` frames as a GIF (atomically)."""
     images = [
@@ -58,7 +85,7 @@ class Evaluation(TrainerHookBase):
 
     Logs ``eval_return`` and ``eval_return_std``; writes ``<pictures>/openloop_<steps>.gif`` (ground truth,
     prediction, each branch's component and mask; ``context`` frames observed, then imagined) and logs the
-    same frames with ``logger.log_video``.
+    same frames with :func:`log_prediction`.
 
     Args:
         policy: the acting policy.
@@ -107,7 +134,7 @@ class Evaluation(TrainerHookBase):
         prediction = open_loop_prediction(self.world_model, window, context=self.context)
         self.last_gif = save_gif(prediction_frames(prediction), self.pictures / f"openloop_{step:08d}.gif")
         if self.logger is not None:
-            self.logger.log_video("openloop_prediction", prediction_video(prediction), step=step)
+            log_prediction(self.logger, "openloop_prediction", prediction_video(prediction), step=step)
         mean = sum(returns) / len(returns)
         std = math.sqrt(sum((r - mean) ** 2 for r in returns) / len(returns))
         return {"eval_return": mean, "eval_return_std": std}

@@ -15,6 +15,7 @@ import torch
 from torchrl.trainers import ReplayBufferTrainer, Trainer, UpdateWeights
 
 from isodream_rl.trainers.builders import (
+    close_logger,
     env_factory,
     make_adam,
     make_behavior,
@@ -272,6 +273,7 @@ def train(cfg: RunConfig) -> RunResult:
             collector.shutdown()
         if signals.received is None:
             save()
+    close_logger(log)
     metrics = {
         key: float(values[-1])
         for key, values in trainer._log_dict.items()
