@@ -54,9 +54,9 @@ class MaskComposition(nn.Module):
             *(colors[n].shape[:-3] for n in names), *(logits[n].shape[:-3] for n in logits)
         )
         if self.mask_mode == "softmax":
-            stacked = torch.stack([logits[n].expand(*shape, *logits[n].shape[-3:]) for n in names])
-            weights = torch.softmax(stacked, dim=0)
-            masks = dict(zip(names, weights.unbind(0)))
+            # One [*N, branches, H, W] tensor and one softmax; the masks are channel views of it.
+            stacked = torch.cat([logits[n].expand(*shape, *logits[n].shape[-3:]) for n in names], dim=-3)
+            masks = dict(zip(names, torch.softmax(stacked, dim=-3).split(1, dim=-3)))
         else:
             if names[-1] != "static":
                 raise ValueError(
@@ -64,5 +64,7 @@ class MaskComposition(nn.Module):
                 )
             masks = {n: torch.sigmoid(logits[n]).expand(*shape, *logits[n].shape[-3:]) for n in names[:-1]}
             masks["static"] = 1.0 - sum(masks.values())
-        composite = sum(masks[n] * colors[n] for n in names)
+        composite = masks[names[0]] * colors[names[0]]
+        for name in names[1:]:
+            composite = composite + masks[name] * colors[name]
         return composite, masks

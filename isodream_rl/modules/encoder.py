@@ -36,7 +36,8 @@ def preprocess_pixels(pixels: torch.Tensor) -> torch.Tensor:
 def _conv_stack(widths: list[int], *, device=None) -> nn.Sequential:
     layers: list[nn.Module] = []
     for cin, cout in zip(widths[:-1], widths[1:]):
-        layers += [nn.Conv2d(cin, cout, 4, stride=2, device=device), nn.ReLU()]
+        # In-place ReLU: a convolution's backward needs its input, not its output.
+        layers += [nn.Conv2d(cin, cout, 4, stride=2, device=device), nn.ReLU(inplace=True)]
     return nn.Sequential(*layers)
 
 

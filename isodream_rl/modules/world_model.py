@@ -249,16 +249,13 @@ class IsoDreamWorldModel(TensorDictModuleBase):
     def _rollout(self, control_proj, free_proj, action, is_init) -> dict[str, torch.Tensor]:
         batch, time = action.shape[:2]
         previous = self.initial_state((batch,), device=action.device)
+        # unbind, not [:, t]: its backward is one stack, where indexing writes a zero-filled window per step
+        actions, control_steps = action.unbind(1), control_proj.unbind(1)
+        free_steps = [None] * time if free_proj is None else free_proj.unbind(1)
+        resets = [None] * time if is_init is None else is_init.bool().unbind(1)
         steps = []
         for t in range(time):
-            reset = None if is_init is None else is_init[:, t].bool()
-            out = self.filter_step(
-                previous,
-                action[:, t],
-                control_proj[:, t],
-                None if free_proj is None else free_proj[:, t],
-                reset,
-            )
+            out = self.filter_step(previous, actions[t], control_steps[t], free_steps[t], resets[t])
             steps.append(out)
             previous = out
         return {k: torch.stack([s[k] for s in steps], dim=1) for k in steps[0]}
@@ -280,7 +277,9 @@ class IsoDreamWorldModel(TensorDictModuleBase):
                 free_proj = self.free_rssm.project_embedding(free_embed)
             static_out = None
             if self.static_decoder is not None:
-                static_out = self.static_background(features.reshape(batch, time, *features.shape[1:])).float()
+                static_out = self.static_background(
+                    features.reshape(batch, time, *features.shape[1:])
+                ).float()
         latents = self._rollout(
             control_proj.float(), None if free_proj is None else free_proj.float(), action, is_init
         )
@@ -293,16 +292,21 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             if self.free_decoder is not None:
                 free_feat = torch.cat([latents["free_state"], latents["free_belief"]], dim=-1)
                 free_out = self.free_decoder(free_feat.reshape(batch * time, -1))
+        # split (not slicing) so that the backward assembles each decoder's gradient in one pass
         control_out = control_out.float().reshape(batch, time, -1, *IMAGE_SHAPE[1:])
-        colors = {"control": control_out[:, :, :3]}
-        logits = {"control": control_out[:, :, 3:]}
+        colors, logits = {}, {}
+        if control_out.shape[2] == 4:
+            colors["control"], logits["control"] = control_out.split([3, 1], dim=2)
+        else:
+            colors["control"] = control_out
         if free_out is not None:
             free_out = free_out.float().reshape(batch, time, -1, *IMAGE_SHAPE[1:])
-            colors["free"], logits["free"] = free_out[:, :, :3], free_out[:, :, 3:]
+            colors["free"], logits["free"] = free_out.split([3, 1], dim=2)
         if static_out is not None:
-            colors["static"] = static_out[:, None, :3]
             if static_out.shape[1] == 4:
-                logits["static"] = static_out[:, None, 3:]
+                colors["static"], logits["static"] = static_out[:, None].split([3, 1], dim=2)
+            else:
+                colors["static"] = static_out[:, None]
         composite, masks = self.composition(colors, logits)
 
         out = dict(latents)

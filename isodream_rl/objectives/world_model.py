@@ -145,9 +145,11 @@ class IsoDreamModelLoss(LossModule):
         out = self.world_model(model_in)
         nxt = out.get("next")
 
-        target = preprocess_pixels(pixels)
-        squared = (nxt.get("reco_pixels") - target).pow(2)
-        losses = {"loss_model_reco": self.lambda_reco * 0.5 * squared.sum((-3, -2, -1)).mean()}
+        reco = nxt.get("reco_pixels")
+        # One fused kernel forward and backward; the per-frame sum, averaged over [B, T].
+        squared_sum = F.mse_loss(reco, preprocess_pixels(pixels), reduction="sum")
+        frames = reco.numel() // reco.shape[-3:].numel()
+        losses = {"loss_model_reco": self.lambda_reco * 0.5 * squared_sum / frames}
         if reward.shape != nxt.get("reward_pred").shape:
             raise ValueError(f"reward must have shape [B, T, 1], got {tuple(reward.shape)}")
         losses["loss_model_reward"] = (
@@ -170,7 +172,7 @@ class IsoDreamModelLoss(LossModule):
             **kl_kwargs,
         )
         losses["loss_model_kl_control"] = self.lambda_kl_control * kl_loss
-        diagnostics = {"kl_control": kl_control, "reco_mse": squared.detach().mean()}
+        diagnostics = {"kl_control": kl_control, "reco_mse": squared_sum.detach() / reco.numel()}
         if cfg.free_branch:
             kl_loss, kl_free = balanced_kl(
                 nxt.get("free_posterior_mean"),
