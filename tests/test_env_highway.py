@@ -1,11 +1,12 @@
 import gymnasium as gym
 import numpy as np
 import pytest
+from highway_env import utils
 from highway_env.envs.highway_env import HighwayEnv
 from highway_env.vehicle.kinematics import Vehicle
 
 from isodream_rl.envs.highway import HIGHWAY_VIEWS, HighwayIsoEnv
-from isodream_rl.envs.highway_sim import FastIDMVehicle, HighwaySimulator
+from isodream_rl.envs.highway_sim import FastIDMVehicle, HighwaySimulator, _separated_on_first_axes
 
 STRAIGHT = np.zeros(2, dtype=np.float32)
 
@@ -260,3 +261,35 @@ def test_first_person_renderer_makes_its_gl_context_at_the_first_render():
     env.reset(seed=0)
     assert renderer.backend in ("egl", "osmesa", "glfw")
     env.close()
+
+
+def test_collision_prefilter_never_dismisses_a_pair_the_exact_check_finds_touching():
+    rng = np.random.default_rng(0)
+    n, dt = 3000, 0.05
+    # Pairs around contact: b offset by about a car length or width (often just touching), any headings.
+    offset = np.stack([rng.choice([0.0, 5.0, -5.0], n), rng.choice([0.0, 2.0, -2.0, 4.0], n)], axis=1)
+    offset += rng.normal(0.0, 0.3, (n, 2))
+    headings = np.where(
+        rng.random((n, 2)) < 0.7, rng.normal(0.0, 0.05, (n, 2)), rng.uniform(-np.pi, np.pi, (n, 2))
+    )
+    speeds = rng.uniform(0.0, 40.0, (n, 2))
+    vehicles = []
+    for k in range(n):
+        vehicles.append(Vehicle(None, [0.0, 0.0], headings[k, 0], speeds[k, 0]))
+        vehicles.append(Vehicle(None, offset[k], headings[k, 1], speeds[k, 1]))
+    xy = np.array([v.position for v in vehicles])
+    speed = np.array([v.speed for v in vehicles])
+    rows, cols = np.arange(0, 2 * n, 2), np.arange(1, 2 * n, 2)
+    dismissed = _separated_on_first_axes(vehicles, rows, cols, xy, speed, dt)
+    touching = np.array(
+        [
+            any(
+                utils.are_polygons_intersecting(a.polygon(), b.polygon(), a.velocity * dt, b.velocity * dt)[
+                    :2
+                ]
+            )
+            for a, b in zip(vehicles[0::2], vehicles[1::2], strict=True)
+        ]
+    )
+    assert touching.any() and dismissed.any() and not touching.all()
+    assert not (dismissed & touching).any()
