@@ -40,6 +40,9 @@ def _summary(result: run_module.RunResult) -> str:
         f"  checkpoint:  {result.checkpoint}",
         f"  pictures:    {result.pictures}",
     ]
+    gifs = sorted(result.pictures.glob("openloop_*.gif")) if result.pictures.is_dir() else []
+    if gifs:
+        lines.append(f"  newest open-loop prediction: {gifs[-1]}")
     for key in ("episode_return", "eval_return", "loss_model_reco", "env_steps_per_s", "updates_per_s"):
         if key in result.metrics:
             lines.append(f"  {key}: {result.metrics[key]:.4g}")
