@@ -45,7 +45,7 @@ def test_groups_hold_the_presets_the_paper_needs():
         "isodream_no_attention",
         "isodream_no_static",
     }
-    assert set(SIZES) == {"paper", "small", "tiny"}
+    assert set(SIZES) == {"paper", "small", "quickstart", "tiny"}
     assert {"sprites", "highway", "dmc_walker_walk"} <= set(ENVS)
 
 
@@ -131,3 +131,40 @@ def test_every_algo_trains_on_the_simulated_envs(env, tmp_path):
     out = run_cli(args, tmp_path, timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
     assert out.stdout.count("run finished: 10 env steps, 2 updates") == len(ALGOS)
+
+
+def test_quickstart_preset_is_the_readme_main_job():
+    readme = (Path(isodream_rl.cli.__file__).parents[1] / "README.md").read_text()
+    assert "isodream-train size=quickstart" in readme
+    cfg = composed("size=quickstart")
+    validate_config(cfg)
+    assert (cfg.env.name, cfg.algo.name, cfg.train.total_steps, cfg.train.threads) == (
+        "sprites",
+        "isodream",
+        2000,
+        1,
+    )
+    assert cfg.run_dir == "runs/sprites-isodream-quickstart"
+    assert 0 < cfg.logging.eval_every < cfg.train.total_steps  # pictures during the run, not only at the end
+
+
+def test_readme_main_job_shows_a_progress_bar_and_says_where_its_outputs_went(tmp_path):
+    # `isodream-train size=quickstart` with its length cut to a few batches.
+    args = ["size=quickstart", "train.total_steps=40", "train.prefill_steps=20", "train.frames_per_batch=20"]
+    args += [
+        "train.sequence_length=8",
+        "train.batch_size=2",
+        "logging.video_length=8",
+        "logging.eval_every=20",
+    ]
+    args += ["logging.log_every=20", "env.kwargs.max_steps=30"]
+    out = run_cli(args, tmp_path)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert re.search(r"updates_per_s: [0-9.]+.*\| *40/40", out.stderr), "no tqdm bar with updates/s"
+    run = Path("runs/sprites-isodream-quickstart")
+    assert "run finished: 40 env steps, 8 updates" in out.stdout
+    for line in (f"logs:        {run / 'logs'}", f"checkpoint:  {run / 'checkpoints' / 'step_00000008'}"):
+        assert line in out.stdout
+    gif = re.search(r"newest open-loop prediction: (\S+)", out.stdout).group(1)
+    assert (tmp_path / gif).stat().st_size > 0
+    assert list((tmp_path / run / "logs").rglob("loss_model_reco.csv"))

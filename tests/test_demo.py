@@ -1,4 +1,4 @@
-"""The README's main job, at a tiny size: it trains, scores the masks and writes its outputs."""
+"""The world-model recipe (``isodream-demo``), at a tiny size: it trains, scores the masks and writes its outputs."""
 
 import json
 
