@@ -91,8 +91,8 @@ def make_collector(
     if options:
         kwargs["backend_options"] = options
     if backend in ("ray", "distributed"):
-        # Each remote worker seeds its own env: torchrl 0.14's DistributedCollector.set_seed fails on the
-        # workers (it parses the seed message as a list), and Ray's would seed them all alike.
+        # Each remote worker seeds its own env in its factory: torchrl 0.14's DistributedCollector.set_seed
+        # fails on the workers (it parses the seed message as a list); Ray's workers are seeded the same way.
         makes = [functools.partial(_seeded, make, train.seed + i) for i in range(num_envs)]
     else:
         makes = make if backend == "direct" else [make] * num_envs
