@@ -87,12 +87,80 @@ class _StraightHighwayRoad(Road):
     _xy_at_act: np.ndarray | None = None
 
     def act(self) -> None:
-        self._lanes_at_act, self._index_at_act = {}, {id(v): i for i, v in enumerate(self.vehicles)}
-        self._xy_at_act = np.array([v.position for v in self.vehicles], dtype=np.float64).reshape(-1, 2)
+        vehicles = self.vehicles
+        self._lanes_at_act, self._index_at_act = {}, {id(v): i for i, v in enumerate(vehicles)}
+        self._xy_at_act = np.array([v.position for v in vehicles], dtype=np.float64).reshape(-1, 2)
         try:
-            super().act()
+            if self.objects:
+                super().act()
+                return
+            batch = []
+            for vehicle in vehicles:
+                if type(vehicle) is not FastIDMVehicle:
+                    vehicle.act()
+                elif not vehicle.crashed:
+                    # Lane decisions in road order, as IDMVehicle.act makes them: MOBIL's abort rule reads the
+                    # target lanes of the vehicles that decided before in this tick. Nothing else read by the
+                    # controllers below changes during act, so they can run for all vehicles at once afterwards.
+                    vehicle.follow_road()
+                    if vehicle.enable_lane_change:
+                        vehicle.change_lane_policy()
+                    batch.append(vehicle)
+            if batch:
+                self._set_idm_actions(batch)
         finally:
             self._lanes_at_act = self._index_at_act = self._xy_at_act = None
+
+    def _set_idm_actions(self, batch: list[FastIDMVehicle]) -> None:
+        """``IDMVehicle.act``'s steering and acceleration commands for ``batch``, vectorised over vehicles.
+
+        numpy's elementwise functions give the same bits on arrays as on the scalars highway-env passes them, so
+        the steering controller (``ControlledVehicle.steering_control``) and IDM's free-road term run on arrays;
+        the interaction term keeps highway-env's scalar ``np.dot``.
+        """
+        cls = FastIDMVehicle
+        n = len(batch)
+        xy = np.array([v.position for v in batch], dtype=np.float64).reshape(n, 2)
+        speed = np.array([v.speed for v in batch], dtype=np.float64)
+        heading = np.array([v.heading for v in batch], dtype=np.float64)
+        target_lanes = [self.network.get_lane(v.target_lane_index) for v in batch]
+        # Steering towards the target lane's centre line (a straight lane's heading is the same everywhere).
+        lateral = xy[:, 1] - np.array([lane.start[1] for lane in target_lanes])
+        lane_heading = np.array([lane.heading for lane in target_lanes], dtype=np.float64)
+        speed_not_zero = _not_zero(speed)
+        lateral_speed_command = -cls.KP_LATERAL * lateral
+        heading_command = np.arcsin(_clip_array(lateral_speed_command / speed_not_zero, -1, 1))
+        heading_ref = lane_heading + _clip_array(heading_command, -np.pi / 4, np.pi / 4)
+        heading_rate_command = cls.KP_HEADING * (((heading_ref - heading) + np.pi) % (2 * np.pi) - np.pi)
+        length = np.array([v.LENGTH for v in batch], dtype=np.float64)
+        slip_angle = np.arcsin(_clip_array(length / 2 / speed_not_zero * heading_rate_command, -1, 1))
+        steering = _clip_array(
+            np.arctan(2 * np.tan(slip_angle)), -cls.MAX_STEERING_ANGLE, cls.MAX_STEERING_ANGLE
+        )
+        # IDM's free-road term, 3 * (1 - (v / v0)^delta), with v0 the target speed capped by the lane's limit.
+        target_speed = np.array(
+            [
+                _clip(v.target_speed, 0, v.lane.speed_limit)
+                if v.lane and v.lane.speed_limit is not None
+                else v.target_speed
+                for v in batch
+            ],
+            dtype=np.float64,
+        )
+        ratio = np.maximum(speed, 0) / np.abs(_not_zero(target_speed))
+        delta = np.array([v.DELTA for v in batch], dtype=np.float64)
+        free_road = cls.COMFORT_ACC_MAX * (1 - np.power(ratio, delta))
+        for vehicle, steer, free in zip(batch, steering.tolist(), free_road.tolist(), strict=True):
+            front, _ = self.neighbour_vehicles(vehicle, vehicle.lane_index)
+            acceleration = free - vehicle.interaction(front) if front else free
+            # When changing lane, the slower of the IDM accelerations for the current and the target lane.
+            if vehicle.lane_index != vehicle.target_lane_index:
+                front, _ = self.neighbour_vehicles(vehicle, vehicle.target_lane_index)
+                acceleration = min(acceleration, free - vehicle.interaction(front) if front else free)
+            vehicle.action = {
+                "steering": steer,
+                "acceleration": _clip(acceleration, -cls.ACC_MAX, cls.ACC_MAX),
+            }
 
     def _sorted_lane(self, lane_index: LaneIndex) -> list[tuple[float, int]]:
         """``(s, i)`` of the vehicles on a lane, sorted: lane coordinate ``s`` and index ``i`` in ``vehicles``."""
@@ -145,9 +213,15 @@ class _StraightHighwayRoad(Road):
         if self.objects:
             super().step(dt)
             return
-        for vehicle in self.vehicles:
-            vehicle.step(dt)
         vehicles = self.vehicles
+        batch = []
+        for vehicle in vehicles:  # each vehicle moves on its own: the order of the updates does not matter
+            if type(vehicle) is FastIDMVehicle:
+                batch.append(vehicle)
+            else:
+                vehicle.step(dt)
+        if batch:
+            _step_kinematics(batch, dt)
         xy = np.array([v.position for v in vehicles], dtype=np.float64).reshape(-1, 2)
         half_diagonal = np.array([v.diagonal for v in vehicles]) / 2
         speed = np.array([v.speed for v in vehicles], dtype=np.float64)
@@ -161,6 +235,34 @@ class _StraightHighwayRoad(Road):
             rows, cols = rows[keep], cols[keep]
         for i, j in zip(rows.tolist(), cols.tolist(), strict=True):
             vehicles[i].handle_collisions(vehicles[j], dt)
+
+
+def _step_kinematics(batch: list[FastIDMVehicle], dt: float) -> None:
+    """``IDMVehicle.step`` for all of ``batch``: highway-env's kinematic bicycle model on arrays (numpy's
+    elementwise functions give the same bits on arrays as on scalars)."""
+    for vehicle in batch:
+        vehicle.timer += dt
+        vehicle.clip_actions()
+    steering = np.array([v.action["steering"] for v in batch], dtype=np.float64)
+    acceleration = np.array([v.action["acceleration"] for v in batch], dtype=np.float64)
+    speed = np.array([v.speed for v in batch], dtype=np.float64)
+    heading = np.array([v.heading for v in batch], dtype=np.float64)
+    length = np.array([v.LENGTH for v in batch], dtype=np.float64)
+    beta = np.arctan(1 / 2 * np.tan(steering))  # slip angle at the centre of mass
+    course = heading + beta
+    displacement = np.stack([speed * np.cos(course), speed * np.sin(course)], axis=1) * dt
+    new_heading = heading + speed * np.sin(beta) / (length / 2) * dt
+    new_speed = speed + acceleration * dt
+    for vehicle, step, h, v in zip(
+        batch, displacement, new_heading.tolist(), new_speed.tolist(), strict=True
+    ):
+        vehicle.position += step
+        if vehicle.impact is not None:
+            vehicle.position += vehicle.impact
+            vehicle.crashed = True
+            vehicle.impact = None
+        vehicle.heading, vehicle.speed = h, v
+        vehicle.on_state_update()
 
 
 def _separated_on_first_axes(
@@ -199,6 +301,16 @@ def _separated_on_first_axes(
     return np.maximum(gap_along, gap_across) > 1e-6
 
 
+def _not_zero(x: np.ndarray, eps: float = 1e-2) -> np.ndarray:
+    """``utils.not_zero`` elementwise: values within ``eps`` of zero pushed out to +-eps."""
+    return np.where(np.abs(x) > eps, x, np.where(x >= 0, eps, -eps))
+
+
+def _clip_array(x: np.ndarray, low: float, high: float) -> np.ndarray:
+    """``np.clip`` of a NaN-free array, without the dispatch overhead of ``np.clip`` on small arrays."""
+    return np.minimum(np.maximum(x, low), high)
+
+
 def _clip(x: float, low: float, high: float) -> float:
     """``np.clip`` of a non-NaN scalar, the same value without numpy's microseconds of call overhead."""
     return min(max(x, low), high)
@@ -207,30 +319,11 @@ def _clip(x: float, low: float, high: float) -> float:
 class FastIDMVehicle(IDMVehicle):
     """highway-env's IDM (longitudinal) and MOBIL (lane change) vehicle, with the same decisions and trajectories.
 
-    The methods run on every tick (``act``, ``acceleration``, ``desired_gap``, ``steering_control``, ``step``) are
-    restated with Python scalar arithmetic where it gives the same bits as highway-env's numpy calls; the rarely
-    run ones (MOBIL every second) are inherited. Spawning and behaviour randomisation are inherited too, so a
-    seeded reset draws the same traffic.
+    On the fast road, ``act`` and ``step`` run for all vehicles at once (``_StraightHighwayRoad``). IDM's
+    ``acceleration`` and ``desired_gap``, which MOBIL and the interaction term call many times per tick, are
+    restated with Python scalar arithmetic where it gives the same bits as highway-env's numpy calls. MOBIL,
+    spawning and behaviour randomisation are inherited, so a seeded reset draws the same traffic.
     """
-
-    def act(self, action: dict | str | None = None) -> None:
-        if self.crashed:
-            return
-        self.follow_road()
-        if self.enable_lane_change:
-            self.change_lane_policy()
-        # steering_control clips to the steering limit already: IDMVehicle's second clip never changes it.
-        steering = self.steering_control(self.target_lane_index)
-        front, rear = self.road.neighbour_vehicles(self, self.lane_index)
-        acceleration = self.acceleration(self, front, rear)
-        # When changing lane, the slower of the IDM accelerations for the current and the target lane.
-        if self.lane_index != self.target_lane_index:
-            front, rear = self.road.neighbour_vehicles(self, self.target_lane_index)
-            acceleration = min(acceleration, self.acceleration(self, front, rear))
-        self.action = {
-            "steering": steering,
-            "acceleration": _clip(acceleration, -self.ACC_MAX, self.ACC_MAX),
-        }
 
     def acceleration(
         self,
@@ -247,11 +340,19 @@ class FastIDMVehicle(IDMVehicle):
         ratio = max(ego_vehicle.speed, 0) / abs(utils.not_zero(target_speed))
         acceleration = self.COMFORT_ACC_MAX * (1 - np.power(ratio, self.DELTA))
         if front_vehicle:
-            gap = self.desired_gap(ego_vehicle, front_vehicle) / utils.not_zero(
-                ego_vehicle.lane_distance_to(front_vehicle)
-            )
-            acceleration -= self.COMFORT_ACC_MAX * (gap * gap)  # np.power(gap, 2) is exactly gap * gap
+            acceleration -= self._interaction(ego_vehicle, front_vehicle)
         return acceleration
+
+    def interaction(self, front_vehicle: Vehicle) -> float:
+        """IDM's interaction term of this vehicle behind ``front_vehicle``, in m/s^2 (subtracted from the
+        free-road term)."""
+        return self._interaction(self, front_vehicle)
+
+    def _interaction(self, ego_vehicle: Vehicle, front_vehicle: Vehicle) -> float:
+        gap = self.desired_gap(ego_vehicle, front_vehicle) / utils.not_zero(
+            ego_vehicle.lane_distance_to(front_vehicle)
+        )
+        return self.COMFORT_ACC_MAX * (gap * gap)  # np.power(gap, 2) is exactly gap * gap
 
     def desired_gap(
         self, ego_vehicle: Vehicle, front_vehicle: Vehicle = None, projected: bool = True
@@ -275,37 +376,6 @@ class FastIDMVehicle(IDMVehicle):
             + ego_vehicle.speed * self.TIME_WANTED
             + ego_vehicle.speed * dv / (2 * math.sqrt(ab))
         )
-
-    def steering_control(self, target_lane_index: LaneIndex) -> float:
-        target_lane = self.road.network.get_lane(target_lane_index)
-        longitudinal, lateral = target_lane.local_coordinates(self.position)
-        lane_future_heading = target_lane.heading_at(longitudinal + self.speed * self.TAU_PURSUIT)
-        # Lateral position to lateral speed, to a heading reference; heading error to a heading rate, to a wheel
-        # angle (highway-env's cascaded controller).
-        lateral_speed_command = -self.KP_LATERAL * lateral
-        heading_command = float(np.arcsin(_clip(lateral_speed_command / utils.not_zero(self.speed), -1, 1)))
-        heading_ref = lane_future_heading + _clip(heading_command, -np.pi / 4, np.pi / 4)
-        heading_rate_command = self.KP_HEADING * utils.wrap_to_pi(heading_ref - self.heading)
-        slip_angle = np.arcsin(
-            _clip(self.LENGTH / 2 / utils.not_zero(self.speed) * heading_rate_command, -1, 1)
-        )
-        steering_angle = float(np.arctan(2 * np.tan(slip_angle)))
-        return _clip(steering_angle, -self.MAX_STEERING_ANGLE, self.MAX_STEERING_ANGLE)
-
-    def step(self, dt: float) -> None:
-        self.timer += dt
-        # highway-env's kinematic bicycle model (Vehicle.step).
-        self.clip_actions()
-        beta = float(np.arctan(1 / 2 * np.tan(self.action["steering"])))
-        speed, course = self.speed, self.heading + beta
-        self.position += np.array((speed * math.cos(course), speed * math.sin(course))) * dt
-        if self.impact is not None:
-            self.position += self.impact
-            self.crashed = True
-            self.impact = None
-        self.heading += self.speed * math.sin(beta) / (self.LENGTH / 2) * dt
-        self.speed += self.action["acceleration"] * dt
-        self.on_state_update()
 
 
 class HighwaySimulator(HighwayEnv):
