@@ -154,14 +154,14 @@ class DMCBackgroundEnv(gymnasium.Env):
             raise ValueError(f"camera_id must be in [0, {model.ncam}) for {domain}, got {camera_id}")
         self.camera_id = camera_id
         # Fast llvmpipe settings, the same picture within 1/255 (docs/envs/dmc.md): no MSAA, a 256 px shadow map,
-        # capsules and spheres of 16 x 8 facets instead of 28 x 16 (at 64x64, llvmpipe spends most of a frame
+        # capsules and spheres of 12 x 6 facets instead of 28 x 16 (at 64x64, llvmpipe spends most of a frame
         # transforming vertices) and an offscreen buffer of the image size instead of 640x480. The GL context
         # reads them, and the skybox texture, when the first Camera creates it.
         quality = model.vis.quality
         quality.offsamples = 0
         quality.shadowsize = 256
-        quality.numslices = min(quality.numslices, 16)
-        quality.numstacks = min(quality.numstacks, 8)
+        quality.numslices = min(quality.numslices, 12)
+        quality.numstacks = min(quality.numstacks, 6)
         model.vis.global_.offwidth = model.vis.global_.offheight = image_size
         if not shadows:
             model.light_castshadow[:] = 0
