@@ -6,6 +6,7 @@ Usage::
 
 Each env runs random actions in [-1, 1] (drawn before timing, seeded); each step is timed alone and the
 median over ``--steps`` steps after a short warm-up is reported, so the occasional reset does not count. The
+gymnasium env and the TorchRL env are stepped alternately, so both see the same machine load. The
 JSON maps every env name, written as ``make_env`` takes it plus its view or background (``"sprites"``,
 ``"highway/first_person"``, ``"dmc/walker-walk/video_easy"``, ...), to its median ms per agent step through
 TorchRL; ``"details"`` holds the raw gymnasium times, the process CPU time per step of both paths (less
@@ -47,41 +48,49 @@ for _domain, _task in (("walker", "walk"), ("cheetah", "run")):
 WARMUP = 10
 
 
-def _medians_ms(wall: list[float], cpu: list[float]) -> tuple[float, float]:
-    return 1e3 * statistics.median(wall), 1e3 * statistics.median(cpu)
+class _Timer:
+    """Wall-clock and process-CPU durations of timed calls."""
+
+    def __init__(self) -> None:
+        self.wall: list[float] = []
+        self.cpu: list[float] = []
+
+    def medians_ms(self) -> tuple[float, float]:
+        return 1e3 * statistics.median(self.wall), 1e3 * statistics.median(self.cpu)
 
 
-def _time_gym(name: str, cfg: dict, actions: np.ndarray) -> tuple[float, float]:
-    """Median wall and process-CPU ms of ``env.step`` on the raw gymnasium env."""
-    env = make_gym_env(name, **cfg)
-    env.reset(seed=0)
-    wall, cpu = [], []
-    for i, action in enumerate(actions):
-        start, start_cpu = time.perf_counter(), time.process_time()
-        _, _, terminated, truncated, _ = env.step(action)
-        if i >= WARMUP:
-            wall.append(time.perf_counter() - start)
-            cpu.append(time.process_time() - start_cpu)
-        if terminated or truncated:
-            env.reset()
-    env.close()
-    return _medians_ms(wall, cpu)
+def _time_both(name: str, cfg: dict, actions: np.ndarray) -> tuple[_Timer, _Timer]:
+    """Times ``env.step`` of the raw gymnasium env and ``step_and_maybe_reset`` of ``make_env``, reset steps
+    excluded from both.
 
-
-def _time_torchrl(name: str, cfg: dict, actions: np.ndarray) -> tuple[float, float]:
-    """Median wall and process-CPU ms of ``step_and_maybe_reset`` on ``make_env``, reset steps excluded."""
+    The two envs are stepped alternately with the same actions (and the same seed, so the same episodes): both
+    paths see the same machine load, which on a shared machine drifts more between two consecutive runs than the
+    TorchRL overhead itself.
+    """
+    gym_env = make_gym_env(name, **cfg)
+    gym_env.reset(seed=0)
     env = make_env(name, seed=0, **cfg)
     td = env.reset()
-    wall, cpu = [], []
-    for i, action in enumerate(torch.as_tensor(actions)):
-        td.set("action", action)
+    gym_timer, torchrl_timer = _Timer(), _Timer()
+    for i, (action, action_tensor) in enumerate(zip(actions, torch.as_tensor(actions), strict=True)):
+        start, start_cpu = time.perf_counter(), time.process_time()
+        _, _, terminated, truncated, _ = gym_env.step(action)
+        wall, cpu = time.perf_counter() - start, time.process_time() - start_cpu
+        if i >= WARMUP:
+            gym_timer.wall.append(wall)
+            gym_timer.cpu.append(cpu)
+        if terminated or truncated:
+            gym_env.reset()
+        td.set("action", action_tensor)
         start, start_cpu = time.perf_counter(), time.process_time()
         _, td = env.step_and_maybe_reset(td)
+        wall, cpu = time.perf_counter() - start, time.process_time() - start_cpu
         if i >= WARMUP and not td["is_init"].item():
-            wall.append(time.perf_counter() - start)
-            cpu.append(time.process_time() - start_cpu)
+            torchrl_timer.wall.append(wall)
+            torchrl_timer.cpu.append(cpu)
+    gym_env.close()
     env.close()
-    return _medians_ms(wall, cpu)
+    return gym_timer, torchrl_timer
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -116,8 +125,9 @@ def main(argv: list[str] | None = None) -> dict:
         shape = probe.action_space.shape
         probe.close()
         actions = rng.uniform(-1.0, 1.0, size=(args.steps + WARMUP, *shape)).astype(np.float32)
-        gym_ms, gym_cpu = _time_gym(name, cfg, actions)
-        torchrl_ms, torchrl_cpu = _time_torchrl(name, cfg, actions)
+        gym_timer, torchrl_timer = _time_both(name, cfg, actions)
+        gym_ms, gym_cpu = gym_timer.medians_ms()
+        torchrl_ms, torchrl_cpu = torchrl_timer.medians_ms()
         results[case] = round(torchrl_ms, 3)
         details["gym_ms"][case] = round(gym_ms, 3)
         details["gym_cpu_ms"][case] = round(gym_cpu, 3)

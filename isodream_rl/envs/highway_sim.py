@@ -115,8 +115,8 @@ class _StraightHighwayRoad(Road):
         """``IDMVehicle.act``'s steering and acceleration commands for ``batch``, vectorised over vehicles.
 
         numpy's elementwise functions give the same bits on arrays as on the scalars highway-env passes them, so
-        the steering controller (``ControlledVehicle.steering_control``) and IDM's free-road term run on arrays;
-        the interaction term keeps highway-env's scalar ``np.dot``.
+        the steering controller (``ControlledVehicle.steering_control``) and IDM's acceleration run on arrays
+        (``np.vecdot`` for the ``np.dot`` of highway-env's desired gap: the same inner loop).
         """
         cls = FastIDMVehicle
         n = len(batch)
@@ -150,17 +150,35 @@ class _StraightHighwayRoad(Road):
         ratio = np.maximum(speed, 0) / np.abs(_not_zero(target_speed))
         delta = np.array([v.DELTA for v in batch], dtype=np.float64)
         free_road = cls.COMFORT_ACC_MAX * (1 - np.power(ratio, delta))
-        for vehicle, steer, free in zip(batch, steering.tolist(), free_road.tolist(), strict=True):
-            front, _ = self.neighbour_vehicles(vehicle, vehicle.lane_index)
-            acceleration = free - vehicle.interaction(front) if front else free
-            # When changing lane, the slower of the IDM accelerations for the current and the target lane.
-            if vehicle.lane_index != vehicle.target_lane_index:
-                front, _ = self.neighbour_vehicles(vehicle, vehicle.target_lane_index)
-                acceleration = min(acceleration, free - vehicle.interaction(front) if front else free)
-            vehicle.action = {
-                "steering": steer,
-                "acceleration": _clip(acceleration, -cls.ACC_MAX, cls.ACC_MAX),
-            }
+        # The IDM acceleration in the current lane and, while changing lane, in the target lane too: one entry
+        # per (vehicle, lane), with the interaction term where the lane has a front vehicle.
+        owner, fronts, acceleration = (
+            [],
+            [],
+            free_road[[k for k, v in enumerate(batch) for _ in _idm_lanes(v)]],
+        )
+        entry = 0
+        for k, vehicle in enumerate(batch):
+            for lane_index in _idm_lanes(vehicle):
+                front, _ = self.neighbour_vehicles(vehicle, lane_index)
+                if front:
+                    owner.append(k)
+                    fronts.append((entry, front))
+                entry += 1
+        if fronts:
+            entries = [e for e, _ in fronts]
+            acceleration[entries] -= _interaction_terms(
+                speed=speed[owner],
+                heading=heading[owner],
+                x=xy[owner, 0],
+                lane_x0=np.array([batch[k].lane.start[0] for k in owner], dtype=np.float64),
+                fronts=[front for _, front in fronts],
+            )
+        accelerations = iter(acceleration.tolist())
+        for vehicle, steer in zip(batch, steering.tolist(), strict=True):
+            # When changing lane, the slower of the accelerations for the current and the target lane.
+            value = min(next(accelerations) for _ in _idm_lanes(vehicle))
+            vehicle.action = {"steering": steer, "acceleration": _clip(value, -cls.ACC_MAX, cls.ACC_MAX)}
 
     def _sorted_lane(self, lane_index: LaneIndex) -> list[tuple[float, int]]:
         """``(s, i)`` of the vehicles on a lane, sorted: lane coordinate ``s`` and index ``i`` in ``vehicles``."""
@@ -235,6 +253,35 @@ class _StraightHighwayRoad(Road):
             rows, cols = rows[keep], cols[keep]
         for i, j in zip(rows.tolist(), cols.tolist(), strict=True):
             vehicles[i].handle_collisions(vehicles[j], dt)
+
+
+def _idm_lanes(vehicle: FastIDMVehicle) -> tuple[LaneIndex, ...]:
+    """The lanes whose front vehicle limits ``vehicle``'s IDM acceleration: its own, and its target while
+    changing lane."""
+    if vehicle.lane_index == vehicle.target_lane_index:
+        return (vehicle.lane_index,)
+    return vehicle.lane_index, vehicle.target_lane_index
+
+
+def _interaction_terms(
+    *, speed: np.ndarray, heading: np.ndarray, x: np.ndarray, lane_x0: np.ndarray, fronts: list[Vehicle]
+) -> np.ndarray:
+    """IDM's interaction term ``3 * (desired_gap / gap)^2`` of K vehicles behind their front vehicles, [K].
+
+    ``speed``, ``heading``, ``x`` describe the K following vehicles and ``lane_x0`` the start of their current
+    lanes, which highway-env measures the gap along. Same operations as ``IDMVehicle.acceleration``.
+    """
+    cls = FastIDMVehicle
+    front_speed = np.array([f.speed for f in fronts], dtype=np.float64)
+    front_heading = np.array([f.heading for f in fronts], dtype=np.float64)
+    front_x = np.array([f.position[0] for f in fronts], dtype=np.float64)
+    direction = np.stack([np.cos(heading), np.sin(heading)], axis=1)
+    front_direction = np.stack([np.cos(front_heading), np.sin(front_heading)], axis=1)
+    dv = np.vecdot(speed[:, None] * direction - front_speed[:, None] * front_direction, direction)
+    ab = -cls.COMFORT_ACC_MAX * cls.COMFORT_ACC_MIN
+    desired_gap = cls.DISTANCE_WANTED + speed * cls.TIME_WANTED + speed * dv / (2 * math.sqrt(ab))
+    gap = desired_gap / _not_zero((front_x - lane_x0) - (x - lane_x0))
+    return cls.COMFORT_ACC_MAX * (gap * gap)
 
 
 def _step_kinematics(batch: list[FastIDMVehicle], dt: float) -> None:
@@ -342,11 +389,6 @@ class FastIDMVehicle(IDMVehicle):
         if front_vehicle:
             acceleration -= self._interaction(ego_vehicle, front_vehicle)
         return acceleration
-
-    def interaction(self, front_vehicle: Vehicle) -> float:
-        """IDM's interaction term of this vehicle behind ``front_vehicle``, in m/s^2 (subtracted from the
-        free-road term)."""
-        return self._interaction(self, front_vehicle)
 
     def _interaction(self, ego_vehicle: Vehicle, front_vehicle: Vehicle) -> float:
         gap = self.desired_gap(ego_vehicle, front_vehicle) / utils.not_zero(
