@@ -141,7 +141,7 @@ def test_quickstart_preset_is_the_readme_main_job():
     assert (cfg.env.name, cfg.algo.name, cfg.train.total_steps, cfg.train.threads) == (
         "sprites",
         "isodream",
-        2000,
+        3000,
         1,
     )
     assert cfg.run_dir == "runs/sprites-isodream-quickstart"
