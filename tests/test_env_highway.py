@@ -6,7 +6,8 @@ from highway_env.envs.highway_env import HighwayEnv
 from highway_env.vehicle.kinematics import Vehicle
 
 from isodream_rl.envs.highway import HIGHWAY_VIEWS, HighwayIsoEnv
-from isodream_rl.envs.highway_sim import FastIDMVehicle, HighwaySimulator, _separated_on_first_axes
+from isodream_rl.envs.highway_sim import HighwaySimulator, _separated_on_first_axes
+from isodream_rl.envs.highway_traffic import FastIDMVehicle
 
 STRAIGHT = np.zeros(2, dtype=np.float32)
 
