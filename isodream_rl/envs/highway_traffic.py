@@ -36,10 +36,10 @@ def _clip(x: float, low: float, high: float) -> float:
 class FastIDMVehicle(IDMVehicle):
     """highway-env's IDM (longitudinal) and MOBIL (lane change) vehicle, with the same decisions and trajectories.
 
-    On the fast road, ``act`` and ``step`` run for all vehicles at once (``_StraightHighwayRoad``). IDM's
-    ``acceleration`` and ``desired_gap``, which MOBIL and the interaction term call many times per tick, are
-    restated with Python scalar arithmetic where it gives the same bits as highway-env's numpy calls. MOBIL,
-    spawning and behaviour randomisation are inherited, so a seeded reset draws the same traffic.
+    On the fast road, ``act`` and ``step`` run for all vehicles at once (:func:`set_idm_actions`,
+    :func:`step_kinematics`). IDM's ``acceleration`` and ``desired_gap``, which MOBIL calls six times per lane
+    decision, are restated with Python scalar arithmetic where it gives the same bits as highway-env's numpy calls.
+    MOBIL, spawning and behaviour randomisation are inherited, so a seeded reset draws the same traffic.
     """
 
     def acceleration(
@@ -99,6 +99,10 @@ def set_idm_actions(batch: list[FastIDMVehicle], *, road: Road) -> None:
     numpy's elementwise functions give the same bits on arrays as on the scalars highway-env passes them, so
     the steering controller (``ControlledVehicle.steering_control``) and IDM's acceleration run on arrays
     (``np.vecdot`` for the ``np.dot`` of highway-env's desired gap: the same inner loop).
+
+    Args:
+        batch (list of FastIDMVehicle): the vehicles to command, not crashed.
+        road (Road): their road, for lanes and neighbour search.
     """
     cls = FastIDMVehicle
     n = len(batch)
@@ -192,7 +196,12 @@ def _interaction_terms(
 
 def step_kinematics(batch: list[FastIDMVehicle], dt: float) -> None:
     """``IDMVehicle.step`` for all of ``batch``: highway-env's kinematic bicycle model on arrays (numpy's
-    elementwise functions give the same bits on arrays as on scalars)."""
+    elementwise functions give the same bits on arrays as on scalars).
+
+    Args:
+        batch (list of FastIDMVehicle): the vehicles to move, each with its ``action`` of this tick.
+        dt (float): time step in seconds.
+    """
     for vehicle in batch:
         vehicle.timer += dt
         vehicle.clip_actions()
