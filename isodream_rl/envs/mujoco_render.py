@@ -164,6 +164,7 @@ class OffscreenRenderer:
         """Releases the GL resources; the renderer cannot render afterwards."""
         self._closed = True
         if self._release is not None:
+            atexit.unregister(self._release)
             self._release()
 
     def _context(self) -> _GLResources:
