@@ -5,8 +5,10 @@ Usage::
     python bench/env_speed.py [--steps 300] [--only sprites highway/top_down ...] [--json PATH]
 
 Each env runs random actions in [-1, 1] (drawn before timing, seeded); each step is timed alone and the
-median over ``--steps`` steps after a short warm-up is reported, so the occasional reset does not count. The
-gymnasium env and the TorchRL env are stepped alternately, so both see the same machine load. The
+median over ``--steps`` steps after a short warm-up is taken, so the occasional reset does not count. The
+gymnasium env and the TorchRL env are stepped alternately, so both see the same machine load. Each env runs
+``--rounds`` times and the round with the lowest TorchRL median is reported: other jobs sharing the machine only
+add time. The
 JSON maps every env name, written as ``make_env`` takes it plus its view or background (``"sprites"``,
 ``"highway/first_person"``, ``"dmc/walker-walk/video_easy"``, ...), to its median ms per agent step through
 TorchRL; ``"details"`` holds the raw gymnasium times, the process CPU time per step of both paths (less
@@ -100,6 +102,12 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--steps", type=int, default=300, help="timed steps per env and path (plus warm-up)")
     parser.add_argument("--only", nargs="*", default=None, help=f"subset of: {' '.join(CASES)}")
     parser.add_argument("--json", default=None, help="write the results to this JSON file")
+    parser.add_argument(
+        "--rounds",
+        type=int,
+        default=3,
+        help="timed runs per env; the least disturbed one (lowest median) counts",
+    )
     args = parser.parse_args(argv)
     names = args.only or list(CASES)
     unknown = [n for n in names if n not in CASES]
@@ -113,8 +121,10 @@ def main(argv: list[str] | None = None) -> dict:
         "torchrl_cpu_ms": {},
         "gym_cpu_ms": {},
         "targets_ms": {},
+        "torchrl_ms_per_round": {},
         "steps": args.steps,
         "warmup": WARMUP,
+        "rounds": args.rounds,
     }
     load_before = os.getloadavg()
     print(f"{'env':28s} {'gym ms':>8s} {'(cpu)':>7s} {'torchrl ms':>11s} {'(cpu)':>7s} {'target':>7s}")
@@ -125,15 +135,18 @@ def main(argv: list[str] | None = None) -> dict:
         shape = probe.action_space.shape
         probe.close()
         actions = rng.uniform(-1.0, 1.0, size=(args.steps + WARMUP, *shape)).astype(np.float32)
-        gym_timer, torchrl_timer = _time_both(name, cfg, actions)
-        gym_ms, gym_cpu = gym_timer.medians_ms()
-        torchrl_ms, torchrl_cpu = torchrl_timer.medians_ms()
+        rounds = [_time_both(name, cfg, actions) for _ in range(args.rounds)]
+        medians = [(gym.medians_ms(), torchrl.medians_ms()) for gym, torchrl in rounds]
+        # Other jobs on a shared machine only ever add time: the round with the lowest median is the least
+        # disturbed one.
+        (gym_ms, gym_cpu), (torchrl_ms, torchrl_cpu) = min(medians, key=lambda m: m[1][0])
+        details["torchrl_ms_per_round"][case] = [round(m[1][0], 3) for m in medians]
         results[case] = round(torchrl_ms, 3)
         details["gym_ms"][case] = round(gym_ms, 3)
         details["gym_cpu_ms"][case] = round(gym_cpu, 3)
         details["torchrl_cpu_ms"][case] = round(torchrl_cpu, 3)
         details["targets_ms"][case] = target
-        flag = "ok" if gym_ms <= target else "SLOW"  # targets are for the env itself
+        flag = "ok" if torchrl_ms <= target else "SLOW"
         print(
             f"{case:28s} {gym_ms:8.3f} {gym_cpu:7.3f} {torchrl_ms:11.3f} {torchrl_cpu:7.3f} {target:7.1f} {flag}"
         )
