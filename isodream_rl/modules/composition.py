@@ -64,7 +64,9 @@ class MaskComposition(nn.Module):
                 )
             masks = {n: torch.sigmoid(logits[n]).expand(*shape, *logits[n].shape[-3:]) for n in names[:-1]}
             masks["static"] = 1.0 - sum(masks.values())
-        composite = masks[names[0]] * colors[names[0]]
+        # colors first: the products take the colors' memory layout (channels-last from the decoders),
+        # so the gradients reach the convolutions without a layout copy
+        composite = colors[names[0]] * masks[names[0]]
         for name in names[1:]:
-            composite = composite + masks[name] * colors[name]
+            composite = composite + colors[name] * masks[name]
         return composite, masks

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 
 class ConvDecoder(nn.Module):
@@ -58,4 +59,26 @@ class ConvDecoder(nn.Module):
         else:
             x = torch.addmm(first.bias.repeat_interleave(kh * kw), hidden, weight.reshape(cin, -1))
             x = x.view(-1, cout, kh, kw)
-        return self.deconv[2:](x)
+        for layer in self.deconv[2:]:
+            x = _transposed_conv(layer, x) if isinstance(layer, nn.ConvTranspose2d) else layer(x)
+        return x
+
+
+def _transposed_conv(layer: nn.ConvTranspose2d, x: torch.Tensor) -> torch.Tensor:
+    """``layer(x)`` with the bias added outside the convolution.
+
+    The same function, but PyTorch's CPU (oneDNN) transposed convolution computes its bias gradient
+    ~30x slower than a plain sum over ``grad``; at paper size that was ~0.3 s of every update per layer.
+    The in-place add is safe: the convolution's backward needs its input and weight, not its output.
+    """
+    out = F.conv_transpose2d(
+        x,
+        layer.weight,
+        None,
+        stride=layer.stride,
+        padding=layer.padding,
+        output_padding=layer.output_padding,
+        groups=layer.groups,
+        dilation=layer.dilation,
+    )
+    return out if layer.bias is None else out.add_(layer.bias[:, None, None])

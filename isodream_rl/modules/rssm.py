@@ -19,6 +19,9 @@ embedding half of that first linear layer is the expensive part). The joint two-
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Callable, Iterable, Iterator
+
 import torch
 from torch import nn
 from torch.nn import functional as F
@@ -209,3 +212,80 @@ class ActionFreeRSSM(RSSMCell):
 
     def __init__(self, **kwargs):
         super().__init__(action_dim=0, **kwargs)
+
+
+@contextlib.contextmanager
+def _num_threads(count: int) -> Iterator[None]:
+    previous = torch.get_num_threads()
+    if previous == count:
+        yield
+        return
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
+class _SingleThreaded(torch.autograd.Function):
+    """Runs ``fn`` forward and its graph backward with one intra-op thread (see :func:`single_threaded`)."""
+
+    @staticmethod
+    def forward(ctx, fn, keys: list, num_args: int, *tensors: torch.Tensor):
+        args = [t.detach().requires_grad_() if t.requires_grad else t for t in tensors[:num_args]]
+        with torch.enable_grad(), _num_threads(1):
+            outputs = fn(*args)
+        keys.extend(outputs)
+        ctx.set_materialize_grads(False)
+        ctx.inner = (args + list(tensors[num_args:]), [outputs[k] for k in keys])
+        return tuple(outputs[k].detach() for k in keys)
+
+    @staticmethod
+    def backward(ctx, *grads: torch.Tensor | None):
+        inputs, outputs = ctx.inner
+        del ctx.inner
+        pairs = [(o, g) for o, g in zip(outputs, grads) if g is not None and o.requires_grad]
+        wanted = [i for i, t in enumerate(inputs) if t.requires_grad]
+        result: list[torch.Tensor | None] = [None] * len(inputs)
+        if pairs and wanted:
+            with _num_threads(1):
+                got = torch.autograd.grad(
+                    [o for o, _ in pairs],
+                    [inputs[i] for i in wanted],
+                    [g for _, g in pairs],
+                    allow_unused=True,
+                )
+            for i, g in zip(wanted, got):
+                result[i] = g
+        return (None, None, None, *result)
+
+
+def single_threaded(
+    fn: Callable[..., dict[str, torch.Tensor]],
+    args: Iterable[torch.Tensor],
+    parameters: Iterable[torch.Tensor],
+) -> dict[str, torch.Tensor]:
+    """``fn(*args)`` (a recurrent rollout returning a dict of tensors), forward and backward on one thread.
+
+    A time loop over a ``[B, .]`` state runs thousands of tiny operations (``16 x 200`` matrices at paper
+    size) that gain nothing from several threads; each one that does go parallel (MKL products,
+    layer norm, reductions) waits for every thread of the pool, and on a machine whose cores are shared
+    with other processes that wait is a scheduler time slice (milliseconds) per operation. This runs the
+    loop's forward and, through a custom autograd function, its backward with ``torch.set_num_threads(1)``,
+    restoring the previous count afterwards; the convolutions outside keep all threads. The result is the
+    same function with the same gradients. Limitation: the inner graph is freed by the first backward, so
+    a second backward through it (``retain_graph=True``) is not supported.
+
+    Args:
+        fn: the rollout; it reads ``parameters`` through its closure.
+        args: its tensor arguments (gradients flow back to those that require them).
+        parameters: the parameters ``fn`` uses, so that their gradients are produced.
+    """
+    args, parameters = list(args), [p for p in parameters if p.requires_grad]
+    needs_graph = torch.is_grad_enabled() and any(t.requires_grad for t in args + parameters)
+    if torch.get_num_threads() == 1 or not needs_graph:
+        with _num_threads(1):
+            return fn(*args)
+    keys: list[str] = []
+    outputs = _SingleThreaded.apply(fn, keys, len(args), *args, *parameters)
+    return dict(zip(keys, outputs))

@@ -20,11 +20,54 @@ from isodream_rl.modules.decoder import ConvDecoder
 from isodream_rl.modules.encoder import IMAGE_SHAPE, BranchedEncoder, check_pixels
 from isodream_rl.modules.heads import make_discount_head, make_reward_head
 from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
-from isodream_rl.modules.rssm import ActionConditionedRSSM, ActionFreeRSSM
+from isodream_rl.modules.rssm import ActionConditionedRSSM, ActionFreeRSSM, single_threaded
 
 
 def _next(key: str) -> tuple[str, str]:
     return ("next", key)
+
+
+class _SplitRGBLogit(torch.autograd.Function):
+    """``out.split([3, 1], dim=1)`` whose gradient keeps ``out``'s memory format.
+
+    Autograd's own split backward concatenates the two gradients, and ``cat`` falls back to NCHW when
+    the one-channel logit gradient does not look channels-last; the convolution's backward then copies
+    the whole decoder gradient back to channels-last.
+    """
+
+    @staticmethod
+    def forward(ctx, out: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        ctx.shape, ctx.memory_format = out.shape, _memory_format(out)
+        rgb, logit = out.split([3, 1], dim=1)
+        return rgb, logit
+
+    @staticmethod
+    def backward(ctx, grad_rgb: torch.Tensor | None, grad_logit: torch.Tensor | None) -> torch.Tensor:
+        grad = torch.empty(
+            ctx.shape,
+            dtype=(grad_rgb if grad_rgb is not None else grad_logit).dtype,
+            device=(grad_rgb if grad_rgb is not None else grad_logit).device,
+            memory_format=ctx.memory_format,
+        )
+        for part, g in zip(grad.split([3, 1], dim=1), (grad_rgb, grad_logit)):
+            if g is None:
+                part.zero_()
+            else:
+                part.copy_(g)
+        return grad
+
+
+def _memory_format(x: torch.Tensor) -> torch.memory_format:
+    if x.dim() == 4 and not x.is_contiguous() and x.is_contiguous(memory_format=torch.channels_last):
+        return torch.channels_last
+    return torch.contiguous_format
+
+
+def _rgb_and_logit(out: torch.Tensor, lead: tuple[int, ...]) -> tuple[torch.Tensor, ...]:
+    """Decoder output ``[N, 3 or 4, H, W]`` -> ``(rgb, [logit])`` each ``[*lead, ., H, W]``."""
+    out = out.float()
+    parts = _SplitRGBLogit.apply(out) if out.shape[1] == 4 else (out,)
+    return tuple(p.reshape(*lead, *p.shape[1:]) for p in parts)
 
 
 class IsoDreamWorldModel(TensorDictModuleBase):
@@ -247,6 +290,17 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         return pixels, action.float(), is_init
 
     def _rollout(self, control_proj, free_proj, action, is_init) -> dict[str, torch.Tensor]:
+        """The filtering loop over the window, on one thread (see :func:`~isodream_rl.modules.rssm.single_threaded`)."""
+        given = {"control_proj": control_proj, "free_proj": free_proj, "action": action, "is_init": is_init}
+        names = [k for k, v in given.items() if v is not None]
+        rssms = [m for m in (self.control_rssm, self.free_rssm) if m is not None]
+
+        def run(*tensors: torch.Tensor) -> dict[str, torch.Tensor]:
+            return self._rollout_loop(**{**dict.fromkeys(given), **dict(zip(names, tensors))})
+
+        return single_threaded(run, [given[k] for k in names], [p for m in rssms for p in m.parameters()])
+
+    def _rollout_loop(self, control_proj, free_proj, action, is_init) -> dict[str, torch.Tensor]:
         batch, time = action.shape[:2]
         previous = self.initial_state((batch,), device=action.device)
         # unbind, not [:, t]: its backward is one stack, where indexing writes a zero-filled window per step
@@ -292,21 +346,17 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             if self.free_decoder is not None:
                 free_feat = torch.cat([latents["free_state"], latents["free_belief"]], dim=-1)
                 free_out = self.free_decoder(free_feat.reshape(batch * time, -1))
-        # split (not slicing) so that the backward assembles each decoder's gradient in one pass
-        control_out = control_out.float().reshape(batch, time, -1, *IMAGE_SHAPE[1:])
+
         colors, logits = {}, {}
-        if control_out.shape[2] == 4:
-            colors["control"], logits["control"] = control_out.split([3, 1], dim=2)
-        else:
-            colors["control"] = control_out
-        if free_out is not None:
-            free_out = free_out.float().reshape(batch, time, -1, *IMAGE_SHAPE[1:])
-            colors["free"], logits["free"] = free_out.split([3, 1], dim=2)
-        if static_out is not None:
-            if static_out.shape[1] == 4:
-                colors["static"], logits["static"] = static_out[:, None].split([3, 1], dim=2)
-            else:
-                colors["static"] = static_out[:, None]
+        for name, out, lead in (
+            ("control", control_out, (batch, time)),
+            ("free", free_out, (batch, time)),
+            ("static", static_out, (batch, 1)),
+        ):
+            if out is not None:
+                colors[name], *logit = _rgb_and_logit(out, lead)
+                if logit:
+                    logits[name] = logit[0]
         composite, masks = self.composition(colors, logits)
 
         out = dict(latents)

@@ -1,0 +1,91 @@
+"""The speed rewrites compute the same functions as the plain PyTorch layers they replace."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
+from isodream_rl.modules.decoder import ConvDecoder
+from isodream_rl.modules.world_model import _rgb_and_logit
+
+
+def reference_decoder(decoder: ConvDecoder, latent: torch.Tensor) -> torch.Tensor:
+    """The decoder as plain ``nn`` layers: linear, ReLU, then ConvTranspose2d/ReLU (bias inside)."""
+    x = torch.relu(decoder.linear(latent))[:, :, None, None]
+    for layer in decoder.deconv[1:]:
+        x = torch.relu(x) if isinstance(layer, nn.ReLU) else layer(x)
+    return x
+
+
+def grads(module: nn.Module, latent: torch.Tensor, out: torch.Tensor, upstream: torch.Tensor):
+    params = [latent, *module.parameters()]
+    return torch.autograd.grad(out, params, upstream)
+
+
+@pytest.mark.parametrize("channels_last", [False, True])
+def test_decoder_matches_plain_transposed_convolutions_in_values_and_gradients(channels_last):
+    torch.manual_seed(0)
+    decoder = ConvDecoder(in_features=12, out_channels=4, depth=4).double()
+    if channels_last:
+        decoder.to(memory_format=torch.channels_last)
+    latent = torch.randn(5, 12, dtype=torch.float64, requires_grad=True)
+    fast, ref = decoder(latent), reference_decoder(decoder, latent)
+    assert fast.shape == (5, 4, 64, 64)
+    torch.testing.assert_close(fast, ref)
+    upstream = torch.randn_like(ref)
+    for g_fast, g_ref in zip(grads(decoder, latent, fast, upstream), grads(decoder, latent, ref, upstream)):
+        torch.testing.assert_close(g_fast, g_ref)
+
+
+def test_decoder_state_dict_keeps_the_layer_names_and_shapes():
+    decoder = ConvDecoder(in_features=12, out_channels=4, depth=4)
+    shapes = {k: tuple(v.shape) for k, v in decoder.state_dict().items()}
+    assert shapes["deconv.1.weight"] == (128, 16, 5, 5)
+    assert shapes["deconv.7.weight"] == (4, 4, 6, 6) and shapes["deconv.7.bias"] == (4,)
+    ConvDecoder(in_features=12, out_channels=4, depth=4).load_state_dict(decoder.state_dict())
+
+
+def test_single_threaded_rollout_has_the_loops_values_and_gradients_and_restores_the_thread_count():
+    wm = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
+    rssm_params = [*wm.control_rssm.parameters(), *wm.free_rssm.parameters()]
+    control = torch.randn(2, 6, wm.config.hidden_dim, requires_grad=True)
+    free = torch.randn(2, 6, wm.config.hidden_dim, requires_grad=True)
+    action = torch.randn(2, 6, 2)
+    is_init = torch.zeros(2, 6, 1, dtype=torch.bool)
+    is_init[1, 3] = True
+
+    def run(rollout):
+        torch.manual_seed(0)
+        out = rollout(control, free, action, is_init)
+        loss = sum((v * torch.linspace(-1, 1, v.shape[-1], dtype=v.dtype)).sum() for v in out.values())
+        return out, torch.autograd.grad(loss, [control, free, *rssm_params], allow_unused=True)
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(2)  # the wrapper is a no-op on one thread
+    try:
+        fast_out, fast_grads = run(wm._rollout)
+        assert torch.get_num_threads() == 2
+        ref_out, ref_grads = run(wm._rollout_loop)
+    finally:
+        torch.set_num_threads(previous)
+    assert fast_out.keys() == ref_out.keys()
+    for key in ref_out:
+        torch.testing.assert_close(fast_out[key], ref_out[key])
+    assert [g is None for g in fast_grads] == [g is None for g in ref_grads]
+    assert fast_grads[0] is not None and fast_grads[1] is not None
+    for fast, ref in zip(fast_grads, ref_grads):
+        if ref is not None:
+            torch.testing.assert_close(fast, ref)
+
+
+def test_decoder_output_split_returns_the_plain_split_gradient_in_channels_last():
+    out = torch.randn(3, 4, 8, 8).contiguous(memory_format=torch.channels_last).requires_grad_()
+    rgb, logit = _rgb_and_logit(out, (3,))
+    upstream = torch.randn(3, 3, 8, 8), torch.randn(3, 1, 8, 8)
+    (grad,) = torch.autograd.grad([rgb, logit], [out], upstream)
+    assert grad.is_contiguous(memory_format=torch.channels_last)
+    torch.testing.assert_close(grad, torch.cat(upstream, dim=1))
+    (grad_rgb_only,) = torch.autograd.grad(rgb.sum(), [out])
+    torch.testing.assert_close(grad_rgb_only[:, 3], torch.zeros(3, 8, 8))
