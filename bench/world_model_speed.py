@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import platform
 import statistics
 import time
@@ -196,6 +197,7 @@ def main(argv=None):
         "torchrl_fp32_cl": lambda: theirs("fp32", True),
         "torchrl_bf16_cl": lambda: theirs("bf16", True),
     }
+    load_before = os.getloadavg()
     names = list(builders) if args.variants == "all" else args.variants.split(",")
     variants = [builders[n]() for n in names]
     for v in variants:
@@ -237,6 +239,11 @@ def main(argv=None):
         if "ours_fp32_cl" in results and "torchrl_fp32_cl" in results
         else None,
         "variants": results,
+        # 1/5/15-minute load averages before and after the run (other processes share the cores)
+        "load_average": {
+            "before": [round(x, 2) for x in load_before],
+            "after": [round(x, 2) for x in os.getloadavg()],
+        },
         "config": {
             "batch_size": B,
             "time": T,
