@@ -50,6 +50,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument(
         "--static-mask-bias", type=float, default=3.0, help="initial bias of the background's mask logit"
     )
+    p.add_argument(
+        "--inverse-input",
+        choices=["state", "embedding"],
+        default="state",
+        help="inverse-dynamics input: posterior states (paper) or control-embedding differences (authors' code)",
+    )
+    p.add_argument("--lambda-inverse", type=float, default=1.0, help="alpha, the inverse-dynamics loss scale")
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--precision", choices=["fp32", "bf16"], default=None, help="default: bf16 where fast")
     p.add_argument("--device", default="cpu")
@@ -96,9 +103,10 @@ def main(argv=None) -> dict:
     buffer = make_window_buffer(train, batch_size=args.batch_size, window=args.window)
 
     config = WorldModelConfig.from_preset(
-        args.size, action_dim=2, precision=precision, static_mask_bias=args.static_mask_bias
+        args.size, action_dim=2, precision=precision, static_mask_bias=args.static_mask_bias,
+        inverse_input=args.inverse_input,
     )
-    loss = IsoDreamModelLoss(IsoDreamWorldModel(config, device=device))
+    loss = IsoDreamModelLoss(IsoDreamWorldModel(config, device=device), lambda_inverse=args.lambda_inverse)
     optimizer = torch.optim.Adam(loss.parameters(), lr=args.lr, eps=1e-5)
     logger = CSVLogger(exp_name="world_model_demo", log_dir=str(out_dir))
     logger.log_hparams({**config.to_dict(), **{k: v for k, v in vars(args).items() if k != "out"}})

@@ -10,6 +10,7 @@ turns the world model's ``channels_last`` off for them.
 
 from __future__ import annotations
 
+import datetime
 import functools
 from typing import Any
 
@@ -31,6 +32,23 @@ def _seeded(make, seed: int):
     return env
 
 
+#: How long the driver waits for Ray workers to join the weight-sync process group.
+RAY_WEIGHT_SYNC_TIMEOUT = datetime.timedelta(minutes=5)
+
+
+def _lengthen_ray_weight_sync_timeout() -> None:
+    """TorchRL 0.14.1 hard-codes 60 s for Ray workers to join the weight-sync group (``_DIST_TIMEOUT``).
+
+    A worker that starts slowly (a busy 2-core machine, a cold cluster node) then fails the run with
+    ``DistStoreError: wait timeout after 60000ms``. The driver-side constant is read when the collector
+    connects, so raising it here, before the collector exists, is enough.
+    """
+    from torchrl.weight_update import _ray
+
+    if getattr(_ray, "_DIST_TIMEOUT", None) is not None and _ray._DIST_TIMEOUT < RAY_WEIGHT_SYNC_TIMEOUT:
+        _ray._DIST_TIMEOUT = RAY_WEIGHT_SYNC_TIMEOUT
+
+
 def _backend_options(cfg: RunConfig) -> dict[str, Any]:
     train = cfg.train
     options: dict[str, Any] = {}
@@ -44,6 +62,7 @@ def _backend_options(cfg: RunConfig) -> dict[str, Any]:
                 # The workers print their collector at start-up; keep the console to the progress bar.
                 "log_to_driver": False,
             }
+        _lengthen_ray_weight_sync_timeout()
         # One CPU per worker and no memory reservation (TorchRL's default reserves 2 GB per worker).
         gpus = 0.2 if train.device.startswith("cuda") else 0
         options["remote_configs"] = {"num_cpus": 1, "num_gpus": gpus, "memory": None}
