@@ -89,7 +89,7 @@ class TestEncoder:
 class TestComposition:
     def test_softmax_masks_are_nonnegative_and_sum_to_one(self):
         logits = {n: torch.randn(4, 1, 8, 8) * 5 for n in ("control", "free", "static")}
-        colors = {n: torch.randn(4, 3, 8, 8) for n in logits}
+        colors = {n: torch.rand(4, 3, 8, 8) - 0.5 for n in logits}
         composite, masks = MaskComposition()(colors, logits)
         total = sum(masks.values())
         assert all((m >= 0).all() for m in masks.values())
@@ -99,12 +99,27 @@ class TestComposition:
 
     def test_sigmoid_mode_is_eq4_with_independent_masks(self):
         logits = {n: torch.randn(4, 1, 8, 8) for n in ("control", "free")}
-        colors = {n: torch.randn(4, 3, 8, 8) for n in ("control", "free", "static")}
+        colors = {n: torch.rand(4, 3, 8, 8) - 0.5 for n in ("control", "free", "static")}
         composite, masks = MaskComposition(mask_mode="sigmoid")(colors, logits)
         m_s, m_z = torch.sigmoid(logits["control"]), torch.sigmoid(logits["free"])
         expected = m_s * colors["control"] + m_z * colors["free"] + (1 - m_s - m_z) * colors["static"]
         torch.testing.assert_close(composite, expected)
         torch.testing.assert_close(masks["static"], 1 - m_s - m_z)
+
+    def test_components_are_clamped_to_the_pixel_range_before_mixing(self):
+        logits = {n: torch.zeros(1, 1, 1, 2) for n in ("control", "free", "static")}
+        control = torch.tensor([[[[2.0, 0.25]]]]).expand(1, 3, 1, 2).clone().requires_grad_()
+        colors = {"control": control, "free": torch.zeros(1, 3, 1, 2), "static": torch.zeros(1, 3, 1, 2)}
+        composite, _ = MaskComposition()(colors, logits)
+        # out of range: 2.0 counts as 0.5 and gets no gradient; in range: unchanged
+        torch.testing.assert_close(composite[0, 0, 0], torch.tensor([0.5, 0.25]) / 3)
+        composite.sum().backward()
+        assert control.grad[0, 0, 0, 0] == 0 and control.grad[0, 0, 0, 1] > 0
+        unclamped, _ = MaskComposition(clamp_components=False)(colors, logits)
+        torch.testing.assert_close(unclamped[0, 0, 0], torch.tensor([2.0, 0.25]) / 3)
+        # one branch (DreamerV2 ablation): the decoded image as it is
+        alone, _ = MaskComposition()({"control": control}, {})
+        assert alone[0, 0, 0, 0] == 2.0
 
     def test_per_window_background_broadcasts_over_time(self):
         colors = {"control": torch.randn(2, 5, 3, 8, 8), "static": torch.randn(2, 1, 3, 8, 8)}

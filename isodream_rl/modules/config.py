@@ -48,6 +48,9 @@ class WorldModelConfig:
     """``"state"``: MLP(s_{t-1}, s_t) on posterior states (paper); ``"embedding"``: e^s_t - e^s_{t-1} (authors)."""
     mask_mode: str = "softmax"
     """``"softmax"`` over three logits, or the authors' ``"sigmoid"`` masks with 1 - M^s - M^z background."""
+    clamp_components: bool = True
+    """Clamp each branch's RGB component to the pixel range before composing (the authors' code); without it
+    faint masks times out-of-range colours reproduce objects and the masks never separate the scene."""
     decoder_input: str = "paper"
     """``"paper"``: controllable component from the one-step prior s~_t, noncontrollable from the posterior z_t
     (§3.2, against collapse); ``"posterior"``: both from posteriors."""

@@ -149,7 +149,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         if cfg.static_mask_bias:
             with torch.no_grad():
                 self.static_decoder.deconv[-1].bias[3] += cfg.static_mask_bias
-        self.composition = MaskComposition(mask_mode=cfg.mask_mode)
+        self.composition = MaskComposition(mask_mode=cfg.mask_mode, clamp_components=cfg.clamp_components)
         self.inverse_cell = (
             InverseDynamicsCell(
                 in_features=cfg.state_dim if cfg.inverse_input == "state" else embed,
@@ -357,7 +357,8 @@ class IsoDreamWorldModel(TensorDictModuleBase):
                 colors[name], *logit = _rgb_and_logit(out, lead)
                 if logit:
                     logits[name] = logit[0]
-        composite, masks = self.composition(colors, logits)
+        colors = self.composition.bound(colors)
+        composite, masks = self.composition(colors, logits, bounded=True)
 
         out = dict(latents)
         out["reco_pixels"] = composite

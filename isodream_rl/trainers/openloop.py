@@ -93,7 +93,8 @@ def open_loop_prediction(
         colors["static"] = static[:, None, :3]
         if static.shape[1] == 4:
             logits["static"] = static[:, None, 3:]
-    composite, masks = world_model.composition(colors, logits)
+    colors = world_model.composition.bound(colors)
+    composite, masks = world_model.composition(colors, logits, bounded=True)
     world_model.train(was_training)
 
     out = TensorDict(
