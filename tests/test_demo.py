@@ -34,3 +34,27 @@ def test_demo_writes_picture_scores_checkpoint_and_csv(tmp_path):
     assert saved["updates"] == 3 and 0.0 <= saved["iou_control_vs_agent"] <= 1.0
     assert summary["png"] == str(tmp_path / "branches.png")
     assert list(tmp_path.rglob("*.csv")), "the CSV logger wrote nothing"
+
+
+def test_held_random_actions_make_the_agent_travel():
+    import pytest
+    import torch
+
+    from isodream_rl.recipes.sprites_data import collect_sprites_episodes
+
+    jitter = collect_sprites_episodes(episodes=4, steps=32, seed=3)
+    held = collect_sprites_episodes(episodes=4, steps=32, seed=3, action_hold=8)
+    actions = held["action"].reshape(4, 4, 8, 2)
+    assert (actions == actions[:, :, :1]).all(), "an action must stay for action_hold steps"
+    assert not (actions[:, 1:, 0] == actions[:, :-1, 0]).all()
+
+    def travel(data):  # mean distance between the agent's centre at steps 0 and 15 of each episode
+        mask = data["next", "mask_agent"].reshape(4, 32, 64, 64).float()
+        grid = torch.arange(64.0)
+        ys = (mask.sum(-1) * grid).sum(-1) / mask.sum((-1, -2))
+        xs = (mask.sum(-2) * grid).sum(-1) / mask.sum((-1, -2))
+        return torch.hypot(ys[:, 15] - ys[:, 0], xs[:, 15] - xs[:, 0]).mean()
+
+    assert travel(held) > 1.5 * travel(jitter)
+    with pytest.raises(ValueError, match="action_hold"):
+        collect_sprites_episodes(episodes=1, steps=8, action_hold=0)

@@ -19,8 +19,14 @@ def collect_sprites_episodes(
     task: str = "none",
     num_backgrounds: int | None = None,
     background_seed: int = 0,
+    action_hold: int = 1,
 ) -> TensorDict:
     """Roll out uniform random actions in :class:`~isodream_rl.envs.sprites.SpritesEnv`.
+
+    ``action_hold``: each random action is kept for this many steps. With a new action every step
+    (``1``) the agent jitters in place (about 7 pixels in 16 steps), so a window's first frames, which the
+    static branch reads, already show it almost where it stays; held actions make it travel as far as the
+    distractors do.
 
     ``num_backgrounds`` / ``background_seed`` are passed to the env (a fixed background pool; ``None``: a
     new background per episode). The gymnasium env is stepped directly (about 0.1 ms per step, 100x less than through a TorchRL
@@ -43,7 +49,10 @@ def collect_sprites_episodes(
     pixels = np.empty((n, 64, 64, 3), np.uint8)
     agent = np.empty((n, 64, 64), bool)
     distractors = np.empty((n, 64, 64), bool)
-    actions = rng.uniform(-1, 1, (n, 2)).astype(np.float32)
+    if action_hold < 1:
+        raise ValueError(f"action_hold must be >= 1, got {action_hold}")
+    draws = rng.uniform(-1, 1, (episodes, -(-steps // action_hold), 2)).astype(np.float32)
+    actions = np.repeat(draws, action_hold, axis=1)[:, :steps].reshape(n, 2)
     rewards = np.empty((n, 1), np.float32)
     for episode in range(episodes):
         env.reset(seed=seed * 100_003 + episode)

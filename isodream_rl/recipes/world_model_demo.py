@@ -48,6 +48,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="size of the scene's background pool shared by training and held-out episodes (0: a new one each)",
     )
     p.add_argument(
+        "--action-hold",
+        type=int,
+        default=8,
+        help="steps each random action is kept (1: a new one every step, the agent then jitters in place)",
+    )
+    p.add_argument(
         "--static-mask-bias", type=float, default=3.0, help="initial bias of the background's mask logit"
     )
     p.add_argument(
@@ -55,6 +61,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         choices=["state", "embedding"],
         default="state",
         help="inverse-dynamics input: posterior states (paper) or control-embedding differences (authors' code)",
+    )
+    p.add_argument(
+        "--decoder-input",
+        choices=["paper", "posterior"],
+        default="paper",
+        help="controllable component from the one-step prior (paper) or from the posterior",
     )
     p.add_argument("--lambda-inverse", type=float, default=1.0, help="alpha, the inverse-dynamics loss scale")
     p.add_argument("--lr", type=float, default=1e-3)
@@ -95,7 +107,11 @@ def main(argv=None) -> dict:
         )
 
     print(f"collecting {args.episodes} random-action sprites episodes of {args.episode_length} steps ...")
-    scene = {"num_backgrounds": args.backgrounds or None, "background_seed": args.seed}
+    scene = {
+        "num_backgrounds": args.backgrounds or None,
+        "background_seed": args.seed,
+        "action_hold": args.action_hold,
+    }
     train = collect_sprites_episodes(
         episodes=args.episodes, steps=args.episode_length, seed=args.seed, **scene
     )
@@ -105,6 +121,7 @@ def main(argv=None) -> dict:
     config = WorldModelConfig.from_preset(
         args.size, action_dim=2, precision=precision, static_mask_bias=args.static_mask_bias,
         inverse_input=args.inverse_input,
+        decoder_input=args.decoder_input,
     )
     loss = IsoDreamModelLoss(IsoDreamWorldModel(config, device=device), lambda_inverse=args.lambda_inverse)
     optimizer = torch.optim.Adam(loss.parameters(), lr=args.lr, eps=1e-5)
