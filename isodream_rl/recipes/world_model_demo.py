@@ -35,7 +35,9 @@ def default_precision(device: torch.device) -> str:
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--steps", type=int, default=600, help="world-model updates")
+    p.add_argument(
+        "--steps", type=int, default=3000, help="world-model updates (3000: ~25 min on one CPU core)"
+    )
     p.add_argument("--batch-size", type=int, default=8, help="windows per update")
     p.add_argument("--window", type=int, default=16, help="steps per window (T)")
     p.add_argument("--size", default="small", choices=["paper", "small", "tiny"], help="model size preset")
@@ -65,8 +67,15 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument(
         "--decoder-input",
         choices=["paper", "posterior"],
-        default="paper",
-        help="controllable component from the one-step prior (paper) or from the posterior",
+        default="posterior",
+        help="controllable component from the posterior (default here, as the authors' DMC setting) or from "
+        "the one-step prior (paper; the library's default, slower to pick up the agent: see docs/results/world_model_demo.md)",
+    )
+    p.add_argument(
+        "--free-branch",
+        choices=["kl", "recon_only"],
+        default="kl",
+        help="noncontrollable branch learns with its KL (CARLA-style) or from the reconstruction only (DMC-style)",
     )
     p.add_argument("--lambda-inverse", type=float, default=1.0, help="alpha, the inverse-dynamics loss scale")
     p.add_argument("--lr", type=float, default=1e-3)
@@ -119,11 +128,18 @@ def main(argv=None) -> dict:
     buffer = make_window_buffer(train, batch_size=args.batch_size, window=args.window)
 
     config = WorldModelConfig.from_preset(
-        args.size, action_dim=2, precision=precision, static_mask_bias=args.static_mask_bias,
+        args.size,
+        action_dim=2,
+        precision=precision,
+        static_mask_bias=args.static_mask_bias,
         inverse_input=args.inverse_input,
         decoder_input=args.decoder_input,
     )
-    loss = IsoDreamModelLoss(IsoDreamWorldModel(config, device=device), lambda_inverse=args.lambda_inverse)
+    loss = IsoDreamModelLoss(
+        IsoDreamWorldModel(config, device=device),
+        lambda_inverse=args.lambda_inverse,
+        free_branch=args.free_branch,
+    )
     optimizer = torch.optim.Adam(loss.parameters(), lr=args.lr, eps=1e-5)
     logger = CSVLogger(exp_name="world_model_demo", log_dir=str(out_dir))
     logger.log_hparams({**config.to_dict(), **{k: v for k, v in vars(args).items() if k != "out"}})
