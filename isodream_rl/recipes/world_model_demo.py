@@ -5,6 +5,12 @@
 for a few minutes on CPU, then, on held-out episodes, writes a PNG grid (ground truth, composite, each
 branch's component and mask over time) and scores the learned masks against the ground-truth masks (IoU).
 Everything it needs is generated locally.
+
+Defaults that differ from the library's (each measured in ``docs/results/world_model_demo.md``): random
+actions held for 8 steps (a new one each step only makes the agent jitter in place, and the background
+branch absorbs it), the background's mask logit starting at +3 (otherwise the three masks blend at 1/3),
+and the controllable component decoded from the posterior (from the paper's one-step prior the agent had
+not appeared after 4000 updates).
 """
 
 from __future__ import annotations
