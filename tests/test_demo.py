@@ -2,6 +2,10 @@
 
 import json
 
+import pytest
+import torch
+
+from isodream_rl.recipes.sprites_data import collect_sprites_episodes
 from isodream_rl.recipes.world_model_demo import main
 
 
@@ -37,11 +41,6 @@ def test_demo_writes_picture_scores_checkpoint_and_csv(tmp_path):
 
 
 def test_held_random_actions_make_the_agent_travel():
-    import pytest
-    import torch
-
-    from isodream_rl.recipes.sprites_data import collect_sprites_episodes
-
     jitter = collect_sprites_episodes(episodes=4, steps=32, seed=3)
     held = collect_sprites_episodes(episodes=4, steps=32, seed=3, action_hold=8)
     actions = held["action"].reshape(4, 4, 8, 2)

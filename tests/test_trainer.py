@@ -71,7 +71,9 @@ class TestConfig:
     def test_prefill_shorter_than_a_window_is_rejected(self, tmp_path):
         cfg = tiny_config(tmp_path)
         cfg.train.prefill_steps = 3
-        with pytest.raises(ConfigError, match="train.prefill_steps=3 is shorter than one replay window per env"):
+        with pytest.raises(
+            ConfigError, match="train.prefill_steps=3 is shorter than one replay window per env"
+        ):
             validate_config(cfg)
 
     def test_resume_without_the_replay_buffer_is_rejected(self, tmp_path):

@@ -24,7 +24,7 @@ def collect_sprites_episodes(
     """Roll out uniform random actions in :class:`~isodream_rl.envs.sprites.SpritesEnv`.
 
     ``action_hold``: each random action is kept for this many steps. With a new action every step
-    (``1``) the agent jitters in place (about 7 pixels in 16 steps), so a window's first frames, which the
+    (``1``) the agent jitters in place (its centre moves about 5 pixels in 15 steps, 20 with ``8``), so a window's first frames, which the
     static branch reads, already show it almost where it stays; held actions make it travel as far as the
     distractors do.
 
