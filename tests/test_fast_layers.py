@@ -7,8 +7,8 @@ import torch
 from torch import nn
 
 from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
+from isodream_rl.modules.composition import MaskComposition
 from isodream_rl.modules.decoder import ConvDecoder
-from isodream_rl.modules.world_model import _rgb_and_logit
 
 
 def reference_decoder(decoder: ConvDecoder, latent: torch.Tensor) -> torch.Tensor:
@@ -80,12 +80,65 @@ def test_single_threaded_rollout_has_the_loops_values_and_gradients_and_restores
             torch.testing.assert_close(fast, ref)
 
 
-def test_decoder_output_split_returns_the_plain_split_gradient_in_channels_last():
-    out = torch.randn(3, 4, 8, 8).contiguous(memory_format=torch.channels_last).requires_grad_()
-    rgb, logit = _rgb_and_logit(out, (3,))
-    upstream = torch.randn(3, 3, 8, 8), torch.randn(3, 1, 8, 8)
-    (grad,) = torch.autograd.grad([rgb, logit], [out], upstream)
-    assert grad.is_contiguous(memory_format=torch.channels_last)
-    torch.testing.assert_close(grad, torch.cat(upstream, dim=1))
-    (grad_rgb_only,) = torch.autograd.grad(rgb.sum(), [out])
-    torch.testing.assert_close(grad_rgb_only[:, 3], torch.zeros(3, 8, 8))
+@pytest.mark.parametrize("channels_last", [False, True])
+@pytest.mark.parametrize("clamp", [True, False])
+@pytest.mark.parametrize("names", [("control", "free", "static"), ("control", "free"), ("control", "static")])
+def test_fused_composition_matches_the_plain_operations(channels_last, clamp, names):
+    """compose_decoded (one autograd node) against split + clamp + softmax + products, values and gradients
+    from every output (composite, masks, components), in the decoders' memory format."""
+    torch.manual_seed(0)
+    batch, time = 2, 3
+    leads = {name: (batch, 1) if name == "static" else (batch, time) for name in names}
+    raw = {}
+    for name, lead in leads.items():
+        x = torch.randn(lead[0] * lead[1], 4, 8, 8, dtype=torch.float64)
+        if channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
+        raw[name] = x.requires_grad_()
+    composition = MaskComposition(clamp_components=clamp)
+    weights = torch.randn(batch, time, 3, 8, 8, dtype=torch.float64)
+    mask_weights = torch.randn(batch, time, 1, 8, 8, dtype=torch.float64)
+
+    def run(fused):
+        outputs = {n: raw[n].reshape(*leads[n], 4, 8, 8) for n in names}
+        if fused:
+            composite, masks, colors = composition.compose_decoded(outputs)
+        else:
+            colors = composition.bound({n: o[..., :3, :, :] for n, o in outputs.items()})
+            composite, masks = composition(
+                colors, {n: o[..., 3:, :, :] for n, o in outputs.items()}, bounded=True
+            )
+        loss = (composite * weights).sum()
+        loss = loss + sum((m * mask_weights * (k + 1)).sum() for k, m in enumerate(masks.values()))
+        loss = loss + sum(c.pow(2).sum() for c in colors.values())
+        return composite, masks, colors, torch.autograd.grad(loss, [raw[n] for n in names])
+
+    fused, plain = run(True), run(False)
+    torch.testing.assert_close(fused[0], plain[0])
+    for name in names:
+        torch.testing.assert_close(fused[1][name], plain[1][name])
+        torch.testing.assert_close(fused[2][name], plain[2][name])
+    for name, got, want in zip(names, fused[3], plain[3]):
+        torch.testing.assert_close(got, want)
+        assert got.stride() == raw[name].stride()
+    masks = torch.cat(list(fused[1].values()), dim=-3)
+    assert masks.min() >= 0
+    torch.testing.assert_close(masks.sum(-3), torch.ones_like(masks[..., 0, :, :]))
+
+
+def test_fused_composition_passes_only_the_gradients_asked_for():
+    """Gradient from the composite alone, and from one mask alone, still matches the plain path."""
+    torch.manual_seed(1)
+    raw = {n: torch.randn(4, 4, 8, 8, requires_grad=True) for n in ("control", "free")}
+    composition = MaskComposition()
+    outputs = {n: x.reshape(2, 2, 4, 8, 8) for n, x in raw.items()}
+    _, masks, _ = composition.compose_decoded(outputs)
+    got = torch.autograd.grad(masks["free"].sum() * 2 + masks["free"].pow(2).sum(), list(raw.values()))
+    colors = composition.bound({n: o[..., :3, :, :] for n, o in outputs.items()})
+    _, plain_masks = composition(colors, {n: o[..., 3:, :, :] for n, o in outputs.items()}, bounded=True)
+    want = torch.autograd.grad(
+        plain_masks["free"].sum() * 2 + plain_masks["free"].pow(2).sum(), list(raw.values())
+    )
+    for g, w in zip(got, want):
+        torch.testing.assert_close(g, w)
+        torch.testing.assert_close(g[:, :3], torch.zeros_like(g[:, :3]))

@@ -27,49 +27,6 @@ def _next(key: str) -> tuple[str, str]:
     return ("next", key)
 
 
-class _SplitRGBLogit(torch.autograd.Function):
-    """``out.split([3, 1], dim=1)`` whose gradient keeps ``out``'s memory format.
-
-    Autograd's own split backward concatenates the two gradients, and ``cat`` falls back to NCHW when
-    the one-channel logit gradient does not look channels-last; the convolution's backward then copies
-    the whole decoder gradient back to channels-last.
-    """
-
-    @staticmethod
-    def forward(ctx, out: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        ctx.shape, ctx.memory_format = out.shape, _memory_format(out)
-        rgb, logit = out.split([3, 1], dim=1)
-        return rgb, logit
-
-    @staticmethod
-    def backward(ctx, grad_rgb: torch.Tensor | None, grad_logit: torch.Tensor | None) -> torch.Tensor:
-        grad = torch.empty(
-            ctx.shape,
-            dtype=(grad_rgb if grad_rgb is not None else grad_logit).dtype,
-            device=(grad_rgb if grad_rgb is not None else grad_logit).device,
-            memory_format=ctx.memory_format,
-        )
-        for part, g in zip(grad.split([3, 1], dim=1), (grad_rgb, grad_logit)):
-            if g is None:
-                part.zero_()
-            else:
-                part.copy_(g)
-        return grad
-
-
-def _memory_format(x: torch.Tensor) -> torch.memory_format:
-    if x.dim() == 4 and not x.is_contiguous() and x.is_contiguous(memory_format=torch.channels_last):
-        return torch.channels_last
-    return torch.contiguous_format
-
-
-def _rgb_and_logit(out: torch.Tensor, lead: tuple[int, ...]) -> tuple[torch.Tensor, ...]:
-    """Decoder output ``[N, 3 or 4, H, W]`` -> ``(rgb, [logit])`` each ``[*lead, ., H, W]``."""
-    out = out.float()
-    parts = _SplitRGBLogit.apply(out) if out.shape[1] == 4 else (out,)
-    return tuple(p.reshape(*lead, *p.shape[1:]) for p in parts)
-
-
 class IsoDreamWorldModel(TensorDictModuleBase):
     """Encoder, decoupled RSSM, masked decoders, inverse-dynamics cell and reward/discount heads.
 
@@ -347,18 +304,12 @@ class IsoDreamWorldModel(TensorDictModuleBase):
                 free_feat = torch.cat([latents["free_state"], latents["free_belief"]], dim=-1)
                 free_out = self.free_decoder(free_feat.reshape(batch * time, -1))
 
-        colors, logits = {}, {}
-        for name, out, lead in (
-            ("control", control_out, (batch, time)),
-            ("free", free_out, (batch, time)),
-            ("static", static_out, (batch, 1)),
-        ):
-            if out is not None:
-                colors[name], *logit = _rgb_and_logit(out, lead)
-                if logit:
-                    logits[name] = logit[0]
-        colors = self.composition.bound(colors)
-        composite, masks = self.composition(colors, logits, bounded=True)
+        decoded = {"control": control_out.float().reshape(batch, time, *control_out.shape[1:])}
+        if free_out is not None:
+            decoded["free"] = free_out.float().reshape(batch, time, *free_out.shape[1:])
+        if static_out is not None:
+            decoded["static"] = static_out[:, None]
+        composite, masks, colors = self.composition.compose_decoded(decoded)
 
         out = dict(latents)
         out["reco_pixels"] = composite

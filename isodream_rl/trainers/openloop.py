@@ -79,22 +79,17 @@ def open_loop_prediction(
         feat = torch.cat([torch.cat(inputs, 1), torch.cat(beliefs, 1)], -1).reshape(batch * time, -1)
         return decoder(feat).float().reshape(batch, time, -1, *IMAGE_SHAPE[1:])
 
-    control = decode(world_model.control_decoder, control_inputs, control_beliefs)
-    colors, logits = {"control": control[:, :, :3]}, {"control": control[:, :, 3:]}
+    decoded = {"control": decode(world_model.control_decoder, control_inputs, control_beliefs)}
     if cfg.free_branch:
-        free = decode(world_model.free_decoder, free_inputs, free_beliefs)
-        colors["free"], logits["free"] = free[:, :, :3], free[:, :, 3:]
+        decoded["free"] = decode(world_model.free_decoder, free_inputs, free_beliefs)
     if cfg.static_branch:
         pixels = window.get(("next", "pixels"))[:, :context]
         trunk = world_model.encoder.trunk_features(
             pixels.reshape(-1, *IMAGE_SHAPE), channels_last=cfg.channels_last
         )
         static = world_model.static_background(trunk.reshape(batch, context, *trunk.shape[1:])).float()
-        colors["static"] = static[:, None, :3]
-        if static.shape[1] == 4:
-            logits["static"] = static[:, None, 3:]
-    colors = world_model.composition.bound(colors)
-    composite, masks = world_model.composition(colors, logits, bounded=True)
+        decoded["static"] = static[:, None]
+    composite, masks, colors = world_model.composition.compose_decoded(decoded)
     world_model.train(was_training)
 
     out = TensorDict(
