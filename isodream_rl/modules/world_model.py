@@ -21,6 +21,7 @@ from isodream_rl.modules.encoder import IMAGE_SHAPE, BranchedEncoder, check_pixe
 from isodream_rl.modules.heads import make_discount_head, make_reward_head
 from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
 from isodream_rl.modules.rssm import ActionConditionedRSSM, ActionFreeRSSM, single_threaded
+from isodream_rl.modules.rssm_pair import OUT_KEYS, RSSMPair, can_pair
 
 
 def _next(key: str) -> tuple[str, str]:
@@ -258,6 +259,36 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         return single_threaded(run, [given[k] for k in names], [p for m in rssms for p in m.parameters()])
 
     def _rollout_loop(self, control_proj, free_proj, action, is_init) -> dict[str, torch.Tensor]:
+        if free_proj is not None and can_pair(self.control_rssm, self.free_rssm):
+            return self._paired_rollout_loop(control_proj, free_proj, action, is_init)
+        return self._branchwise_rollout_loop(control_proj, free_proj, action, is_init)
+
+    def _paired_rollout_loop(self, control_proj, free_proj, action, is_init) -> dict[str, torch.Tensor]:
+        """:meth:`_branchwise_rollout_loop` with both branches in one batched step (:class:`RSSMPair`)."""
+        batch, time = action.shape[:2]
+        pair = RSSMPair(self.control_rssm, self.free_rssm)
+        initial = self.initial_state((batch,), device=action.device)
+        state = torch.stack([initial["state"], initial["free_state"]])
+        belief = torch.stack([initial["belief"], initial["free_belief"]])
+        projections = torch.stack([control_proj, free_proj]).unbind(2)
+        actions = action.unbind(1)
+        resets = [None] * time if is_init is None else is_init.bool().unbind(1)
+        steps = []
+        for t in range(time):
+            act = actions[t]
+            if resets[t] is not None:
+                keep = (~resets[t]).to(action.dtype)
+                state, belief, act = state * keep, belief * keep, act * keep
+            out = pair.observe_step(state, belief, act, projections[t])
+            steps.append(out)
+            state, belief = out["state"], out["belief"]
+        result = {}
+        for key in OUT_KEYS:
+            control, free = torch.stack([s[key] for s in steps], dim=2).unbind(0)
+            result[key], result[f"free_{key}"] = control, free
+        return result
+
+    def _branchwise_rollout_loop(self, control_proj, free_proj, action, is_init) -> dict[str, torch.Tensor]:
         batch, time = action.shape[:2]
         previous = self.initial_state((batch,), device=action.device)
         # unbind, not [:, t]: its backward is one stack, where indexing writes a zero-filled window per step
