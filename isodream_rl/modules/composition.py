@@ -196,7 +196,7 @@ class _SoftmaxComposition(torch.autograd.Function):
                 g = grad_colors[i].clone() if g is None else g.add_(grad_colors[i])
             if g is not None and ctx.bounds is not None:
                 # zero outside the range; a clamped colour sits exactly on a bound, an unclamped one inside
-                g = torch.ops.aten.hardtanh_backward(g, color, *ctx.bounds)
+                g = torch.ops.aten.hardtanh_backward.grad_input(g, color, *ctx.bounds, grad_input=g)
             grads.append(g)
             q_i = None
             if grad_composite is not None:
