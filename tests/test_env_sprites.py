@@ -54,6 +54,10 @@ def test_masks_are_disjoint_and_match_the_drawn_sprites():
         assert {tuple(p) for p in frame[agent]} <= {(255, 255, 255), (0, 0, 0)}
         assert {tuple(p) for p in frame[distractors]} <= palette
         assert {tuple(p) for p in frame[target]} <= {(30, 200, 60)}
+        ids = info["distractor_ids"]
+        np.testing.assert_array_equal(ids > 0, distractors)
+        for i in range(1, 5):  # each id marks exactly the pixels drawn in that distractor's colour
+            assert (frame[ids == i] == _DISTRACTOR_COLOURS[i - 1]).all()
         # Outside every mask the frame is exactly the episode's static background.
         unmasked = ~(agent | distractors | target)
         np.testing.assert_array_equal(frame[unmasked], env._background[unmasked])

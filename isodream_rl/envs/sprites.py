@@ -64,7 +64,9 @@ class SpritesEnv(gym.Env):
       excluded);
     - ``info["mask_target"]``: bool ``[S, S]``, the visible pixels of the target ring (all ``False`` for
       ``task="none"``). The target is part of neither other mask: it is static between respawns and only
-      moves when the agent reaches it.
+      moves when the agent reaches it;
+    - ``info["distractor_ids"]``: uint8 ``[S, S]``, ``i + 1`` where distractor ``i`` is visible, else 0
+      (``distractor_ids > 0`` is ``mask_distractors``).
 
     Tasks:
 
@@ -298,6 +300,7 @@ class SpritesEnv(gym.Env):
         mask_target = np.zeros((size, size), dtype=bool)
         mask_distractors = np.zeros((size, size), dtype=bool)
         mask_agent = np.zeros((size, size), dtype=bool)
+        ids = np.zeros((size, size), dtype=np.uint8)
         if self.task == "reach":
             y, x = np.rint(self._target).astype(int)
             mask_target[y - r : y + r + 1, x - r : x + r + 1] = self._ring
@@ -306,13 +309,20 @@ class SpritesEnv(gym.Env):
             sl = (slice(y - r, y + r + 1), slice(x - r, x + r + 1))
             frame[sl][self._disc] = _DISTRACTOR_COLOURS[i]
             mask_distractors[sl] |= self._disc
+            ids[sl][self._disc] = i + 1
         y, x = np.rint(self._agent).astype(int)
         sl = (slice(y - r, y + r + 1), slice(x - r, x + r + 1))
         frame[sl] = _AGENT_BORDER
         frame[sl][self._agent_fill] = _AGENT_COLOUR
         mask_agent[sl] = True
         mask_distractors &= ~mask_agent
+        ids[mask_agent] = 0
         mask_target &= ~(mask_agent | mask_distractors)
         self._frame = frame
-        info = {"mask_agent": mask_agent, "mask_distractors": mask_distractors, "mask_target": mask_target}
+        info = {
+            "mask_agent": mask_agent,
+            "mask_distractors": mask_distractors,
+            "mask_target": mask_target,
+            "distractor_ids": ids,
+        }
         return frame, info

@@ -35,7 +35,8 @@ def collect_sprites_episodes(
     Returns:
         a flat ``[episodes * steps]`` tensordict with ``"action"``, ``"is_init"``, ``"episode"`` and under
         ``"next"``: ``"pixels"`` uint8 ``[3, 64, 64]``, ``"reward"``, ``"terminated"``, ``"truncated"``,
-        ``"done"``, and the ground-truth masks ``"mask_agent"``, ``"mask_distractors"`` bool ``[64, 64]``.
+        ``"done"``, and the ground-truth masks ``"mask_agent"``, ``"mask_distractors"`` bool ``[64, 64]`` and
+        ``"distractor_ids"`` uint8 ``[64, 64]`` (``i + 1`` on distractor ``i``).
     """
     env = SpritesEnv(
         num_distractors=num_distractors,
@@ -49,6 +50,7 @@ def collect_sprites_episodes(
     pixels = np.empty((n, 64, 64, 3), np.uint8)
     agent = np.empty((n, 64, 64), bool)
     distractors = np.empty((n, 64, 64), bool)
+    ids = np.empty((n, 64, 64), np.uint8)
     if action_hold < 1:
         raise ValueError(f"action_hold must be >= 1, got {action_hold}")
     draws = rng.uniform(-1, 1, (episodes, -(-steps // action_hold), 2)).astype(np.float32)
@@ -61,6 +63,7 @@ def collect_sprites_episodes(
             obs, reward, _, _, info = env.step(actions[i])
             pixels[i], rewards[i] = obs, reward
             agent[i], distractors[i] = info["mask_agent"], info["mask_distractors"]
+            ids[i] = info["distractor_ids"]
     is_init = np.zeros((n, 1), bool)
     is_init[::steps] = True
     done = np.zeros((n, 1), bool)
@@ -78,6 +81,7 @@ def collect_sprites_episodes(
                 "done": torch.from_numpy(done),
                 "mask_agent": torch.from_numpy(agent),
                 "mask_distractors": torch.from_numpy(distractors),
+                "distractor_ids": torch.from_numpy(ids),
             },
         },
         [n],

@@ -94,7 +94,11 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def evaluate(loss: IsoDreamModelLoss, data, *, window: int, device) -> tuple[dict, object]:
-    """Mask IoU of the learned masks against the ground truth on held-out episodes."""
+    """Mask IoU of the learned masks against the ground truth on held-out episodes.
+
+    Also ``free_covers_distractor_{i}``: the fraction of distractor ``i``'s visible pixels where the
+    noncontrollable mask is above 0.5 (which distractors the branch has taken, one by one).
+    """
     windows = data.reshape(-1, window)  # episodes are a multiple of the window long
     windows["is_init"][:, 0] = True
     model = loss.world_model
@@ -106,6 +110,14 @@ def evaluate(loss: IsoDreamModelLoss, data, *, window: int, device) -> tuple[dic
         if f"mask_{branch}" in nxt.keys():
             for gt in ("agent", "distractors"):
                 scores[f"iou_{branch}_vs_{gt}"] = mask_iou(nxt[f"mask_{branch}"], truth[f"mask_{gt}"])
+    ids = truth.get("distractor_ids", None)
+    if ids is not None and "mask_free" in nxt.keys():
+        taken = nxt["mask_free"].reshape(ids.shape) > 0.5
+        for i in range(1, int(ids.max()) + 1):
+            pixels = ids == i
+            scores[f"free_covers_distractor_{i - 1}"] = float(
+                (taken & pixels).sum() / pixels.sum().clamp(min=1)
+            )
     return scores, out.cpu()
 
 
