@@ -148,6 +148,29 @@ class Variant:
             self.step()
         self.flops = counter.get_total_flops()
 
+    def profile(self) -> dict[str, float]:
+        """Milliseconds of one profiled update by kind of operation (``torch.profiler`` self CPU time)."""
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+            self.step()
+        kinds = dict.fromkeys(PROFILE_KINDS, 0.0)
+        for event in prof.key_averages():
+            kinds[profile_kind(event.key)] += event.self_cpu_time_total / 1e3
+        return {k: round(v, 1) for k, v in kinds.items()}
+
+
+PROFILE_KINDS = ("convolution_and_relu", "matmul", "optimizer", "other")
+
+
+def profile_kind(name: str) -> str:
+    """Bucket of a profiler event: convolutions with their ReLUs, matrix products, the optimiser, the rest."""
+    if "conv" in name or "threshold" in name or "relu" in name or "clamp_min" in name:
+        return "convolution_and_relu"
+    if name in ("aten::mm", "aten::addmm", "aten::bmm", "aten::baddbmm"):
+        return "matmul"
+    if "Optimizer" in name or "_foreach" in name or name in ("aten::addcdiv_", "aten::lerp_", "aten::sqrt"):
+        return "optimizer"
+    return "other"
+
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -160,6 +183,11 @@ def main(argv=None):
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--variants", default="all", help="comma list, or 'all'")
     p.add_argument("--json", default=None, help="write the results here")
+    p.add_argument(
+        "--profile",
+        action="store_true",
+        help="also profile one update of each fp32 channels-last variant (time by kind of operation)",
+    )
     args = p.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -212,6 +240,13 @@ def main(argv=None):
             + ", ".join(f"{v.name} {1e3 * v.times[-1]:.0f} ms" for v in variants)
         )
 
+    profiles = {}
+    if args.profile:
+        for v in variants:
+            if v.name.endswith("fp32_cl"):
+                profiles[v.name] = v.profile()
+                print(f"profile {v.name}: {profiles[v.name]}")
+
     results = {}
     for v in variants:
         ms = 1e3 * statistics.median(v.times)
@@ -239,6 +274,8 @@ def main(argv=None):
         if "ours_fp32_cl" in results and "torchrl_fp32_cl" in results
         else None,
         "variants": results,
+        # --profile: ms of one profiled update by kind of operation (self CPU time, profiler overhead included)
+        **({"profile_ms": profiles} if profiles else {}),
         # 1/5/15-minute load averages before and after the run (other processes share the cores)
         "load_average": {
             "before": [round(x, 2) for x in load_before],
