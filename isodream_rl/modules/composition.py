@@ -16,7 +16,7 @@ scene: on the sprites scene every mask stayed below 0.5 for 4000 updates without
 
 :meth:`MaskComposition.compose_decoded` composes straight from the decoders' ``RGB + logit`` outputs; in
 softmax mode it runs the whole composition as one autograd function with a hand-written backward (see
-:class:`_SoftmaxComposition`), 4-5x faster on CPU than the same operations one by one.
+:class:`_SoftmaxComposition`), 1.8x faster on CPU than the same operations one by one.
 """
 
 from __future__ import annotations
