@@ -54,11 +54,15 @@ class LayerNormGRUCell(nn.Module):
         self.norm = nn.LayerNorm(3 * hidden_size, device=device)
 
     def forward(self, x: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
-        parts = self.norm(self.linear(torch.cat([x, h], dim=-1)))
-        reset, cand, update = parts.chunk(3, dim=-1)
-        cand = torch.tanh(torch.sigmoid(reset) * cand)
-        update = torch.sigmoid(update - 1.0)
-        return update * cand + (1.0 - update) * h
+        return gru_gates(self.norm(self.linear(torch.cat([x, h], dim=-1))), h)
+
+
+def gru_gates(parts: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+    """The gates of :class:`LayerNormGRUCell` from its normalised pre-activations ``[r, c, u]`` ``[..., 3D]``."""
+    reset, cand, update = parts.chunk(3, dim=-1)
+    cand = torch.tanh(torch.sigmoid(reset) * cand)
+    update = torch.sigmoid(update - 1.0)
+    return update * cand + (1.0 - update) * h
 
 
 class RSSMCell(nn.Module):

@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 from torch.nn import functional as F
 
-from isodream_rl.modules.rssm import LayerNormGRUCell, RSSMCell, sigmoid2_std
+from isodream_rl.modules.rssm import LayerNormGRUCell, RSSMCell, gru_gates, sigmoid2_std
 
 OUT_KEYS = (
     "belief",
@@ -105,11 +105,7 @@ class RSSMPair:
         # layer-norm GRU (LayerNormGRUCell) with per-branch affine parameters
         parts = torch.bmm(torch.cat([x, belief], -1), self.gru_weight)
         parts = F.layer_norm(parts, parts.shape[-1:], eps=self.eps)
-        parts = torch.addcmul(self.norm_bias, parts, self.norm_weight)
-        reset, cand, update = parts.chunk(3, dim=-1)
-        cand = torch.tanh(torch.sigmoid(reset) * cand)
-        update = torch.sigmoid(update - 1.0)
-        belief = update * cand + (1.0 - update) * belief
+        belief = gru_gates(torch.addcmul(self.norm_bias, parts, self.norm_weight), belief)
         hidden = torch.baddbmm(self.belief_bias, belief, self.belief_weight)
         prior_hidden = F.elu(hidden[..., : self.hidden])
         post_hidden = F.elu(hidden[..., self.hidden :] + projected_embedding)
