@@ -162,12 +162,17 @@ PROFILE_KINDS = ("convolution_and_relu", "matmul", "optimizer", "other")
 
 
 def profile_kind(name: str) -> str:
-    """Bucket of a profiler event: convolutions with their ReLUs, matrix products, the optimiser, the rest."""
+    """Bucket of a profiler event: convolutions with their ReLUs, matrix products, the optimiser, the rest.
+
+    Case-insensitive, so autograd's ``evaluate_function: ConvolutionBackward0`` / ``ReluBackward0`` wrappers
+    land with the operations they wrap.
+    """
+    name = name.lower()
     if "conv" in name or "threshold" in name or "relu" in name or "clamp_min" in name:
         return "convolution_and_relu"
     if name in ("aten::mm", "aten::addmm", "aten::bmm", "aten::baddbmm"):
         return "matmul"
-    if "Optimizer" in name or "_foreach" in name or name in ("aten::addcdiv_", "aten::lerp_", "aten::sqrt"):
+    if "optimizer" in name or "_foreach" in name or name in ("aten::addcdiv_", "aten::lerp_", "aten::sqrt"):
         return "optimizer"
     return "other"
 
