@@ -118,7 +118,8 @@ def test_paired_rollout_equals_the_branchwise_loop_in_values_and_gradients():
 @pytest.mark.parametrize("channels_last", [False, True])
 @pytest.mark.parametrize("clamp", [True, False])
 @pytest.mark.parametrize("names", [("control", "free", "static"), ("control", "free"), ("control", "static")])
-def test_fused_composition_matches_the_plain_operations(channels_last, clamp, names):
+@pytest.mark.parametrize("floors", [(0.0, 0.0), (0.1, 0.0), (0.0, 0.05)], ids=["no_floor", "mask_floor", "grad_floor"])
+def test_fused_composition_matches_the_plain_operations(channels_last, clamp, names, floors):
     """compose_decoded (one autograd node) against split + clamp + softmax + products, values and gradients
     from every output (composite, masks, components), in the decoders' memory format."""
     torch.manual_seed(0)
@@ -130,7 +131,7 @@ def test_fused_composition_matches_the_plain_operations(channels_last, clamp, na
         if channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
         raw[name] = x.requires_grad_()
-    composition = MaskComposition(clamp_components=clamp)
+    composition = MaskComposition(clamp_components=clamp, mask_floor=floors[0], gradient_floor=floors[1])
     weights = torch.randn(batch, time, 3, 8, 8, dtype=torch.float64)
     mask_weights = torch.randn(batch, time, 1, 8, 8, dtype=torch.float64)
 
@@ -157,7 +158,7 @@ def test_fused_composition_matches_the_plain_operations(channels_last, clamp, na
         torch.testing.assert_close(got, want)
         assert got.stride() == raw[name].stride()
     masks = torch.cat(list(fused[1].values()), dim=-3)
-    assert masks.min() >= 0
+    assert masks.min() >= floors[0] / len(names)
     torch.testing.assert_close(masks.sum(-3), torch.ones_like(masks[..., 0, :, :]))
 
 
@@ -177,3 +178,36 @@ def test_fused_composition_passes_only_the_gradients_asked_for():
     for g, w in zip(got, want):
         torch.testing.assert_close(g, w)
         torch.testing.assert_close(g[:, :3], torch.zeros_like(g[:, :3]))
+
+
+def test_mask_floors_against_their_formulas():
+    """mask_floor: masks = floor / N + (1 - floor) softmax; gradient_floor: the composite is unchanged and a
+    colour's gradient is dL/dy * max(mask, floor), the logits' gradients those of plain eq. 4."""
+    torch.manual_seed(2)
+    names = ("control", "free", "static")
+    colors = {n: (torch.rand(2, 3, 6, 6, dtype=torch.float64) - 0.5).requires_grad_() for n in names}
+    logits = {n: (4 * torch.randn(2, 1, 6, 6, dtype=torch.float64)).requires_grad_() for n in names}
+    upstream = torch.randn(2, 3, 6, 6, dtype=torch.float64)
+    softmax = torch.softmax(torch.cat([logits[n] for n in names], dim=1), dim=1).detach()
+
+    _, masks = MaskComposition(mask_floor=0.3)(colors, logits)
+    want = 0.1 + 0.7 * softmax
+    torch.testing.assert_close(torch.cat([masks[n] for n in names], dim=1), want)
+
+    plain_y, _ = MaskComposition()(colors, logits)
+    plain = torch.autograd.grad(plain_y, [*colors.values(), *logits.values()], upstream)
+    floored_y, floored_masks = MaskComposition(gradient_floor=0.2)(colors, logits)
+    torch.testing.assert_close(floored_y, plain_y)
+    got = torch.autograd.grad(floored_y, [*colors.values(), *logits.values()], upstream)
+    for i, name in enumerate(names):
+        lifted = floored_masks[name].detach().clamp(min=0.2)
+        torch.testing.assert_close(got[i], upstream * lifted)
+        torch.testing.assert_close(got[3 + i], plain[3 + i])
+    # the floor matters: some mask is below it here, so some colour gradient differs from plain eq. 4
+    assert any(not torch.allclose(g, p) for g, p in zip(got[:3], plain[:3]))
+
+
+@pytest.mark.parametrize("kwargs", [{"mask_floor": 1.0}, {"gradient_floor": -0.1}, {"mask_floor": 0.1, "mask_mode": "sigmoid"}])
+def test_mask_floors_reject_bad_values(kwargs):
+    with pytest.raises(ValueError, match="floor"):
+        MaskComposition(**kwargs)

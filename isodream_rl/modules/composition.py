@@ -51,12 +51,27 @@ class MaskComposition(nn.Module):
         ``(composite [*N, 3, H, W], masks)`` with ``masks[name]`` of shape ``[*N, 1, H, W]``.
     """
 
-    def __init__(self, *, mask_mode: str = "softmax", clamp_components: bool = True):
+    def __init__(
+        self,
+        *,
+        mask_mode: str = "softmax",
+        clamp_components: bool = True,
+        mask_floor: float = 0.0,
+        gradient_floor: float = 0.0,
+    ):
         super().__init__()
         if mask_mode not in MASK_MODES:
             raise ValueError(f"unknown mask_mode {mask_mode!r}; valid: {MASK_MODES}")
+        if not 0.0 <= mask_floor < 1.0 or not 0.0 <= gradient_floor < 1.0:
+            raise ValueError(
+                f"mask_floor and gradient_floor must be in [0, 1), got {mask_floor} and {gradient_floor}"
+            )
+        if (mask_floor or gradient_floor) and mask_mode != "softmax":
+            raise ValueError("mask_floor / gradient_floor need mask_mode='softmax'")
         self.mask_mode = mask_mode
         self.clamp_components = clamp_components
+        self.mask_floor = mask_floor
+        self.gradient_floor = gradient_floor
 
     def bound(self, colors: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """The components as :meth:`forward` mixes them: clamped to ``PIXEL_RANGE`` (see ``clamp_components``)."""
@@ -81,7 +96,10 @@ class MaskComposition(nn.Module):
         if self.mask_mode == "softmax":
             # One [*N, branches, H, W] tensor and one softmax; the masks are channel views of it.
             stacked = torch.cat([logits[n].expand(*shape, *logits[n].shape[-3:]) for n in names], dim=-3)
-            masks = dict(zip(names, torch.softmax(stacked, dim=-3).split(1, dim=-3)))
+            probs = torch.softmax(stacked, dim=-3)
+            if self.mask_floor:
+                probs = probs * (1.0 - self.mask_floor) + self.mask_floor / len(names)
+            masks = dict(zip(names, probs.split(1, dim=-3)))
         else:
             if names[-1] != "static":
                 raise ValueError(
@@ -94,6 +112,11 @@ class MaskComposition(nn.Module):
         composite = colors[names[0]] * masks[names[0]]
         for name in names[1:]:
             composite = composite + colors[name] * masks[name]
+        if self.gradient_floor:
+            # adds zero; its gradient lifts each colour's mask factor to max(mask, floor)
+            for name in names:
+                lift = (masks[name].clamp(min=self.gradient_floor) - masks[name]).detach()
+                composite = composite + (colors[name] - colors[name].detach()) * lift
         return composite, masks
 
     def compose_decoded(
@@ -127,7 +150,9 @@ class MaskComposition(nn.Module):
         bounds = PIXEL_RANGE if self.clamp_components else None
         leads = [tuple(outputs[n].shape[:-3]) for n in names]
         flat = [outputs[n].reshape(-1, *outputs[n].shape[-3:]) for n in names]
-        composite, stacked, *colors = _SoftmaxComposition.apply(bounds, leads, *flat)
+        composite, stacked, *colors = _SoftmaxComposition.apply(
+            bounds, leads, (self.mask_floor, self.gradient_floor), *flat
+        )
         return composite, dict(zip(names, stacked.split(1, dim=-3))), dict(zip(names, colors))
 
 
@@ -155,7 +180,7 @@ class _SoftmaxComposition(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, bounds, leads, *raw):
+    def forward(ctx, bounds, leads, floors, *raw):
         shape = torch.broadcast_shapes(*leads)
         size = raw[0].shape[-2:]
         ctx.formats = [memory_format_of(r) for r in raw]
@@ -173,22 +198,28 @@ class _SoftmaxComposition(torch.autograd.Function):
             [r[:, 3:].reshape(*lead, 1, *size).expand(*shape, 1, *size) for r, lead in zip(raw, leads)],
             dim=-3,
         )
-        masks = torch.softmax(logits, dim=-3)
+        probs = torch.softmax(logits, dim=-3)
+        ctx.floors = floors
+        masks = probs * (1.0 - floors[0]) + floors[0] / len(raw) if floors[0] else probs
         composite = colors[0] * masks[..., 0:1, :, :]
         for i in range(1, len(colors)):
             composite.addcmul_(colors[i], masks[..., i : i + 1, :, :])
-        ctx.save_for_backward(masks, *colors)
+        ctx.save_for_backward(probs, *colors)
         ctx.set_materialize_grads(False)
         return (composite, masks, *colors)
 
     @staticmethod
     def backward(ctx, grad_composite, grad_masks, *grad_colors):
-        masks, *colors = ctx.saved_tensors
+        probs, *colors = ctx.saved_tensors
+        mix, floor = ctx.floors
+        masks = probs * (1.0 - mix) + mix / len(colors) if mix else probs
+        # the components' gradients see masks of at least ``floor`` (gradient floor; forward unchanged)
+        weights = masks.clamp(min=floor) if floor else masks
         size = masks.shape[-2:]
         grads = []
         q = []
         for i, color in enumerate(colors):
-            m_i = masks[..., i : i + 1, :, :]
+            m_i = weights[..., i : i + 1, :, :]
             g = None
             if grad_composite is not None:
                 g = (grad_composite * m_i).sum_to_size(color.shape)
@@ -210,11 +241,13 @@ class _SoftmaxComposition(torch.autograd.Function):
         logits = [None] * len(colors)
         if any(q_i is not None for q_i in q):
             q = [torch.zeros_like(masks[..., :1, :, :]) if q_i is None else q_i for q_i in q]
-            mean = q[0] * masks[..., 0:1, :, :]
+            # dL/dl_i = (1 - mix) p_i (q_i - sum_j p_j q_j), p the softmax (the masks' mixture is affine in p)
+            mean = q[0] * probs[..., 0:1, :, :]
             for i in range(1, len(q)):
-                mean.addcmul_(q[i], masks[..., i : i + 1, :, :])
+                mean.addcmul_(q[i], probs[..., i : i + 1, :, :])
+            scale = probs * (1.0 - mix) if mix else probs
             logits = [
-                (q[i] - mean).mul_(masks[..., i : i + 1, :, :]).sum_to_size(*lead, 1, *size)
+                (q[i] - mean).mul_(scale[..., i : i + 1, :, :]).sum_to_size(*lead, 1, *size)
                 for i, lead in enumerate(ctx.leads)
             ]
         out = []
@@ -233,4 +266,5 @@ class _SoftmaxComposition(torch.autograd.Function):
                 else:
                     part.copy_(value.reshape(count, -1, *size))
             out.append(grad)
-        return (None, None, *out)
+        return (None, None, None, *out)
+

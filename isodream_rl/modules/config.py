@@ -60,6 +60,12 @@ class WorldModelConfig:
     """Initial bias of the static branch's mask logit (softmax mode). A positive value starts training with
     the background owning most of every pixel (3.0: 91 %), so the dynamic branches grow masks only where
     the background cannot explain the frame, instead of all three blending at 1/3 each."""
+    mask_floor: float = 0.0
+    """Softmax mode: each of the N masks is ``mask_floor / N + (1 - mask_floor) * softmax``, a mixture with the
+    uniform mask; no branch can be shut out of a pixel for good (its colour and logit keep a gradient)."""
+    gradient_floor: float = 0.0
+    """Softmax mode: the composite is eq. 4 unchanged, but each colour's gradient sees its mask as at least
+    ``gradient_floor``, so a branch whose mask went to ~0 in a region still learns to draw what is there."""
     reward_uses_free: bool = False
     """Reward head on [s, h, z, h'] (CARLA-style) instead of [s, h] (DMC-style)."""
     discount_head: bool = False
@@ -86,6 +92,8 @@ class WorldModelConfig:
             raise ValueError("mask_mode='sigmoid' needs the static branch (its mask is 1 - M^s - M^z)")
         if self.static_mask_bias and not (self.static_branch and self.mask_mode == "softmax"):
             raise ValueError("static_mask_bias needs the static branch with mask_mode='softmax'")
+        if (self.mask_floor or self.gradient_floor) and self.mask_mode != "softmax":
+            raise ValueError("mask_floor / gradient_floor need mask_mode='softmax'")
         if self.static_frames < 1:
             raise ValueError(f"static_frames must be >= 1, got {self.static_frames}")
 

@@ -107,7 +107,12 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         if cfg.static_mask_bias:
             with torch.no_grad():
                 self.static_decoder.deconv[-1].bias[3] += cfg.static_mask_bias
-        self.composition = MaskComposition(mask_mode=cfg.mask_mode, clamp_components=cfg.clamp_components)
+        self.composition = MaskComposition(
+            mask_mode=cfg.mask_mode,
+            clamp_components=cfg.clamp_components,
+            mask_floor=cfg.mask_floor,
+            gradient_floor=cfg.gradient_floor,
+        )
         self.inverse_cell = (
             InverseDynamicsCell(
                 in_features=cfg.state_dim if cfg.inverse_input == "state" else embed,

@@ -83,6 +83,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         default="kl",
         help="noncontrollable branch learns with its KL (CARLA-style) or from the reconstruction only (DMC-style)",
     )
+    p.add_argument(
+        "--mask-floor", type=float, default=0.0, help="masks mixed with the uniform one (WorldModelConfig)"
+    )
+    p.add_argument(
+        "--gradient-floor", type=float, default=0.0, help="colours' gradients see masks >= this (WorldModelConfig)"
+    )
     p.add_argument("--lambda-inverse", type=float, default=1.0, help="alpha, the inverse-dynamics loss scale")
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--precision", choices=["fp32", "bf16"], default=None, help="default: bf16 where fast")
@@ -152,6 +158,8 @@ def main(argv=None) -> dict:
         static_mask_bias=args.static_mask_bias,
         inverse_input=args.inverse_input,
         decoder_input=args.decoder_input,
+        mask_floor=args.mask_floor,
+        gradient_floor=args.gradient_floor,
     )
     loss = IsoDreamModelLoss(
         IsoDreamWorldModel(config, device=device),
