@@ -118,7 +118,9 @@ def test_paired_rollout_equals_the_branchwise_loop_in_values_and_gradients():
 @pytest.mark.parametrize("channels_last", [False, True])
 @pytest.mark.parametrize("clamp", [True, False])
 @pytest.mark.parametrize("names", [("control", "free", "static"), ("control", "free"), ("control", "static")])
-@pytest.mark.parametrize("floors", [(0.0, 0.0), (0.1, 0.0), (0.0, 0.05)], ids=["no_floor", "mask_floor", "grad_floor"])
+@pytest.mark.parametrize(
+    "floors", [(0.0, 0.0), (0.1, 0.0), (0.0, 0.05)], ids=["no_floor", "mask_floor", "grad_floor"]
+)
 def test_fused_composition_matches_the_plain_operations(channels_last, clamp, names, floors):
     """compose_decoded (one autograd node) against split + clamp + softmax + products, values and gradients
     from every output (composite, masks, components), in the decoders' memory format."""
@@ -207,7 +209,9 @@ def test_mask_floors_against_their_formulas():
     assert any(not torch.allclose(g, p) for g, p in zip(got[:3], plain[:3]))
 
 
-@pytest.mark.parametrize("kwargs", [{"mask_floor": 1.0}, {"gradient_floor": -0.1}, {"mask_floor": 0.1, "mask_mode": "sigmoid"}])
+@pytest.mark.parametrize(
+    "kwargs", [{"mask_floor": 1.0}, {"gradient_floor": -0.1}, {"mask_floor": 0.1, "mask_mode": "sigmoid"}]
+)
 def test_mask_floors_reject_bad_values(kwargs):
     with pytest.raises(ValueError, match="floor"):
         MaskComposition(**kwargs)

@@ -267,4 +267,3 @@ class _SoftmaxComposition(torch.autograd.Function):
                     part.copy_(value.reshape(count, -1, *size))
             out.append(grad)
         return (None, None, None, *out)
-

@@ -87,7 +87,10 @@ def parse_args(argv=None) -> argparse.Namespace:
         "--mask-floor", type=float, default=0.0, help="masks mixed with the uniform one (WorldModelConfig)"
     )
     p.add_argument(
-        "--gradient-floor", type=float, default=0.0, help="colours' gradients see masks >= this (WorldModelConfig)"
+        "--gradient-floor",
+        type=float,
+        default=0.0,
+        help="colours' gradients see masks >= this (WorldModelConfig)",
     )
     p.add_argument("--lambda-inverse", type=float, default=1.0, help="alpha, the inverse-dynamics loss scale")
     p.add_argument("--lr", type=float, default=1e-3)
