@@ -92,6 +92,8 @@ def parse_args(argv=None) -> argparse.Namespace:
         default=0.0,
         help="colours' gradients see masks >= this (WorldModelConfig)",
     )
+    p.add_argument("--lambda-kl-free", type=float, default=1.0, help="beta2, the weight of KL_z")
+    p.add_argument("--free-nats", type=float, default=1.0, help="free nats of each branch's batch-mean KL")
     p.add_argument("--lambda-inverse", type=float, default=1.0, help="alpha, the inverse-dynamics loss scale")
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--precision", choices=["fp32", "bf16"], default=None, help="default: bf16 where fast")
@@ -167,6 +169,8 @@ def main(argv=None) -> dict:
     loss = IsoDreamModelLoss(
         IsoDreamWorldModel(config, device=device),
         lambda_inverse=args.lambda_inverse,
+        lambda_kl_free=args.lambda_kl_free,
+        free_nats=args.free_nats,
         free_branch=args.free_branch,
     )
     optimizer = torch.optim.Adam(loss.parameters(), lr=args.lr, eps=1e-5)
