@@ -119,7 +119,7 @@ def test_paired_rollout_equals_the_branchwise_loop_in_values_and_gradients():
 @pytest.mark.parametrize("clamp", [True, False])
 @pytest.mark.parametrize("names", [("control", "free", "static"), ("control", "free"), ("control", "static")])
 @pytest.mark.parametrize(
-    "floors", [(0.0, 0.0), (0.1, 0.0), (0.0, 0.05)], ids=["no_floor", "mask_floor", "grad_floor"]
+    "floors", [(0.0, 0.0), (0.1, 0.0), (0.0, 0.05), (0.1, 0.05)], ids=["none", "mask", "gradient", "both"]
 )
 def test_fused_composition_matches_the_plain_operations(channels_last, clamp, names, floors):
     """compose_decoded (one autograd node) against split + clamp + softmax + products, values and gradients
@@ -183,8 +183,9 @@ def test_fused_composition_passes_only_the_gradients_asked_for():
 
 
 def test_mask_floors_against_their_formulas():
-    """mask_floor: masks = floor / N + (1 - floor) softmax; gradient_floor: the composite is unchanged and a
-    colour's gradient is dL/dy * max(mask, floor), the logits' gradients those of plain eq. 4."""
+    """mask_floor: masks = floor / N + (1 - floor) softmax; gradient_floor: the composite is unchanged, a
+    colour's gradient is dL/dy * max(m, floor) and a logit's max(m_i, floor) * (q_i - sum_j m_j q_j) with
+    q_i = <dL/dy, c_i> (plain eq. 4 has m_i in both places)."""
     torch.manual_seed(2)
     names = ("control", "free", "static")
     colors = {n: (torch.rand(2, 3, 6, 6, dtype=torch.float64) - 0.5).requires_grad_() for n in names}
@@ -201,12 +202,16 @@ def test_mask_floors_against_their_formulas():
     floored_y, floored_masks = MaskComposition(gradient_floor=0.2)(colors, logits)
     torch.testing.assert_close(floored_y, plain_y)
     got = torch.autograd.grad(floored_y, [*colors.values(), *logits.values()], upstream)
+    q = {n: (upstream * colors[n].detach()).sum(1, keepdim=True) for n in names}
+    mean = sum(q[n] * floored_masks[n].detach() for n in names)
     for i, name in enumerate(names):
         lifted = floored_masks[name].detach().clamp(min=0.2)
         torch.testing.assert_close(got[i], upstream * lifted)
-        torch.testing.assert_close(got[3 + i], plain[3 + i])
-    # the floor matters: some mask is below it here, so some colour gradient differs from plain eq. 4
+        torch.testing.assert_close(got[3 + i], lifted * (q[name] - mean))
+        torch.testing.assert_close(plain[3 + i], floored_masks[name].detach() * (q[name] - mean))
+    # the floor matters: some mask is below it here, so some gradients differ from plain eq. 4
     assert any(not torch.allclose(g, p) for g, p in zip(got[:3], plain[:3]))
+    assert any(not torch.allclose(g, p) for g, p in zip(got[3:], plain[3:]))
 
 
 @pytest.mark.parametrize(

@@ -96,7 +96,11 @@ class MaskComposition(nn.Module):
         if self.mask_mode == "softmax":
             # One [*N, branches, H, W] tensor and one softmax; the masks are channel views of it.
             stacked = torch.cat([logits[n].expand(*shape, *logits[n].shape[-3:]) for n in names], dim=-3)
-            probs = torch.softmax(stacked, dim=-3)
+            probs = (
+                _FlooredSoftmax.apply(stacked, self.gradient_floor)
+                if self.gradient_floor
+                else torch.softmax(stacked, dim=-3)
+            )
             if self.mask_floor:
                 probs = probs * (1.0 - self.mask_floor) + self.mask_floor / len(names)
             masks = dict(zip(names, probs.split(1, dim=-3)))
@@ -213,7 +217,8 @@ class _SoftmaxComposition(torch.autograd.Function):
         probs, *colors = ctx.saved_tensors
         mix, floor = ctx.floors
         masks = probs * (1.0 - mix) + mix / len(colors) if mix else probs
-        # the components' gradients see masks of at least ``floor`` (gradient floor; forward unchanged)
+        # gradient floor (forward unchanged): colours and logits get their gradients as if every mask were
+        # at least ``floor``, so a branch shut out of a region keeps learning to draw and claim it
         weights = masks.clamp(min=floor) if floor else masks
         size = masks.shape[-2:]
         grads = []
@@ -245,7 +250,9 @@ class _SoftmaxComposition(torch.autograd.Function):
             mean = q[0] * probs[..., 0:1, :, :]
             for i in range(1, len(q)):
                 mean.addcmul_(q[i], probs[..., i : i + 1, :, :])
-            scale = probs * (1.0 - mix) if mix else probs
+            scale = probs.clamp(min=floor) if floor else probs
+            if mix:
+                scale = scale * (1.0 - mix)
             logits = [
                 (q[i] - mean).mul_(scale[..., i : i + 1, :, :]).sum_to_size(*lead, 1, *size)
                 for i, lead in enumerate(ctx.leads)
@@ -267,3 +274,24 @@ class _SoftmaxComposition(torch.autograd.Function):
                     part.copy_(value.reshape(count, -1, *size))
             out.append(grad)
         return (None, None, None, *out)
+
+
+class _FlooredSoftmax(torch.autograd.Function):
+    """Softmax over dim -3 whose backward uses ``max(p, floor)`` for the leading ``p`` of the Jacobian.
+
+    ``dL/dl_i = max(p_i, floor) * (dL/dp_i - sum_j p_j dL/dp_j)``: a branch whose mask has saturated at ~0
+    in a region still has its logit pushed up there when raising its mask would lower the loss.
+    """
+
+    @staticmethod
+    def forward(ctx, logits, floor):
+        probs = torch.softmax(logits, dim=-3)
+        ctx.save_for_backward(probs)
+        ctx.floor = floor
+        return probs
+
+    @staticmethod
+    def backward(ctx, grad):
+        (probs,) = ctx.saved_tensors
+        mean = (grad * probs).sum(dim=-3, keepdim=True)
+        return (grad - mean) * probs.clamp(min=ctx.floor), None
