@@ -246,13 +246,13 @@ class _SoftmaxComposition(torch.autograd.Function):
         logits = [None] * len(colors)
         if any(q_i is not None for q_i in q):
             q = [torch.zeros_like(masks[..., :1, :, :]) if q_i is None else q_i for q_i in q]
-            # dL/dl_i = (1 - mix) p_i (q_i - sum_j p_j q_j), p the softmax (the masks' mixture is affine in p)
-            mean = q[0] * probs[..., 0:1, :, :]
+            # dL/dl_i = (1 - mix) w_i (q_i - sum_j w_j q_j), p the softmax (the masks' mixture is affine in p),
+            # w = p; with a gradient floor w = max(p, floor) renormalised (see _FlooredSoftmax)
+            w = _floored_weights(probs, floor) if floor else probs
+            mean = q[0] * w[..., 0:1, :, :]
             for i in range(1, len(q)):
-                mean.addcmul_(q[i], probs[..., i : i + 1, :, :])
-            scale = probs.clamp(min=floor) if floor else probs
-            if mix:
-                scale = scale * (1.0 - mix)
+                mean.addcmul_(q[i], w[..., i : i + 1, :, :])
+            scale = w * (1.0 - mix) if mix else w
             logits = [
                 (q[i] - mean).mul_(scale[..., i : i + 1, :, :]).sum_to_size(*lead, 1, *size)
                 for i, lead in enumerate(ctx.leads)
@@ -276,11 +276,19 @@ class _SoftmaxComposition(torch.autograd.Function):
         return (None, None, None, *out)
 
 
-class _FlooredSoftmax(torch.autograd.Function):
-    """Softmax over dim -3 whose backward uses ``max(p, floor)`` for the leading ``p`` of the Jacobian.
+def _floored_weights(probs: torch.Tensor, floor: float) -> torch.Tensor:
+    """``max(p, floor)`` renormalised to sum to one over dim -3 (equal to ``p`` where every ``p_i >= floor``)."""
+    w = probs.clamp(min=floor)
+    return w / w.sum(dim=-3, keepdim=True)
 
-    ``dL/dl_i = max(p_i, floor) * (dL/dp_i - sum_j p_j dL/dp_j)``: a branch whose mask has saturated at ~0
-    in a region still has its logit pushed up there when raising its mask would lower the loss.
+
+class _FlooredSoftmax(torch.autograd.Function):
+    """Softmax over dim -3 whose backward is the softmax Jacobian at ``w = max(p, floor)`` renormalised.
+
+    ``dL/dl_i = w_i * (dL/dp_i - sum_j w_j dL/dp_j)``: a branch whose mask has saturated at ~0 in a region
+    still has its logit pushed up there when raising its mask would lower the loss. The gradients still sum
+    to zero over the branches (a softmax ignores a common shift; without this the logits drift and training
+    diverges), and they are the exact ones wherever every mask is at least ``floor``.
     """
 
     @staticmethod
@@ -293,5 +301,6 @@ class _FlooredSoftmax(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad):
         (probs,) = ctx.saved_tensors
-        mean = (grad * probs).sum(dim=-3, keepdim=True)
-        return (grad - mean) * probs.clamp(min=ctx.floor), None
+        w = _floored_weights(probs, ctx.floor)
+        mean = (grad * w).sum(dim=-3, keepdim=True)
+        return (grad - mean) * w, None
