@@ -246,13 +246,16 @@ class _SoftmaxComposition(torch.autograd.Function):
         logits = [None] * len(colors)
         if any(q_i is not None for q_i in q):
             q = [torch.zeros_like(masks[..., :1, :, :]) if q_i is None else q_i for q_i in q]
-            # dL/dl_i = (1 - mix) w_i (q_i - sum_j w_j q_j), p the softmax (the masks' mixture is affine in p),
-            # w = p; with a gradient floor w = max(p, floor) renormalised (see _FlooredSoftmax)
-            w = _floored_weights(probs, floor) if floor else probs
-            mean = q[0] * w[..., 0:1, :, :]
+            # dL/dl_i = (1 - mix) p_i (q_i - sum_j p_j q_j), p the softmax (the masks' mixture is affine in p);
+            # with a gradient floor, max(p_i, floor) where that raises the logit (see _claim_weights)
+            mean = q[0] * probs[..., 0:1, :, :]
             for i in range(1, len(q)):
-                mean.addcmul_(q[i], w[..., i : i + 1, :, :])
-            scale = w * (1.0 - mix) if mix else w
+                mean.addcmul_(q[i], probs[..., i : i + 1, :, :])
+            scale = probs
+            if floor:
+                scale = _claim_weights(probs, torch.cat(q, dim=-3) - mean, floor)
+            if mix:
+                scale = scale * (1.0 - mix)
             logits = [
                 (q[i] - mean).mul_(scale[..., i : i + 1, :, :]).sum_to_size(*lead, 1, *size)
                 for i, lead in enumerate(ctx.leads)
@@ -276,19 +279,23 @@ class _SoftmaxComposition(torch.autograd.Function):
         return (None, None, None, *out)
 
 
-def _floored_weights(probs: torch.Tensor, floor: float) -> torch.Tensor:
-    """``max(p, floor)`` renormalised to sum to one over dim -3 (equal to ``p`` where every ``p_i >= floor``)."""
-    w = probs.clamp(min=floor)
-    return w / w.sum(dim=-3, keepdim=True)
+def _claim_weights(probs: torch.Tensor, excess: torch.Tensor, floor: float) -> torch.Tensor:
+    """The softmax Jacobian's leading ``p``, lifted to ``floor`` where a branch is shut out but should claim.
+
+    ``excess_i = q_i - sum_j p_j q_j`` with ``q_i = dL/dp_i``: a negative excess means raising branch ``i``'s
+    mask lowers the loss. Where also ``p_i < floor``, the weight is ``floor`` instead of ``p_i``, so the
+    logit is pushed up as if the mask were ``floor``; everywhere else the gradient is the exact one. Only
+    the upward push is lifted: a saturated logit is never pushed further out (lifting both directions
+    drove the logits apart without bound and training diverged within 200 updates on sprites).
+    """
+    return torch.where((probs < floor) & (excess < 0), torch.full_like(probs, floor), probs)
 
 
 class _FlooredSoftmax(torch.autograd.Function):
-    """Softmax over dim -3 whose backward is the softmax Jacobian at ``w = max(p, floor)`` renormalised.
-
-    ``dL/dl_i = w_i * (dL/dp_i - sum_j w_j dL/dp_j)``: a branch whose mask has saturated at ~0 in a region
-    still has its logit pushed up there when raising its mask would lower the loss. The gradients still sum
-    to zero over the branches (a softmax ignores a common shift; without this the logits drift and training
-    diverges), and they are the exact ones wherever every mask is at least ``floor``.
+    """Softmax over dim -3 whose backward lifts the Jacobian's leading ``p_i`` to ``floor`` where branch
+    ``i`` is shut out (``p_i < floor``) and raising its mask would lower the loss (:func:`_claim_weights`):
+    ``dL/dl_i = w_i * (dL/dp_i - sum_j p_j dL/dp_j)``. A branch whose mask saturated at ~0 in a region can
+    then take it back once its colour there is right; elsewhere the gradient is exact.
     """
 
     @staticmethod
@@ -301,6 +308,5 @@ class _FlooredSoftmax(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad):
         (probs,) = ctx.saved_tensors
-        w = _floored_weights(probs, ctx.floor)
-        mean = (grad * w).sum(dim=-3, keepdim=True)
-        return (grad - mean) * w, None
+        excess = grad - (grad * probs).sum(dim=-3, keepdim=True)
+        return excess * _claim_weights(probs, excess, ctx.floor), None
