@@ -108,7 +108,10 @@ def evaluate(loss: IsoDreamModelLoss, data, *, window: int, device) -> tuple[dic
     """Mask IoU of the learned masks against the ground truth on held-out episodes.
 
     Also ``free_covers_distractor_{i}``: the fraction of distractor ``i``'s visible pixels where the
-    noncontrollable mask is above 0.5 (which distractors the branch has taken, one by one).
+    noncontrollable mask is above 0.5 (which distractors the branch has taken, one by one), and
+    ``reco_error_distractor_{i}``: the composite's squared error on those pixels (summed over RGB, in the
+    ``[-0.5, 0.5]`` pixel range), which tells a disc drawn by the wrong branch (low error) from a disc not
+    drawn at all (error of the disc against the background, ~0.3-0.5).
     """
     windows = data.reshape(-1, window)  # episodes are a multiple of the window long
     windows["is_init"][:, 0] = True
@@ -124,11 +127,13 @@ def evaluate(loss: IsoDreamModelLoss, data, *, window: int, device) -> tuple[dic
     ids = truth.get("distractor_ids", None)
     if ids is not None and "mask_free" in nxt.keys():
         taken = nxt["mask_free"].reshape(ids.shape) > 0.5
+        target = truth["pixels"].float().div(255).sub(0.5)
+        error = (nxt["reco_pixels"].float() - target).pow(2).sum(-3).reshape(ids.shape)
         for i in range(1, int(ids.max()) + 1):
             pixels = ids == i
-            scores[f"free_covers_distractor_{i - 1}"] = float(
-                (taken & pixels).sum() / pixels.sum().clamp(min=1)
-            )
+            count = pixels.sum().clamp(min=1)
+            scores[f"free_covers_distractor_{i - 1}"] = float((taken & pixels).sum() / count)
+            scores[f"reco_error_distractor_{i - 1}"] = float(error[pixels].sum() / count)
     return scores, out.cpu()
 
 
@@ -195,10 +200,16 @@ def main(argv=None) -> dict:
             bar.set_postfix(loss=f"{total.item():.1f}", mse=f"{values['reco_mse']:.4f}")
         if (step + 1) % args.eval_every == 0 or step == args.steps - 1:
             scores, out = evaluate(loss, held_out, window=args.window, device=device)
+            # the same scores on as many training episodes: a gap to the held-out ones is memorisation
+            seen, _ = evaluate(loss, train[: len(held_out)], window=args.window, device=device)
+            scores.update({f"train_{k}": v for k, v in seen.items()})
             for key, value in scores.items():
                 logger.log_scalar(key, value, step=step + 1)
             picture = save_png(branch_grid(out, sample=0, steps=args.window), out_dir / "branches.png")
-            bar.write(f"update {step + 1}: " + ", ".join(f"{k} {v:.3f}" for k, v in scores.items()))
+            bar.write(
+                f"update {step + 1}: "
+                + ", ".join(f"{k} {v:.3f}" for k, v in scores.items() if not k.startswith("train_"))
+            )
 
     checkpoint = out_dir / "world_model.pt"
     tmp = checkpoint.with_suffix(".tmp")
