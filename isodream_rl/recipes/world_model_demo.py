@@ -200,8 +200,9 @@ def main(argv=None) -> dict:
             bar.set_postfix(loss=f"{total.item():.1f}", mse=f"{values['reco_mse']:.4f}")
         if (step + 1) % args.eval_every == 0 or step == args.steps - 1:
             scores, out = evaluate(loss, held_out, window=args.window, device=device)
-            # the same scores on as many training episodes: a gap to the held-out ones is memorisation
-            seen, _ = evaluate(loss, train[: len(held_out)], window=args.window, device=device)
+            # the same scores on as many training episodes (both are flat [episodes * steps], episodes of
+            # one length): a gap to the held-out scores is memorisation
+            seen, _ = evaluate(loss, train[: held_out.shape[0]], window=args.window, device=device)
             scores.update({f"train_{k}": v for k, v in seen.items()})
             for key, value in scores.items():
                 logger.log_scalar(key, value, step=step + 1)
