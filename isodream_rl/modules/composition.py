@@ -14,6 +14,11 @@ in the authors' code; the gradient is zero outside the range). Unbounded compone
 times an out-of-range colour reproduce an object, and the masks then stay soft and never separate the
 scene: on the sprites scene every mask stayed below 0.5 for 4000 updates without the clamp.
 
+A softmax saturates: a branch whose mask went to ~0 on a region gets ~0 gradient there, for its colour and
+its logit, and cannot take the region back. Two options act against it (both off by default): ``mask_floor``
+mixes the masks with the uniform one (forward changed), ``gradient_floor`` changes only the backward (see
+:func:`_claim_weights`).
+
 :meth:`MaskComposition.compose_decoded` composes straight from the decoders' ``RGB + logit`` outputs; in
 softmax mode it runs the whole composition as one autograd function with a hand-written backward (see
 :class:`_SoftmaxComposition`), 1.8x faster on CPU than the same operations one by one.
@@ -39,6 +44,11 @@ class MaskComposition(nn.Module):
         mask_mode: ``"softmax"`` or ``"sigmoid"`` (see the module docstring).
         clamp_components: clamp each component to ``PIXEL_RANGE`` when two or more branches are composed
             (:meth:`bound`); a single branch (the DreamerV2 ablation) is left as decoded, like TorchRL's.
+        mask_floor: softmax mode: masks ``mask_floor / N + (1 - mask_floor) * softmax`` (``N`` branches), in
+            ``[0, 1)``.
+        gradient_floor: softmax mode, backward only: colours' gradients see masks ``>= gradient_floor``,
+            and shut-out logits are pushed up as if their mask were ``gradient_floor`` where that lowers the
+            loss (:func:`_claim_weights`), in ``[0, 1)``.
 
     Forward:
         ``colors`` and ``logits`` map branch names (``"control"``, ``"free"``, ``"static"``; any subset

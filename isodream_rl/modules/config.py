@@ -62,10 +62,13 @@ class WorldModelConfig:
     the background cannot explain the frame, instead of all three blending at 1/3 each."""
     mask_floor: float = 0.0
     """Softmax mode: each of the N masks is ``mask_floor / N + (1 - mask_floor) * softmax``, a mixture with the
-    uniform mask; no branch can be shut out of a pixel for good (its colour and logit keep a gradient)."""
+    uniform mask, so every branch's colour keeps a share of every pixel's gradient. (On sprites it did not
+    let the noncontrollable branch take more discs: docs/results/world_model_demo.md.)"""
     gradient_floor: float = 0.0
-    """Softmax mode: the composite is eq. 4 unchanged, but each colour's gradient sees its mask as at least
-    ``gradient_floor``, so a branch whose mask went to ~0 in a region still learns to draw what is there."""
+    """Softmax mode, backward only (the composite is eq. 4 unchanged): each colour's gradient sees its mask as
+    at least ``gradient_floor``, and a branch whose mask is below it is pushed to claim a pixel as if its
+    mask were ``gradient_floor`` wherever raising it would lower the loss (never pushed further out). Against
+    branches shut out of a region by a saturated softmax; measured in docs/results/world_model_demo.md."""
     reward_uses_free: bool = False
     """Reward head on [s, h, z, h'] (CARLA-style) instead of [s, h] (DMC-style)."""
     discount_head: bool = False
