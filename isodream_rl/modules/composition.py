@@ -15,9 +15,12 @@ times an out-of-range colour reproduce an object, and the masks then stay soft a
 scene: on the sprites scene every mask stayed below 0.5 for 4000 updates without the clamp.
 
 A softmax saturates: a branch whose mask went to ~0 on a region gets ~0 gradient there, for its colour and
-its logit, and cannot take the region back. Two options act against it (both off by default): ``mask_floor``
-mixes the masks with the uniform one (forward changed), ``gradient_floor`` changes only the backward (see
-:func:`_claim_weights`).
+its logit, and cannot take the region back. Two options act on the colours' side of it (both off by
+default): ``mask_floor`` mixes the masks with the uniform one (forward changed), ``gradient_floor`` changes
+only the colours' backward. Neither let the noncontrollable branch take more sprites discs
+(docs/results/world_model_demo.md); flooring the logits' gradient as well made training diverge there,
+with the push lifted in both directions (within 200 updates) and in the claiming direction only (after
+~3800 updates), so the logits' gradients are always the exact ones.
 
 :meth:`MaskComposition.compose_decoded` composes straight from the decoders' ``RGB + logit`` outputs; in
 softmax mode it runs the whole composition as one autograd function with a hand-written backward (see
@@ -46,9 +49,8 @@ class MaskComposition(nn.Module):
             (:meth:`bound`); a single branch (the DreamerV2 ablation) is left as decoded, like TorchRL's.
         mask_floor: softmax mode: masks ``mask_floor / N + (1 - mask_floor) * softmax`` (``N`` branches), in
             ``[0, 1)``.
-        gradient_floor: softmax mode, backward only: colours' gradients see masks ``>= gradient_floor``,
-            and shut-out logits are pushed up as if their mask were ``gradient_floor`` where that lowers the
-            loss (:func:`_claim_weights`), in ``[0, 1)``.
+        gradient_floor: softmax mode, backward only: colours' gradients see masks ``>= gradient_floor``
+            (the logits' gradients stay exact), in ``[0, 1)``.
 
     Forward:
         ``colors`` and ``logits`` map branch names (``"control"``, ``"free"``, ``"static"``; any subset
@@ -106,11 +108,7 @@ class MaskComposition(nn.Module):
         if self.mask_mode == "softmax":
             # One [*N, branches, H, W] tensor and one softmax; the masks are channel views of it.
             stacked = torch.cat([logits[n].expand(*shape, *logits[n].shape[-3:]) for n in names], dim=-3)
-            probs = (
-                _FlooredSoftmax.apply(stacked, self.gradient_floor)
-                if self.gradient_floor
-                else torch.softmax(stacked, dim=-3)
-            )
+            probs = torch.softmax(stacked, dim=-3)
             if self.mask_floor:
                 probs = probs * (1.0 - self.mask_floor) + self.mask_floor / len(names)
             masks = dict(zip(names, probs.split(1, dim=-3)))
@@ -227,8 +225,8 @@ class _SoftmaxComposition(torch.autograd.Function):
         probs, *colors = ctx.saved_tensors
         mix, floor = ctx.floors
         masks = probs * (1.0 - mix) + mix / len(colors) if mix else probs
-        # gradient floor (forward unchanged): colours and logits get their gradients as if every mask were
-        # at least ``floor``, so a branch shut out of a region keeps learning to draw and claim it
+        # gradient floor (forward unchanged): the colours get their gradients as if every mask were at least
+        # ``floor``, so a branch shut out of a region keeps learning to draw what is there
         weights = masks.clamp(min=floor) if floor else masks
         size = masks.shape[-2:]
         grads = []
@@ -256,16 +254,11 @@ class _SoftmaxComposition(torch.autograd.Function):
         logits = [None] * len(colors)
         if any(q_i is not None for q_i in q):
             q = [torch.zeros_like(masks[..., :1, :, :]) if q_i is None else q_i for q_i in q]
-            # dL/dl_i = (1 - mix) p_i (q_i - sum_j p_j q_j), p the softmax (the masks' mixture is affine in p);
-            # with a gradient floor, max(p_i, floor) where that raises the logit (see _claim_weights)
+            # dL/dl_i = (1 - mix) p_i (q_i - sum_j p_j q_j), p the softmax (the masks' mixture is affine in p)
             mean = q[0] * probs[..., 0:1, :, :]
             for i in range(1, len(q)):
                 mean.addcmul_(q[i], probs[..., i : i + 1, :, :])
-            scale = probs
-            if floor:
-                scale = _claim_weights(probs, torch.cat(q, dim=-3) - mean, floor)
-            if mix:
-                scale = scale * (1.0 - mix)
+            scale = probs * (1.0 - mix) if mix else probs
             logits = [
                 (q[i] - mean).mul_(scale[..., i : i + 1, :, :]).sum_to_size(*lead, 1, *size)
                 for i, lead in enumerate(ctx.leads)
@@ -287,36 +280,3 @@ class _SoftmaxComposition(torch.autograd.Function):
                     part.copy_(value.reshape(count, -1, *size))
             out.append(grad)
         return (None, None, None, *out)
-
-
-def _claim_weights(probs: torch.Tensor, excess: torch.Tensor, floor: float) -> torch.Tensor:
-    """The softmax Jacobian's leading ``p``, lifted to ``floor`` where a branch is shut out but should claim.
-
-    ``excess_i = q_i - sum_j p_j q_j`` with ``q_i = dL/dp_i``: a negative excess means raising branch ``i``'s
-    mask lowers the loss. Where also ``p_i < floor``, the weight is ``floor`` instead of ``p_i``, so the
-    logit is pushed up as if the mask were ``floor``; everywhere else the gradient is the exact one. Only
-    the upward push is lifted: a saturated logit is never pushed further out (lifting both directions
-    drove the logits apart without bound and training diverged within 200 updates on sprites).
-    """
-    return torch.where((probs < floor) & (excess < 0), torch.full_like(probs, floor), probs)
-
-
-class _FlooredSoftmax(torch.autograd.Function):
-    """Softmax over dim -3 whose backward lifts the Jacobian's leading ``p_i`` to ``floor`` where branch
-    ``i`` is shut out (``p_i < floor``) and raising its mask would lower the loss (:func:`_claim_weights`):
-    ``dL/dl_i = w_i * (dL/dp_i - sum_j p_j dL/dp_j)``. A branch whose mask saturated at ~0 in a region can
-    then take it back once its colour there is right; elsewhere the gradient is exact.
-    """
-
-    @staticmethod
-    def forward(ctx, logits, floor):
-        probs = torch.softmax(logits, dim=-3)
-        ctx.save_for_backward(probs)
-        ctx.floor = floor
-        return probs
-
-    @staticmethod
-    def backward(ctx, grad):
-        (probs,) = ctx.saved_tensors
-        excess = grad - (grad * probs).sum(dim=-3, keepdim=True)
-        return excess * _claim_weights(probs, excess, ctx.floor), None

@@ -66,9 +66,9 @@ class WorldModelConfig:
     let the noncontrollable branch take more discs: docs/results/world_model_demo.md.)"""
     gradient_floor: float = 0.0
     """Softmax mode, backward only (the composite is eq. 4 unchanged): each colour's gradient sees its mask as
-    at least ``gradient_floor``, and a branch whose mask is below it is pushed to claim a pixel as if its
-    mask were ``gradient_floor`` wherever raising it would lower the loss (never pushed further out). Against
-    branches shut out of a region by a saturated softmax; measured in docs/results/world_model_demo.md."""
+    at least ``gradient_floor`` (the logits' gradients stay exact), so a branch shut out of a region by a
+    saturated softmax still learns to draw what is there. (On sprites it did not let the noncontrollable
+    branch take more discs: docs/results/world_model_demo.md.)"""
     reward_uses_free: bool = False
     """Reward head on [s, h, z, h'] (CARLA-style) instead of [s, h] (DMC-style)."""
     discount_head: bool = False
