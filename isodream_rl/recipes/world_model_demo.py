@@ -26,6 +26,7 @@ from torchrl.record.loggers.csv import CSVLogger
 from tqdm import tqdm
 
 from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
+from isodream_rl.modules.encoder import preprocess_pixels
 from isodream_rl.objectives import IsoDreamModelLoss
 from isodream_rl.recipes.sprites_data import collect_sprites_episodes, make_window_buffer
 from isodream_rl.recipes.visualize import branch_grid, mask_iou, save_png
@@ -127,7 +128,7 @@ def evaluate(loss: IsoDreamModelLoss, data, *, window: int, device) -> tuple[dic
     ids = truth.get("distractor_ids", None)
     if ids is not None and "mask_free" in nxt.keys():
         taken = nxt["mask_free"].reshape(ids.shape) > 0.5
-        target = truth["pixels"].float().div(255).sub(0.5)
+        target = preprocess_pixels(truth["pixels"])
         error = (nxt["reco_pixels"].float() - target).pow(2).sum(-3).reshape(ids.shape)
         for i in range(1, int(ids.max()) + 1):
             pixels = ids == i
