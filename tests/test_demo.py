@@ -33,7 +33,9 @@ def test_demo_writes_picture_scores_checkpoint_and_csv(tmp_path):
         ]
     )
     assert (tmp_path / "branches.png").stat().st_size > 0
-    assert (tmp_path / "world_model.pt").exists()
+    saved_model = torch.load(tmp_path / "world_model.pt", map_location="cpu")
+    assert saved_model["step"] == 3 and set(saved_model) == {"config", "model", "optimizer", "step"}
+    assert not list(tmp_path.glob("*.tmp")), "a temporary checkpoint was left behind"
     saved = json.loads((tmp_path / "summary.json").read_text())
     assert saved["updates"] == 3 and 0.0 <= saved["iou_control_vs_agent"] <= 1.0
     for name in ("iou_free_vs_distractors", "free_covers_distractor_2", "reco_error_distractor_0"):

@@ -138,6 +138,21 @@ def evaluate(loss: IsoDreamModelLoss, data, *, window: int, device) -> tuple[dic
     return scores, out.cpu()
 
 
+def save_checkpoint(path: Path, config, loss: IsoDreamModelLoss, optimizer, step: int) -> Path:
+    """Write the world model, its config, the optimiser and the update count atomically (temporary file,
+    then rename): an interrupted write never leaves a truncated checkpoint."""
+    tmp = path.with_suffix(".tmp")
+    state = {
+        "config": config.to_dict(),
+        "model": loss.world_model.state_dict(),
+        "optimizer": optimizer.state_dict(),
+        "step": step,
+    }
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+    return path
+
+
 def main(argv=None) -> dict:
     args = parse_args(argv)
     torch.manual_seed(args.seed)
@@ -208,23 +223,13 @@ def main(argv=None) -> dict:
             for key, value in scores.items():
                 logger.log_scalar(key, value, step=step + 1)
             picture = save_png(branch_grid(out, sample=0, steps=args.window), out_dir / "branches.png")
+            # at every evaluation, so a long run cut short still leaves its latest model
+            checkpoint = save_checkpoint(out_dir / "world_model.pt", config, loss, optimizer, step + 1)
             bar.write(
                 f"update {step + 1}: "
                 + ", ".join(f"{k} {v:.3f}" for k, v in scores.items() if not k.startswith("train_"))
             )
 
-    checkpoint = out_dir / "world_model.pt"
-    tmp = checkpoint.with_suffix(".tmp")
-    torch.save(
-        {
-            "config": config.to_dict(),
-            "model": loss.world_model.state_dict(),
-            "optimizer": optimizer.state_dict(),
-            "step": args.steps,
-        },
-        tmp,
-    )
-    os.replace(tmp, checkpoint)
     summary = {
         "updates": args.steps,
         "seconds": round(time.perf_counter() - start, 1),
