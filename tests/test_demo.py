@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from isodream_rl.recipes.sprites_data import collect_sprites_episodes
-from isodream_rl.recipes.world_model_demo import main
+from isodream_rl.recipes.world_model_demo import free_component_weight, main
 
 
 def test_demo_writes_picture_scores_checkpoint_and_csv(tmp_path):
@@ -61,3 +61,8 @@ def test_held_random_actions_make_the_agent_travel():
     assert travel(held) > 1.5 * travel(jitter)
     with pytest.raises(ValueError, match="action_hold"):
         collect_sprites_episodes(episodes=1, steps=8, action_hold=0)
+
+
+def test_free_component_weight_is_held_then_annealed_to_zero():
+    weights = [free_component_weight(2.0, step, 100) for step in (0, 49, 50, 75, 100, 150)]
+    assert weights == pytest.approx([2.0, 2.0, 2.0, 1.0, 0.0, 0.0])

@@ -318,6 +318,37 @@ class TestModelLoss:
         assert _grad_norm(loss.world_model.free_rssm.prior_net.parameters()) == 0
         assert _grad_norm(loss.world_model.free_rssm.posterior_out.parameters()) > 0
 
+    def test_free_component_term_is_half_squared_error_of_the_unmasked_component(self):
+        loss = IsoDreamModelLoss(IsoDreamWorldModel(tiny()), lambda_free_component=0.5)
+        td = make_batch()
+        losses, out = loss(td)
+        target = td["next", "pixels"].float() / 255 - 0.5
+        error = 0.5 * (out["next", "reco_free"] - target).pow(2).sum((-3, -2, -1)).mean()
+        torch.testing.assert_close(losses["loss_model_free_component"], 0.5 * error)
+
+    def test_free_component_term_reaches_the_free_decoder_under_a_shut_mask(self):
+        # a static logit of +30 shuts both dynamic masks (~1e-13): the image term gives the free decoder
+        # ~nothing, the component term its full gradient
+        def free_decoder_grad(weight):
+            torch.manual_seed(0)
+            loss = IsoDreamModelLoss(
+                IsoDreamWorldModel(tiny(static_mask_bias=30.0)), lambda_free_component=weight
+            )
+            losses, _ = loss(make_batch())
+            loss.world_model.zero_grad()
+            (losses["loss_model_reco"] + losses.get("loss_model_free_component", 0.0)).backward()
+            return _grad_norm(loss.world_model.free_decoder.parameters())
+
+        assert free_decoder_grad(0.0) < 1e-6
+        assert free_decoder_grad(1.0) > 1.0
+
+    def test_free_component_term_needs_the_free_branch_and_a_non_negative_weight(self):
+        with pytest.raises(ValueError, match="lambda_free_component"):
+            IsoDreamModelLoss(IsoDreamWorldModel(tiny()), lambda_free_component=-1.0)
+        loss = IsoDreamModelLoss(IsoDreamWorldModel(tiny(**CONFIGS["dreamerv2"])), lambda_free_component=1.0)
+        with pytest.raises(ValueError, match="free_branch"):
+            loss(make_batch())
+
     def test_set_keys_remapping_gives_the_same_loss(self):
         td = make_batch()
         renamed = TensorDict(

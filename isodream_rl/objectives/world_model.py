@@ -44,11 +44,18 @@ class IsoDreamModelLoss(LossModule):
         free_branch: ``"kl"`` (CARLA-style: the noncontrollable branch has its KL term) or ``"recon_only"``
             (DMC-style, §3.2 last paragraph: it learns from reconstruction alone; ``KL_z`` is only logged).
         inverse_loss: ``"gaussian"`` or ``"l2"``, see :class:`~isodream_rl.objectives.InverseDynamicsLoss`.
+        lambda_free_component: weight of an auxiliary term that asks the noncontrollable component alone
+            (``("next", "reco_free")``, before masking) to reconstruct the whole frame, ``0.5 * squared
+            error`` summed over pixels like ``L_img`` (0: off, the paper's loss). Not in the paper: it keeps
+            the branch learning to draw every object it can read off the frame even where the softmax has
+            shut its mask (see :mod:`isodream_rl.modules.composition`); the masks still decide the
+            composite. A plain attribute, so a training loop can anneal it.
 
     Returns:
         ``(losses, model_output)``, like TorchRL's ``DreamerModelLoss``: ``losses`` holds
         ``loss_model_reco``, ``loss_model_reward``, ``loss_model_kl_control`` and, depending on the model
-        and mode, ``loss_model_kl_free``, ``loss_model_inverse``, ``loss_model_discount``; plus detached
+        and mode, ``loss_model_kl_free``, ``loss_model_inverse``, ``loss_model_discount``,
+        ``loss_model_free_component``; plus detached
         diagnostics ``kl_control``, ``kl_free``, ``mask_control``, ``mask_free``, ``mask_static`` (mean
         masks) and ``reco_mse``. ``model_output`` is the world model's output tensordict (posteriors
         under ``"next"``), the start states for imagination.
@@ -102,6 +109,7 @@ class IsoDreamModelLoss(LossModule):
         free_nats: float = 1.0,
         free_branch: str = "kl",
         inverse_loss: str = "gaussian",
+        lambda_free_component: float = 0.0,
     ):
         super().__init__()
         if free_branch not in FREE_BRANCH_MODES:
@@ -116,6 +124,9 @@ class IsoDreamModelLoss(LossModule):
         self.kl_balance = kl_balance
         self.free_nats = free_nats
         self.free_branch = free_branch
+        if lambda_free_component < 0:
+            raise ValueError(f"lambda_free_component must be >= 0, got {lambda_free_component}")
+        self.lambda_free_component = lambda_free_component
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
@@ -146,10 +157,18 @@ class IsoDreamModelLoss(LossModule):
         nxt = out.get("next")
 
         reco = nxt.get("reco_pixels")
+        target = preprocess_pixels(pixels)
         # One fused kernel forward and backward; the per-frame sum, averaged over [B, T].
-        squared_sum = F.mse_loss(reco, preprocess_pixels(pixels), reduction="sum")
+        squared_sum = F.mse_loss(reco, target, reduction="sum")
         frames = reco.numel() // reco.shape[-3:].numel()
         losses = {"loss_model_reco": self.lambda_reco * 0.5 * squared_sum / frames}
+        if self.lambda_free_component:
+            if not cfg.free_branch:
+                raise ValueError("lambda_free_component needs the noncontrollable branch (free_branch=True)")
+            component = nxt.get("reco_free")
+            losses["loss_model_free_component"] = (
+                self.lambda_free_component * 0.5 * F.mse_loss(component, target, reduction="sum") / frames
+            )
         if reward.shape != nxt.get("reward_pred").shape:
             raise ValueError(f"reward must have shape [B, T, 1], got {tuple(reward.shape)}")
         losses["loss_model_reward"] = (

@@ -94,6 +94,20 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="colours' gradients see masks >= this (WorldModelConfig)",
     )
     p.add_argument("--lambda-kl-free", type=float, default=1.0, help="beta2, the weight of KL_z")
+    p.add_argument(
+        "--free-component-weight",
+        type=float,
+        default=0.0,
+        help="weight of the noncontrollable component's own full-frame reconstruction (IsoDreamModelLoss"
+        ".lambda_free_component; 0: off)",
+    )
+    p.add_argument(
+        "--free-component-until",
+        type=int,
+        default=0,
+        help="updates after which that weight is 0: held for the first half, then linearly to 0 "
+        "(0: constant)",
+    )
     p.add_argument("--free-nats", type=float, default=1.0, help="free nats of each branch's batch-mean KL")
     p.add_argument("--lambda-inverse", type=float, default=1.0, help="alpha, the inverse-dynamics loss scale")
     p.add_argument("--lr", type=float, default=1e-3)
@@ -153,6 +167,11 @@ def save_checkpoint(path: Path, config, loss: IsoDreamModelLoss, optimizer, step
     return path
 
 
+def free_component_weight(weight: float, step: int, until: int) -> float:
+    """``weight`` for the first ``until / 2`` updates, then linearly down to 0 at update ``until``."""
+    return weight * min(1.0, max(0.0, 2.0 * (1.0 - step / until)))
+
+
 def main(argv=None) -> dict:
     args = parse_args(argv)
     torch.manual_seed(args.seed)
@@ -193,6 +212,7 @@ def main(argv=None) -> dict:
         lambda_kl_free=args.lambda_kl_free,
         free_nats=args.free_nats,
         free_branch=args.free_branch,
+        lambda_free_component=args.free_component_weight,
     )
     optimizer = torch.optim.Adam(loss.parameters(), lr=args.lr, eps=1e-5)
     logger = CSVLogger(exp_name="world_model_demo", log_dir=str(out_dir))
@@ -201,6 +221,10 @@ def main(argv=None) -> dict:
     bar = tqdm(range(args.steps), desc=f"world model ({args.size}, {precision})", unit="update")
     start = time.perf_counter()
     for step in bar:
+        if args.free_component_until:
+            loss.lambda_free_component = free_component_weight(
+                args.free_component_weight, step, args.free_component_until
+            )
         batch = buffer.sample().reshape(args.batch_size, args.window).to(device)
         losses, _ = loss(batch)
         total = loss.total(losses)
