@@ -32,6 +32,13 @@ from isodream_rl.recipes.sprites_data import collect_sprites_episodes, make_wind
 from isodream_rl.recipes.visualize import branch_grid, mask_iou, save_png
 
 
+#: ``WorldModelConfig`` overrides of each ``--model``.
+ABLATIONS = {
+    "isodream": {},
+    "dreamerv2": {"free_branch": False, "static_branch": False, "inverse_dynamics": False, "static_mask_bias": 0.0},
+}
+
+
 def default_precision(device: torch.device) -> str:
     """bf16 where it is fast (AMX CPUs, bf16-capable GPUs), else fp32."""
     if device.type == "cuda":
@@ -48,6 +55,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--batch-size", type=int, default=8, help="windows per update")
     p.add_argument("--window", type=int, default=16, help="steps per window (T)")
     p.add_argument("--size", default="small", choices=["paper", "small", "tiny"], help="model size preset")
+    p.add_argument(
+        "--model",
+        choices=["isodream", "dreamerv2"],
+        default="isodream",
+        help="the three-branch model, or the single-branch DreamerV2 ablation (no noncontrollable, static or "
+        "inverse branch: the baseline, scored by its reconstruction of each disc)",
+    )
     p.add_argument("--episodes", type=int, default=60, help="random-action training episodes")
     p.add_argument("--episode-length", type=int, default=96, help="a multiple of --window")
     p.add_argument(
@@ -140,14 +154,15 @@ def evaluate(loss: IsoDreamModelLoss, data, *, window: int, device) -> tuple[dic
             for gt in ("agent", "distractors"):
                 scores[f"iou_{branch}_vs_{gt}"] = mask_iou(nxt[f"mask_{branch}"], truth[f"mask_{gt}"])
     ids = truth.get("distractor_ids", None)
-    if ids is not None and "mask_free" in nxt.keys():
-        taken = nxt["mask_free"].reshape(ids.shape) > 0.5
+    if ids is not None:
+        taken = nxt["mask_free"].reshape(ids.shape) > 0.5 if "mask_free" in nxt.keys() else None
         target = preprocess_pixels(truth["pixels"])
         error = (nxt["reco_pixels"].float() - target).pow(2).sum(-3).reshape(ids.shape)
         for i in range(1, int(ids.max()) + 1):
             pixels = ids == i
             count = pixels.sum().clamp(min=1)
-            scores[f"free_covers_distractor_{i - 1}"] = float((taken & pixels).sum() / count)
+            if taken is not None:
+                scores[f"free_covers_distractor_{i - 1}"] = float((taken & pixels).sum() / count)
             scores[f"reco_error_distractor_{i - 1}"] = float(error[pixels].sum() / count)
     return scores, out.cpu()
 
@@ -196,16 +211,15 @@ def main(argv=None) -> dict:
     held_out = collect_sprites_episodes(episodes=4, steps=args.episode_length, seed=args.seed + 1, **scene)
     buffer = make_window_buffer(train, batch_size=args.batch_size, window=args.window)
 
-    config = WorldModelConfig.from_preset(
-        args.size,
-        action_dim=2,
-        precision=precision,
-        static_mask_bias=args.static_mask_bias,
-        inverse_input=args.inverse_input,
-        decoder_input=args.decoder_input,
-        mask_floor=args.mask_floor,
-        gradient_floor=args.gradient_floor,
-    )
+    options = {
+        "precision": precision,
+        "static_mask_bias": args.static_mask_bias,
+        "inverse_input": args.inverse_input,
+        "decoder_input": args.decoder_input,
+        "mask_floor": args.mask_floor,
+        "gradient_floor": args.gradient_floor,
+    }
+    config = WorldModelConfig.from_preset(args.size, action_dim=2, **{**options, **ABLATIONS[args.model]})
     loss = IsoDreamModelLoss(
         IsoDreamWorldModel(config, device=device),
         lambda_inverse=args.lambda_inverse,
