@@ -66,3 +66,15 @@ def test_held_random_actions_make_the_agent_travel():
 def test_free_component_weight_is_held_then_annealed_to_zero():
     weights = [free_component_weight(2.0, step, 100) for step in (0, 49, 50, 75, 100, 150)]
     assert weights == pytest.approx([2.0, 2.0, 2.0, 1.0, 0.0, 0.0])
+
+
+def test_demo_runs_the_single_branch_ablation_scored_by_disc_reconstruction(tmp_path):
+    small = ["--steps", "2", "--episodes", "2", "--episode-length", "16", "--window", "8", "--batch-size", "2"]
+    summary = main(
+        [*small, "--size", "tiny", "--eval-every", "2", "--precision", "fp32", "--out", str(tmp_path)]
+        + ["--model", "dreamerv2", "--free-component-weight", "0"]
+    )
+    assert "iou_free_vs_distractors" not in summary and "free_covers_distractor_0" not in summary
+    assert 0.0 <= summary["reco_error_distractor_0"] <= 3.0
+    saved = torch.load(tmp_path / "world_model.pt", map_location="cpu")
+    assert saved["config"]["free_branch"] is False and saved["config"]["static_branch"] is False
