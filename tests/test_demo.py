@@ -69,7 +69,18 @@ def test_free_component_weight_is_held_then_annealed_to_zero():
 
 
 def test_demo_runs_the_single_branch_ablation_scored_by_disc_reconstruction(tmp_path):
-    small = ["--steps", "2", "--episodes", "2", "--episode-length", "16", "--window", "8", "--batch-size", "2"]
+    small = [
+        "--steps",
+        "2",
+        "--episodes",
+        "2",
+        "--episode-length",
+        "16",
+        "--window",
+        "8",
+        "--batch-size",
+        "2",
+    ]
     summary = main(
         [*small, "--size", "tiny", "--eval-every", "2", "--precision", "fp32", "--out", str(tmp_path)]
         + ["--model", "dreamerv2", "--free-component-weight", "0"]

@@ -31,11 +31,15 @@ from isodream_rl.objectives import IsoDreamModelLoss
 from isodream_rl.recipes.sprites_data import collect_sprites_episodes, make_window_buffer
 from isodream_rl.recipes.visualize import branch_grid, mask_iou, save_png
 
-
 #: ``WorldModelConfig`` overrides of each ``--model``.
 ABLATIONS = {
     "isodream": {},
-    "dreamerv2": {"free_branch": False, "static_branch": False, "inverse_dynamics": False, "static_mask_bias": 0.0},
+    "dreamerv2": {
+        "free_branch": False,
+        "static_branch": False,
+        "inverse_dynamics": False,
+        "static_mask_bias": 0.0,
+    },
 }
 
 
