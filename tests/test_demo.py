@@ -89,3 +89,33 @@ def test_demo_runs_the_single_branch_ablation_scored_by_disc_reconstruction(tmp_
     assert 0.0 <= summary["reco_error_distractor_0"] <= 3.0
     saved = torch.load(tmp_path / "world_model.pt", map_location="cpu")
     assert saved["config"]["free_branch"] is False and saved["config"]["static_branch"] is False
+
+
+def test_demo_resumes_from_its_checkpoint_and_rejects_other_settings(tmp_path):
+    small = ["--episodes", "2", "--episode-length", "16", "--window", "8", "--batch-size", "2"]
+    small += ["--size", "tiny", "--eval-every", "2", "--precision", "fp32"]
+    main([*small, "--steps", "2", "--out", str(tmp_path / "a")])
+    checkpoint = str(tmp_path / "a" / "world_model.pt")
+    before = torch.load(checkpoint, map_location="cpu")
+    summary = main([*small, "--steps", "4", "--resume", checkpoint, "--out", str(tmp_path / "b")])
+    after = torch.load(tmp_path / "b" / "world_model.pt", map_location="cpu")
+    assert summary["updates"] == 4 and after["step"] == 4
+    # Adam's step counters continue from the saved ones
+    assert all(s["step"] == 4 for s in after["optimizer"]["state"].values())
+    assert all(s["step"] == 2 for s in before["optimizer"]["state"].values())
+    with pytest.raises(ValueError, match="static_mask_bias"):
+        main(
+            [
+                *small,
+                "--steps",
+                "4",
+                "--resume",
+                checkpoint,
+                "--static-mask-bias",
+                "1",
+                "--out",
+                str(tmp_path / "c"),
+            ]
+        )
+    with pytest.raises(SystemExit, match="already at update 2"):
+        main([*small, "--steps", "2", "--resume", checkpoint, "--out", str(tmp_path / "d")])

@@ -134,6 +134,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--eval-every", type=int, default=200, help="updates between pictures / mask scores")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="runs/world_model_demo", help="output folder (logs, PNG, checkpoint)")
+    p.add_argument(
+        "--resume",
+        default=None,
+        help="a world_model.pt of an earlier run with the same settings: continue from its update count to --steps",
+    )
     return p.parse_args(argv)
 
 
@@ -186,6 +191,27 @@ def save_checkpoint(path: Path, config, loss: IsoDreamModelLoss, optimizer, step
     return path
 
 
+def load_checkpoint(path, config, loss: IsoDreamModelLoss, optimizer) -> int:
+    """Restore a :func:`save_checkpoint` file into ``loss.world_model`` and ``optimizer``; returns its update count.
+
+    Raises a ``ValueError`` naming the fields if the saved model configuration differs from ``config``
+    (fields the file predates must hold their defaults).
+    """
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    defaults = WorldModelConfig(action_dim=config.action_dim).to_dict()
+    current = config.to_dict()
+    differ = {
+        key: (state["config"].get(key, defaults[key]), value)
+        for key, value in current.items()
+        if key != "precision" and state["config"].get(key, defaults[key]) != value
+    }
+    if differ:
+        raise ValueError(f"{path} was trained with other settings (saved, now): {differ}")
+    loss.world_model.load_state_dict(state["model"])
+    optimizer.load_state_dict(state["optimizer"])
+    return int(state["step"])
+
+
 def free_component_weight(weight: float, step: int, until: int) -> float:
     """``weight`` for the first ``until / 2`` updates, then linearly down to 0 at update ``until``."""
     return weight * min(1.0, max(0.0, 2.0 * (1.0 - step / until)))
@@ -236,7 +262,16 @@ def main(argv=None) -> dict:
     logger = CSVLogger(exp_name="world_model_demo", log_dir=str(out_dir))
     logger.log_hparams({**config.to_dict(), **{k: v for k, v in vars(args).items() if k != "out"}})
 
-    bar = tqdm(range(args.steps), desc=f"world model ({args.size}, {precision})", unit="update")
+    first = load_checkpoint(args.resume, config, loss, optimizer) if args.resume else 0
+    if first >= args.steps:
+        raise SystemExit(f"{args.resume} is already at update {first}; ask for more --steps")
+    bar = tqdm(
+        range(first, args.steps),
+        desc=f"world model ({args.size}, {precision})",
+        unit="update",
+        initial=first,
+        total=args.steps,
+    )
     start = time.perf_counter()
     for step in bar:
         if args.free_component_until:
@@ -252,7 +287,7 @@ def main(argv=None) -> dict:
         optimizer.step()
         if step % 20 == 0 or step == args.steps - 1:
             values = {k: v.item() for k, v in losses.items()}
-            values["updates_per_s"] = (step + 1) / (time.perf_counter() - start)
+            values["updates_per_s"] = (step + 1 - first) / (time.perf_counter() - start)
             for key, value in values.items():
                 logger.log_scalar(key, value, step=step)
             bar.set_postfix(loss=f"{total.item():.1f}", mse=f"{values['reco_mse']:.4f}")
