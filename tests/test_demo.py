@@ -38,7 +38,12 @@ def test_demo_writes_picture_scores_checkpoint_and_csv(tmp_path):
     assert not list(tmp_path.glob("*.tmp")), "a temporary checkpoint was left behind"
     saved = json.loads((tmp_path / "summary.json").read_text())
     assert saved["updates"] == 3 and 0.0 <= saved["iou_control_vs_agent"] <= 1.0
-    for name in ("iou_free_vs_distractors", "free_covers_distractor_2", "reco_error_distractor_0"):
+    for name in (
+        "iou_free_vs_distractors",
+        "free_covers_distractor_2",
+        "reco_error_distractor_0",
+        "reco_error_agent",
+    ):
         assert 0.0 <= saved[name] <= 3.0 and 0.0 <= saved[f"train_{name}"] <= 3.0, name
     assert summary["png"] == str(tmp_path / "branches.png")
     assert list(tmp_path.rglob("*.csv")), "the CSV logger wrote nothing"

@@ -149,7 +149,8 @@ def evaluate(loss: IsoDreamModelLoss, data, *, window: int, device) -> tuple[dic
     noncontrollable mask is above 0.5 (which distractors the branch has taken, one by one), and
     ``reco_error_distractor_{i}``: the composite's squared error on those pixels (summed over RGB, in the
     ``[-0.5, 0.5]`` pixel range), which tells a disc drawn by the wrong branch (low error) from a disc not
-    drawn at all (error of the disc against the background, ~0.3-0.5).
+    drawn at all (error of the disc against the background, ~0.3-0.5); ``reco_error_agent`` the same on
+    the agent's pixels.
     """
     windows = data.reshape(-1, window)  # episodes are a multiple of the window long
     windows["is_init"][:, 0] = True
@@ -173,6 +174,8 @@ def evaluate(loss: IsoDreamModelLoss, data, *, window: int, device) -> tuple[dic
             if taken is not None:
                 scores[f"free_covers_distractor_{i - 1}"] = float((taken & pixels).sum() / count)
             scores[f"reco_error_distractor_{i - 1}"] = float(error[pixels].sum() / count)
+        agent = truth["mask_agent"].reshape(ids.shape).bool()
+        scores["reco_error_agent"] = float(error[agent].sum() / agent.sum().clamp(min=1))
     return scores, out.cpu()
 
 
