@@ -1,9 +1,10 @@
-"""Iso-Dream objectives: world-model loss (eq. 5), inverse-dynamics loss, KL balancing."""
+"""Iso-Dream objectives: world-model loss (eq. 5), inverse-dynamics loss, KL balancing, mask assignment."""
 
 from isodream_rl.objectives.actor import IsoDreamActorLoss, lambda_returns
 from isodream_rl.objectives.imagination import IsoDreamImagination
 from isodream_rl.objectives.inverse_dynamics import InverseDynamicsLoss
 from isodream_rl.objectives.kl import balanced_kl, gaussian_kl
+from isodream_rl.objectives.mask_assignment import mask_assignment
 from isodream_rl.objectives.value import IsoDreamValueLoss, make_target_updater
 from isodream_rl.objectives.world_model import IsoDreamModelLoss
 
@@ -17,4 +18,5 @@ __all__ = [
     "gaussian_kl",
     "lambda_returns",
     "make_target_updater",
+    "mask_assignment",
 ]

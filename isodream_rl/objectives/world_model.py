@@ -14,6 +14,7 @@ from isodream_rl.modules.encoder import preprocess_pixels
 from isodream_rl.modules.world_model import IsoDreamWorldModel
 from isodream_rl.objectives.inverse_dynamics import InverseDynamicsLoss
 from isodream_rl.objectives.kl import balanced_kl
+from isodream_rl.objectives.mask_assignment import mask_assignment
 
 FREE_BRANCH_MODES = ("kl", "recon_only")
 
@@ -50,12 +51,18 @@ class IsoDreamModelLoss(LossModule):
             the branch learning to draw every object it can read off the frame even where the softmax has
             shut its mask (see :mod:`isodream_rl.modules.composition`); the masks still decide the
             composite. A plain attribute, so a training loop can anneal it.
+        lambda_mask_assignment: weight of the mask-assignment term of
+            :mod:`isodream_rl.objectives.mask_assignment` (0: off, the paper's loss): each pixel's masks are
+            pulled towards the branches' responsibilities for it, so a branch whose component explains a
+            region better than its owner can take it even where the softmax has shut its mask. Needs two
+            or more branches.
+        assignment_std: ``sigma`` of the responsibilities (0.1 on the ``[-0.5, 0.5]`` pixel range).
 
     Returns:
         ``(losses, model_output)``, like TorchRL's ``DreamerModelLoss``: ``losses`` holds
         ``loss_model_reco``, ``loss_model_reward``, ``loss_model_kl_control`` and, depending on the model
         and mode, ``loss_model_kl_free``, ``loss_model_inverse``, ``loss_model_discount``,
-        ``loss_model_free_component``; plus detached
+        ``loss_model_free_component``, ``loss_model_mask_assignment``; plus detached
         diagnostics ``kl_control``, ``kl_free``, ``mask_control``, ``mask_free``, ``mask_static`` (mean
         masks) and ``reco_mse``. ``model_output`` is the world model's output tensordict (posteriors
         under ``"next"``), the start states for imagination.
@@ -110,6 +117,8 @@ class IsoDreamModelLoss(LossModule):
         free_branch: str = "kl",
         inverse_loss: str = "gaussian",
         lambda_free_component: float = 0.0,
+        lambda_mask_assignment: float = 0.0,
+        assignment_std: float = 0.1,
     ):
         super().__init__()
         if free_branch not in FREE_BRANCH_MODES:
@@ -127,6 +136,18 @@ class IsoDreamModelLoss(LossModule):
         if lambda_free_component < 0:
             raise ValueError(f"lambda_free_component must be >= 0, got {lambda_free_component}")
         self.lambda_free_component = lambda_free_component
+        if lambda_mask_assignment < 0 or assignment_std <= 0:
+            raise ValueError(
+                f"lambda_mask_assignment must be >= 0 and assignment_std > 0, got {lambda_mask_assignment} "
+                f"and {assignment_std}"
+            )
+        branches = 1 + world_model.config.free_branch + world_model.config.static_branch
+        if lambda_mask_assignment and branches < 2:
+            raise ValueError(
+                "lambda_mask_assignment needs two or more branches (a single branch has no masks)"
+            )
+        self.lambda_mask_assignment = lambda_mask_assignment
+        self.assignment_std = assignment_std
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
@@ -169,6 +190,15 @@ class IsoDreamModelLoss(LossModule):
             losses["loss_model_free_component"] = (
                 self.lambda_free_component * 0.5 * F.mse_loss(component, target, reduction="sum") / frames
             )
+        if self.lambda_mask_assignment:
+            colors = {"control": nxt.get("reco_control")}
+            if cfg.free_branch:
+                colors["free"] = nxt.get("reco_free")
+            if cfg.static_branch:
+                colors["static"] = out.get("background")
+            masks = {name: nxt.get(f"mask_{name}") for name in colors}
+            assignment, _ = mask_assignment(masks, colors, target, std=self.assignment_std)
+            losses["loss_model_mask_assignment"] = self.lambda_mask_assignment * assignment
         if reward.shape != nxt.get("reward_pred").shape:
             raise ValueError(f"reward must have shape [B, T, 1], got {tuple(reward.shape)}")
         losses["loss_model_reward"] = (

@@ -126,6 +126,15 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="updates after which that weight is 0: held for the first half, then linearly to 0 "
         "(0: constant)",
     )
+    p.add_argument(
+        "--mask-assignment",
+        type=float,
+        default=0.0,
+        help="weight of the mask-assignment term (IsoDreamModelLoss.lambda_mask_assignment; 0: off)",
+    )
+    p.add_argument(
+        "--assignment-std", type=float, default=0.1, help="sigma of the mask-assignment responsibilities"
+    )
     p.add_argument("--free-nats", type=float, default=1.0, help="free nats of each branch's batch-mean KL")
     p.add_argument("--lambda-inverse", type=float, default=1.0, help="alpha, the inverse-dynamics loss scale")
     p.add_argument("--lr", type=float, default=1e-3)
@@ -260,6 +269,8 @@ def main(argv=None) -> dict:
         free_nats=args.free_nats,
         free_branch=args.free_branch,
         lambda_free_component=args.free_component_weight,
+        lambda_mask_assignment=args.mask_assignment,
+        assignment_std=args.assignment_std,
     )
     optimizer = torch.optim.Adam(loss.parameters(), lr=args.lr, eps=1e-5)
     logger = CSVLogger(exp_name="world_model_demo", log_dir=str(out_dir))
