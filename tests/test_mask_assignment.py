@@ -37,6 +37,31 @@ def test_logit_gradient_is_mask_minus_responsibility():
     torch.testing.assert_close(loss.detach(), kl)
 
 
+def test_a_subset_assigns_inside_its_share_and_leaves_the_other_logits_alone():
+    torch.manual_seed(1)
+    logits = torch.randn(2, 3, 4, 5, dtype=torch.float64, requires_grad=True)
+    colors = torch.rand(2, 3, 3, 4, 5, dtype=torch.float64) - 0.5
+    target = torch.rand(2, 3, 4, 5, dtype=torch.float64) - 0.5
+    masks, comps = _scene(logits, colors)
+    loss, resp = mask_assignment(masks, comps, target, std=0.2, branches=("free", "static"))
+    loss.backward()
+    assert set(resp) == {"free", "static"}
+    m = torch.softmax(logits.detach(), dim=1)
+    share = m[:, 1:].sum(1, keepdim=True)
+    r = torch.cat([resp["free"], resp["static"]], dim=1)
+    torch.testing.assert_close(r.sum(1), torch.ones_like(r.sum(1)))
+    likelihood = torch.exp(-0.5 * (colors[:, 1:] - target[:, None]).pow(2).sum(2) / 0.2**2)
+    expected = m[:, 1:] * likelihood / (m[:, 1:] * likelihood).sum(1, keepdim=True)
+    torch.testing.assert_close(r, expected)
+    # d/dl_k = m_k - M r_k inside the subset, nothing on the controllable logit
+    torch.testing.assert_close(logits.grad[:, 1:], (m[:, 1:] - share * r) / 2)
+    torch.testing.assert_close(logits.grad[:, 0], torch.zeros_like(logits.grad[:, 0]))
+    with pytest.raises(ValueError, match="two or more"):
+        mask_assignment(masks, comps, target, std=0.2, branches=("free",))
+    with pytest.raises(ValueError, match="two or more"):
+        mask_assignment(masks, comps, target, std=0.2, branches=("free", "sky"))
+
+
 def test_a_shut_out_branch_that_draws_the_pixel_claims_it():
     # the free branch's mask is ~1e-4 but only its colour matches the frame: the image loss of eq. 4 gives its
     # logit a push proportional to that mask, the assignment term one of order one
@@ -92,6 +117,7 @@ def test_model_loss_term_reaches_only_the_mask_logits_and_what_feeds_them():
     torch.manual_seed(0)
     config = WorldModelConfig.from_preset("tiny", action_dim=2)
     loss = IsoDreamModelLoss(IsoDreamWorldModel(config), lambda_mask_assignment=2.0)
+    assert loss.assignment_branches == ("free", "static")
     losses, out = loss(_batch())
     nxt = out["next"]
     expected, _ = mask_assignment(
@@ -99,6 +125,7 @@ def test_model_loss_term_reaches_only_the_mask_logits_and_what_feeds_them():
         {"control": nxt["reco_control"], "free": nxt["reco_free"], "static": out["background"]},
         _batch()["next", "pixels"].float() / 255 - 0.5,
         std=0.1,
+        branches=("free", "static"),
     )
     torch.testing.assert_close(losses["loss_model_mask_assignment"], 2.0 * expected)
     loss.world_model.zero_grad()
@@ -108,12 +135,30 @@ def test_model_loss_term_reaches_only_the_mask_logits_and_what_feeds_them():
     last = loss.world_model.free_decoder.deconv[-1]
     assert last.weight.grad[:, :3].abs().max() == 0 and last.bias.grad[:3].abs().max() == 0
     assert last.weight.grad[:, 3].abs().max() > 0
+    # the default subset (free, static) leaves the controllable decoder alone (up to rounding)
+    control = loss.world_model.control_decoder.deconv[-1].weight.grad
+    assert control is None or control.abs().max() < 1e-5 * last.weight.grad[:, 3].abs().max()
+
+
+def test_model_loss_with_every_branch_reaches_the_controllable_logit():
+    torch.manual_seed(0)
+    config = WorldModelConfig.from_preset("tiny", action_dim=2)
+    loss = IsoDreamModelLoss(IsoDreamWorldModel(config), lambda_mask_assignment=1.0, assignment_branches=None)
+    losses, _ = loss(_batch())
+    losses["loss_model_mask_assignment"].backward()
+    last = loss.world_model.control_decoder.deconv[-1]
+    assert last.weight.grad[:, 3].abs().max() > 0 and last.weight.grad[:, :3].abs().max() == 0
 
 
 def test_model_loss_rejects_the_term_without_masks():
     config = WorldModelConfig.dreamerv2("tiny", action_dim=2)
-    with pytest.raises(ValueError, match="two or more branches"):
+    with pytest.raises(ValueError, match="two or more of the model's branches"):
         IsoDreamModelLoss(IsoDreamWorldModel(config), lambda_mask_assignment=1.0)
+    no_static = WorldModelConfig.from_preset("tiny", action_dim=2, static_branch=False)
+    with pytest.raises(ValueError, match="two or more of the model's branches"):
+        IsoDreamModelLoss(IsoDreamWorldModel(no_static), lambda_mask_assignment=1.0)
+    # every branch of a model without the static branch: control and free
+    IsoDreamModelLoss(IsoDreamWorldModel(no_static), lambda_mask_assignment=1.0, assignment_branches=None)
     with pytest.raises(ValueError, match="assignment_std"):
         IsoDreamModelLoss(
             IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2)), assignment_std=0

@@ -31,9 +31,16 @@ def mask_assignment(
     target: torch.Tensor,
     *,
     std: float,
+    branches: tuple[str, ...] | None = None,
     eps: float = 1e-8,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The mask-assignment cross-entropy and the responsibilities.
+
+    With ``branches`` a subset ``S`` of the branches, the assignment happens inside ``S`` only: each pixel's
+    masks of ``S`` conditioned on ``S`` (``m_k / M``, ``M = sum_S m_j``) are pulled towards the conditional
+    responsibilities ``r_k = m_k N_k / sum_S m_j N_j``, weighted by ``M`` (detached). The logits of the
+    branches outside ``S`` get no gradient, and the share ``M`` of ``S`` at a pixel is left to the image
+    loss. With ``S`` all branches, ``M = 1`` and this is the plain term.
 
     Args:
         masks: branch name -> mask ``[*N, 1, H, W]`` (non-negative, summing to one over branches; gradients
@@ -43,32 +50,39 @@ def mask_assignment(
         std: ``sigma``, the pixel standard deviation of each branch's Gaussian in the responsibilities:
             the smaller, the harder the assignment (0.1 on the ``[-0.5, 0.5]`` range: a squared-error
             advantage of 0.1, summed over RGB, outweighs a 150-fold smaller mask).
+        branches: the subset ``S`` (default: every branch of ``masks``).
         eps: floor of the masks inside the logarithm.
 
     Returns:
-        ``(loss, responsibilities)``: ``loss`` is ``KL(r || m)`` summed over pixels and averaged over the
-        frames ``N`` (its gradient is that of ``-sum_k r_k log m_k``); ``responsibilities[name]`` is
-        ``[*N, 1, H, W]``, detached.
+        ``(loss, responsibilities)``: ``loss`` is ``sum_pixels M KL(r || m / M)`` averaged over the frames
+        ``N`` (its gradient is that of ``-M sum_S r_k log(m_k / M)``); ``responsibilities[name]``, for the
+        branches of ``S``, is ``[*N, 1, H, W]``, detached, summing to one over ``S``.
     """
     if std <= 0:
         raise ValueError(f"std must be > 0, got {std}")
-    names = list(masks)
-    if set(names) != set(colors):
+    if set(masks) != set(colors):
         raise KeyError(
             f"masks and colors must name the same branches, got {sorted(masks)} and {sorted(colors)}"
         )
+    names = list(masks) if branches is None else list(branches)
+    unknown = set(names) - set(masks)
+    if len(names) < 2 or unknown:
+        raise ValueError(f"branches must name two or more of {sorted(masks)}, got {branches}")
     log_masks = torch.cat([_wide(masks[n]).clamp(min=eps).log() for n in names], dim=-3)
+    # log(m_k / M): the masks conditioned on the subset
+    log_share = torch.logsumexp(log_masks, dim=-3, keepdim=True)
+    log_conditional = log_masks - log_share
     with torch.no_grad():
         target = _wide(target)
         # log m_k + log N(o; o^k, sigma^2): the Gaussian's constant is the same for every branch
         scores = torch.cat(
             [(_wide(colors[n]) - target).pow(2).sum(-3, keepdim=True) for n in names], dim=-3
         ).mul_(-0.5 / std**2)
-        scores = scores + log_masks.detach()
-        log_resp = torch.log_softmax(scores, dim=-3)
+        log_resp = torch.log_softmax(scores + log_masks.detach(), dim=-3)
         resp = log_resp.exp()
+        share = log_share.detach().exp()
     frames = log_masks[..., 0, :, :].numel() // log_masks.shape[-1] // log_masks.shape[-2]
-    loss = (resp * (log_resp - log_masks)).sum() / frames
+    loss = (share * resp * (log_resp - log_conditional)).sum() / frames
     return loss, dict(zip(names, resp.split(1, dim=-3)))
 
 

@@ -57,6 +57,10 @@ class IsoDreamModelLoss(LossModule):
             region better than its owner can take it even where the softmax has shut its mask. Needs two
             or more branches.
         assignment_std: ``sigma`` of the responsibilities (0.1 on the ``[-0.5, 0.5]`` pixel range).
+        assignment_branches: the branches between which the term assigns pixels (``("free", "static")``,
+            the default: the split between what moves on its own and what does not; the controllable mask
+            is left to the image loss and the action, see :mod:`isodream_rl.objectives.mask_assignment`);
+            ``None``: every branch the model has.
 
     Returns:
         ``(losses, model_output)``, like TorchRL's ``DreamerModelLoss``: ``losses`` holds
@@ -119,6 +123,7 @@ class IsoDreamModelLoss(LossModule):
         lambda_free_component: float = 0.0,
         lambda_mask_assignment: float = 0.0,
         assignment_std: float = 0.1,
+        assignment_branches: tuple[str, ...] | None = ("free", "static"),
     ):
         super().__init__()
         if free_branch not in FREE_BRANCH_MODES:
@@ -141,11 +146,22 @@ class IsoDreamModelLoss(LossModule):
                 f"lambda_mask_assignment must be >= 0 and assignment_std > 0, got {lambda_mask_assignment} "
                 f"and {assignment_std}"
             )
-        branches = 1 + world_model.config.free_branch + world_model.config.static_branch
-        if lambda_mask_assignment and branches < 2:
-            raise ValueError(
-                "lambda_mask_assignment needs two or more branches (a single branch has no masks)"
+        present = ["control"] + [
+            name
+            for name, on in (
+                ("free", world_model.config.free_branch),
+                ("static", world_model.config.static_branch),
             )
+            if on
+        ]
+        if lambda_mask_assignment:
+            chosen = present if assignment_branches is None else list(assignment_branches)
+            if len(chosen) < 2 or not set(chosen) <= set(present):
+                raise ValueError(
+                    f"lambda_mask_assignment needs two or more of the model's branches {present}, got "
+                    f"assignment_branches={assignment_branches}"
+                )
+        self.assignment_branches = None if assignment_branches is None else tuple(assignment_branches)
         self.lambda_mask_assignment = lambda_mask_assignment
         self.assignment_std = assignment_std
 
@@ -197,7 +213,9 @@ class IsoDreamModelLoss(LossModule):
             if cfg.static_branch:
                 colors["static"] = out.get("background")
             masks = {name: nxt.get(f"mask_{name}") for name in colors}
-            assignment, _ = mask_assignment(masks, colors, target, std=self.assignment_std)
+            assignment, _ = mask_assignment(
+                masks, colors, target, std=self.assignment_std, branches=self.assignment_branches
+            )
             losses["loss_model_mask_assignment"] = self.lambda_mask_assignment * assignment
         if reward.shape != nxt.get("reward_pred").shape:
             raise ValueError(f"reward must have shape [B, T, 1], got {tuple(reward.shape)}")

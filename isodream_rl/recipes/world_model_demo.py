@@ -135,6 +135,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument(
         "--assignment-std", type=float, default=0.1, help="sigma of the mask-assignment responsibilities"
     )
+    p.add_argument(
+        "--assignment-branches",
+        default="free,static",
+        help="comma-separated branches the mask-assignment term assigns pixels between ('all': every branch)",
+    )
     p.add_argument("--free-nats", type=float, default=1.0, help="free nats of each branch's batch-mean KL")
     p.add_argument("--lambda-inverse", type=float, default=1.0, help="alpha, the inverse-dynamics loss scale")
     p.add_argument("--lr", type=float, default=1e-3)
@@ -271,6 +276,9 @@ def main(argv=None) -> dict:
         lambda_free_component=args.free_component_weight,
         lambda_mask_assignment=args.mask_assignment,
         assignment_std=args.assignment_std,
+        assignment_branches=None
+        if args.assignment_branches == "all"
+        else tuple(args.assignment_branches.split(",")),
     )
     optimizer = torch.optim.Adam(loss.parameters(), lr=args.lr, eps=1e-5)
     logger = CSVLogger(exp_name="world_model_demo", log_dir=str(out_dir))
