@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from isodream_rl.recipes.sprites_data import collect_sprites_episodes
-from isodream_rl.recipes.world_model_demo import free_component_weight, main
+from isodream_rl.recipes.world_model_demo import free_component_weight, main, ramp_weight
 
 
 def test_demo_writes_picture_scores_checkpoint_and_csv(tmp_path):
@@ -71,6 +71,23 @@ def test_held_random_actions_make_the_agent_travel():
 def test_free_component_weight_is_held_then_annealed_to_zero():
     weights = [free_component_weight(2.0, step, 100) for step in (0, 49, 50, 75, 100, 150)]
     assert weights == pytest.approx([2.0, 2.0, 2.0, 1.0, 0.0, 0.0])
+
+
+def test_mask_assignment_weight_waits_then_ramps_up():
+    weights = [ramp_weight(2.0, step, 100) for step in (0, 99, 100, 150, 200, 300)]
+    assert weights == pytest.approx([0.0, 0.0, 0.0, 1.0, 2.0, 2.0])
+    assert ramp_weight(2.0, 0, 0) == 2.0
+
+
+def test_demo_logs_the_mask_assignment_term_once_it_starts(tmp_path):
+    args = ["--steps", "41", "--episodes", "2", "--episode-length", "16", "--window", "8"]
+    args += ["--batch-size", "2", "--size", "tiny", "--eval-every", "41", "--precision", "fp32"]
+    args += ["--mask-assignment", "1", "--mask-assignment-from", "15", "--out", str(tmp_path)]
+    main(args)
+    (csv,) = tmp_path.rglob("loss_model_mask_assignment.csv")
+    # logged every 20 updates while its weight is above zero: from update 16 on, so at 20 and 40
+    steps = [int(float(line.split(",")[0])) for line in csv.read_text().split()]
+    assert steps == [20, 40]
 
 
 def test_demo_runs_the_single_branch_ablation_scored_by_disc_reconstruction(tmp_path):

@@ -133,6 +133,13 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="weight of the mask-assignment term (IsoDreamModelLoss.lambda_mask_assignment; 0: off)",
     )
     p.add_argument(
+        "--mask-assignment-from",
+        type=int,
+        default=0,
+        help="update at which the mask-assignment term starts; its weight then rises linearly to "
+        "--mask-assignment over as many updates again (0: full weight from the start)",
+    )
+    p.add_argument(
         "--assignment-std", type=float, default=0.1, help="sigma of the mask-assignment responsibilities"
     )
     p.add_argument(
@@ -229,6 +236,13 @@ def load_checkpoint(path, config, loss: IsoDreamModelLoss, optimizer) -> int:
     return int(state["step"])
 
 
+def ramp_weight(weight: float, step: int, start: int) -> float:
+    """0 before update ``start``, then linearly up to ``weight`` at update ``2 * start``."""
+    if not start:
+        return weight
+    return weight * min(1.0, max(0.0, step / start - 1.0))
+
+
 def free_component_weight(weight: float, step: int, until: int) -> float:
     """``weight`` for the first ``until / 2`` updates, then linearly down to 0 at update ``until``."""
     return weight * min(1.0, max(0.0, 2.0 * (1.0 - step / until)))
@@ -296,6 +310,8 @@ def main(argv=None) -> dict:
     )
     start = time.perf_counter()
     for step in bar:
+        if args.mask_assignment_from:
+            loss.lambda_mask_assignment = ramp_weight(args.mask_assignment, step, args.mask_assignment_from)
         if args.free_component_until:
             loss.lambda_free_component = free_component_weight(
                 args.free_component_weight, step, args.free_component_until
