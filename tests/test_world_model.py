@@ -342,6 +342,35 @@ class TestModelLoss:
         assert free_decoder_grad(0.0) < 1e-6
         assert free_decoder_grad(1.0) > 1.0
 
+    def test_free_component_residual_term_weighs_pixels_the_background_misses(self):
+        torch.manual_seed(0)
+        loss = IsoDreamModelLoss(
+            IsoDreamWorldModel(tiny()), lambda_free_component=0.5, free_component_pixels="residual"
+        )
+        td = make_batch()
+        losses, out = loss(td)
+        target = td["next", "pixels"].float() / 255 - 0.5
+        miss = (out["background"] - target).pow(2).sum(-3, keepdim=True)
+        weight = miss**2 / (miss**2 + 0.1**2) * (1 - out["next", "mask_control"])
+        error = 0.5 * ((out["next", "reco_free"] - target).pow(2) * weight).sum((-3, -2, -1)).mean()
+        torch.testing.assert_close(losses["loss_model_free_component"], 0.5 * error)
+        # the weights are detached: the background and the controllable mask get nothing from this term
+        loss.world_model.zero_grad()
+        losses["loss_model_free_component"].backward()
+        assert _grad_norm(loss.world_model.static_decoder.parameters()) == 0
+        assert _grad_norm(loss.world_model.control_decoder.parameters()) == 0
+        assert _grad_norm(loss.world_model.free_decoder.parameters()) > 0
+
+    def test_free_component_residual_term_needs_the_static_branch(self):
+        with pytest.raises(ValueError, match="static branch"):
+            IsoDreamModelLoss(
+                IsoDreamWorldModel(tiny(static_branch=False)),
+                lambda_free_component=1.0,
+                free_component_pixels="residual",
+            )
+        with pytest.raises(ValueError, match="free_component_pixels"):
+            IsoDreamModelLoss(IsoDreamWorldModel(tiny()), free_component_pixels="edges")
+
     def test_free_component_term_needs_the_free_branch_and_a_non_negative_weight(self):
         with pytest.raises(ValueError, match="lambda_free_component"):
             IsoDreamModelLoss(IsoDreamWorldModel(tiny()), lambda_free_component=-1.0)

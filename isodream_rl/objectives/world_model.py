@@ -51,6 +51,13 @@ class IsoDreamModelLoss(LossModule):
             the branch learning to draw every object it can read off the frame even where the softmax has
             shut its mask (see :mod:`isodream_rl.modules.composition`); the masks still decide the
             composite. A plain attribute, so a training loop can anneal it.
+        free_component_pixels: which pixels that term covers: ``"all"`` (the whole frame) or ``"residual"``:
+            each pixel weighted by ``w = e^2 / (e^2 + kappa^2)`` times ``1 - M^s``, with ``e`` the static
+            background's squared error there (summed over RGB) and ``kappa = residual_scale``, both detached:
+            the branch is asked to draw what the background does not explain and the controllable branch
+            does not claim, not the background itself (which the whole-frame version made it take over).
+        residual_scale: ``kappa`` of the residual weighting (0.1: a pixel the background misses by 0.3 weighs
+            0.9, one it misses by 0.02 weighs 0.04).
         lambda_mask_assignment: weight of the mask-assignment term of
             :mod:`isodream_rl.objectives.mask_assignment` (0: off, the paper's loss): each pixel's masks are
             pulled towards the branches' responsibilities for it, so a branch whose component explains a
@@ -121,6 +128,8 @@ class IsoDreamModelLoss(LossModule):
         free_branch: str = "kl",
         inverse_loss: str = "gaussian",
         lambda_free_component: float = 0.0,
+        free_component_pixels: str = "all",
+        residual_scale: float = 0.1,
         lambda_mask_assignment: float = 0.0,
         assignment_std: float = 0.1,
         assignment_branches: tuple[str, ...] | None = ("free", "static"),
@@ -141,6 +150,15 @@ class IsoDreamModelLoss(LossModule):
         if lambda_free_component < 0:
             raise ValueError(f"lambda_free_component must be >= 0, got {lambda_free_component}")
         self.lambda_free_component = lambda_free_component
+        if free_component_pixels not in ("all", "residual") or residual_scale <= 0:
+            raise ValueError(
+                f"free_component_pixels must be 'all' or 'residual' and residual_scale > 0, got "
+                f"{free_component_pixels!r} and {residual_scale}"
+            )
+        if free_component_pixels == "residual" and not world_model.config.static_branch:
+            raise ValueError("free_component_pixels='residual' needs the static branch (static_branch=True)")
+        self.free_component_pixels = free_component_pixels
+        self.residual_scale = residual_scale
         if lambda_mask_assignment < 0 or assignment_std <= 0:
             raise ValueError(
                 f"lambda_mask_assignment must be >= 0 and assignment_std > 0, got {lambda_mask_assignment} "
@@ -203,9 +221,15 @@ class IsoDreamModelLoss(LossModule):
             if not cfg.free_branch:
                 raise ValueError("lambda_free_component needs the noncontrollable branch (free_branch=True)")
             component = nxt.get("reco_free")
-            losses["loss_model_free_component"] = (
-                self.lambda_free_component * 0.5 * F.mse_loss(component, target, reduction="sum") / frames
-            )
+            if self.free_component_pixels == "all":
+                squared = F.mse_loss(component, target, reduction="sum")
+            else:
+                with torch.no_grad():
+                    miss = (out.get("background") - target).pow(2).sum(-3, keepdim=True)
+                    weight = miss.square() / (miss.square() + self.residual_scale**2)
+                    weight = weight * (1.0 - nxt.get("mask_control"))
+                squared = ((component - target).pow(2) * weight).sum()
+            losses["loss_model_free_component"] = self.lambda_free_component * 0.5 * squared / frames
         if self.lambda_mask_assignment:
             colors = {"control": nxt.get("reco_control")}
             if cfg.free_branch:

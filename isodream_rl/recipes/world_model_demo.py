@@ -120,6 +120,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         ".lambda_free_component; 0: off)",
     )
     p.add_argument(
+        "--free-component-pixels",
+        choices=["all", "residual"],
+        default="all",
+        help="the whole frame, or the pixels the background misses and the controllable branch leaves",
+    )
+    p.add_argument(
         "--free-component-until",
         type=int,
         default=0,
@@ -288,6 +294,7 @@ def main(argv=None) -> dict:
         free_nats=args.free_nats,
         free_branch=args.free_branch,
         lambda_free_component=args.free_component_weight,
+        free_component_pixels=args.free_component_pixels,
         lambda_mask_assignment=args.mask_assignment,
         assignment_std=args.assignment_std,
         assignment_branches=None

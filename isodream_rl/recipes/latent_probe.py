@@ -1,0 +1,157 @@
+"""Which sprites can be read off each branch's latent state? Linear probes on a trained world model.
+
+A missing object in a branch's mask has two possible causes: the branch's state does not carry the
+object (a representation problem), or it does and the mask never lets the branch draw it (a composition
+problem: a softmax mask shut at ~0 passes no gradient). This probe tells them apart. It runs a trained
+:class:`~isodream_rl.modules.IsoDreamWorldModel` over random-action sprites windows, fits a ridge
+regression from each branch's posterior features (``[state, belief]``, ``[free_state, free_belief]``) to
+each sprite's centre (the centroid of its ground-truth pixels), and reports the held-out R^2 per sprite
+and branch: near 1, the branch knows where the sprite is; at or below 0 (worse than the mean
+position), it does not.
+
+    python -m isodream_rl.recipes.latent_probe runs/world_model_demo/world_model.pt
+
+The episodes are made like the demo's (same background pool, held actions), from seeds the demo never
+trains on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import torch
+
+from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
+from isodream_rl.recipes.sprites_data import collect_sprites_episodes
+
+
+def sprite_centres(truth, num_distractors: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Centres ``[N, S, 2]`` (row, column in [0, 1]) of the agent then each distractor, and ``[N, S]`` visibility.
+
+    ``truth``: a flat tensordict with ``"mask_agent"`` and ``"distractor_ids"`` ``[N, 64, 64]``.
+    """
+    masks = [truth["mask_agent"].bool()] + [truth["distractor_ids"] == i + 1 for i in range(num_distractors)]
+    masks = torch.stack(masks, dim=1).float()  # [N, S, 64, 64]
+    size = masks.shape[-1]
+    grid = torch.arange(size, dtype=torch.float32) / (size - 1)
+    count = masks.sum((-2, -1))
+    rows = (masks.sum(-1) * grid).sum(-1) / count.clamp(min=1)
+    cols = (masks.sum(-2) * grid).sum(-1) / count.clamp(min=1)
+    return torch.stack([rows, cols], dim=-1), count > 0
+
+
+def ridge_r2(
+    x_train: torch.Tensor, y_train: torch.Tensor, x_test: torch.Tensor, y_test: torch.Tensor, *, ridge: float
+) -> float:
+    """Held-out R^2 of a ridge regression ``y ~ x`` (features standardised on the training set), averaged over
+    the columns of ``y``."""
+    mean, std = x_train.mean(0), x_train.std(0).clamp(min=1e-6)
+    a = torch.cat([(x_train - mean) / std, torch.ones(len(x_train), 1)], dim=1).double()
+    b = torch.cat([(x_test - mean) / std, torch.ones(len(x_test), 1)], dim=1).double()
+    eye = torch.eye(a.shape[1], dtype=torch.float64)
+    eye[-1, -1] = 0.0  # the intercept is not shrunk
+    weights = torch.linalg.solve(a.T @ a + ridge * eye, a.T @ y_train.double())
+    residual = (b @ weights - y_test.double()).pow(2).sum(0)
+    total = (y_test.double() - y_test.double().mean(0)).pow(2).sum(0).clamp(min=1e-12)
+    return float((1.0 - residual / total).mean())
+
+
+@torch.no_grad()
+def branch_features(model: IsoDreamWorldModel, data, *, window: int) -> dict[str, torch.Tensor]:
+    """Posterior features ``[N, D]`` of each dynamic branch over flat episode data cut into windows.
+
+    The first ``window // 4`` steps of each window are dropped (the filter is still settling there)."""
+    windows = data.reshape(-1, window)
+    windows["is_init"][:, 0] = True
+    out = model(windows.select("action", "is_init", ("next", "pixels")))["next"]
+    keep = slice(window // 4, None)
+    feats = {"control": torch.cat([out["state"], out["belief"]], dim=-1)[:, keep]}
+    if "free_state" in out.keys():
+        feats["free"] = torch.cat([out["free_state"], out["free_belief"]], dim=-1)[:, keep]
+    return {name: f.reshape(-1, f.shape[-1]).float() for name, f in feats.items()}
+
+
+def probe(
+    model: IsoDreamWorldModel,
+    *,
+    window: int = 16,
+    episodes: int = 32,
+    episode_length: int = 96,
+    num_backgrounds: int | None = 8,
+    background_seed: int = 0,
+    action_hold: int = 8,
+    num_distractors: int = 3,
+    seed: int = 1000,
+    ridge: float = 10.0,
+) -> dict[str, float]:
+    """``r2_{branch}_{sprite}`` for each dynamic branch and sprite (``agent``, ``distractor_0`` ...).
+
+    Half of the episodes fit the probes, the other half score them."""
+    if episode_length % window:
+        raise ValueError(f"episode_length ({episode_length}) must be a multiple of window ({window})")
+    scene = {
+        "num_backgrounds": num_backgrounds,
+        "background_seed": background_seed,
+        "action_hold": action_hold,
+        "num_distractors": num_distractors,
+    }
+    data = collect_sprites_episodes(episodes=episodes, steps=episode_length, seed=seed, **scene)
+    model.eval()
+    device = next(model.parameters()).device
+    feats = branch_features(model, data.to(device), window=window)
+    truth = data["next"].reshape(-1, window)[:, window // 4 :].reshape(-1)
+    centres, visible = sprite_centres(truth, num_distractors)
+    half = len(centres) // 2
+    names = ["agent"] + [f"distractor_{i}" for i in range(num_distractors)]
+    scores = {}
+    for branch, x in feats.items():
+        x = x.cpu()
+        for s, name in enumerate(names):
+            train = visible[:half, s]
+            test = visible[half:, s]
+            scores[f"r2_{branch}_{name}"] = ridge_r2(
+                x[:half][train],
+                centres[:half, s][train],
+                x[half:][test],
+                centres[half:, s][test],
+                ridge=ridge,
+            )
+    return scores
+
+
+def load_model(path, device="cpu") -> IsoDreamWorldModel:
+    """The world model of a demo checkpoint (``isodream-demo``'s ``world_model.pt``)."""
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    config = WorldModelConfig(**{**state["config"], "precision": "fp32"})
+    model = IsoDreamWorldModel(config, device=device)
+    model.load_state_dict(state["model"])
+    return model
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("checkpoint", help="a world_model.pt written by isodream-demo")
+    p.add_argument("--episodes", type=int, default=32, help="probe episodes (half fit, half score)")
+    p.add_argument("--window", type=int, default=16)
+    p.add_argument("--backgrounds", type=int, default=8, help="the demo's --backgrounds (0: a new one each)")
+    p.add_argument("--action-hold", type=int, default=8)
+    p.add_argument("--json", default=None, help="also write the scores here")
+    args = p.parse_args(argv)
+    scores = probe(
+        load_model(args.checkpoint),
+        window=args.window,
+        episodes=args.episodes,
+        num_backgrounds=args.backgrounds or None,
+        action_hold=args.action_hold,
+    )
+    text = json.dumps({k: round(v, 3) for k, v in scores.items()}, indent=2)
+    print(text)
+    if args.json:
+        with open(args.json, "w") as f:
+            f.write(text + "\n")
+    return scores
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,42 @@
+"""The latent probe (isodream_rl/recipes/latent_probe.py): sprite centres, ridge R^2, a run on a tiny model."""
+
+import torch
+from tensordict import TensorDict
+
+from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
+from isodream_rl.recipes.latent_probe import main, probe, ridge_r2, sprite_centres
+
+
+def test_sprite_centres_are_pixel_centroids_in_unit_coordinates():
+    agent = torch.zeros(2, 64, 64, dtype=torch.bool)
+    agent[0, 10:13, 20:23] = True  # centre (11, 21)
+    ids = torch.zeros(2, 64, 64, dtype=torch.uint8)
+    ids[0, 63, 0] = 1
+    ids[1, 0, 63] = 2
+    centres, visible = sprite_centres(TensorDict({"mask_agent": agent, "distractor_ids": ids}, [2]), 2)
+    torch.testing.assert_close(centres[0, 0], torch.tensor([11 / 63, 21 / 63]))
+    torch.testing.assert_close(centres[0, 1], torch.tensor([1.0, 0.0]))
+    torch.testing.assert_close(centres[1, 2], torch.tensor([0.0, 1.0]))
+    assert visible.tolist() == [[True, True, False], [False, False, True]]
+
+
+def test_ridge_r2_is_one_for_a_linear_target_and_low_for_noise():
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(400, 5, generator=g)
+    y = x @ torch.randn(5, 2, generator=g) + 0.3
+    assert ridge_r2(x[:200], y[:200], x[200:], y[200:], ridge=1e-3) > 0.999
+    noise = torch.randn(400, 2, generator=g)
+    assert ridge_r2(x[:200], noise[:200], x[200:], noise[200:], ridge=1.0) < 0.1
+
+
+def test_probe_scores_every_branch_and_sprite_and_the_cli_writes_json(tmp_path):
+    torch.manual_seed(0)
+    model = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
+    scores = probe(model, window=8, episodes=4, episode_length=16)
+    names = ["agent", "distractor_0", "distractor_1", "distractor_2"]
+    assert set(scores) == {f"r2_{b}_{n}" for b in ("control", "free") for n in names}
+    assert all(v <= 1.0 for v in scores.values())
+    path = tmp_path / "model.pt"
+    torch.save({"config": model.config.to_dict(), "model": model.state_dict()}, path)
+    out = main([str(path), "--episodes", "4", "--window", "8", "--json", str(tmp_path / "p.json")])
+    assert set(out) == set(scores) and (tmp_path / "p.json").stat().st_size > 0
