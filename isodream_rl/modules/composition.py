@@ -20,7 +20,9 @@ default): ``mask_floor`` mixes the masks with the uniform one (forward changed),
 only the colours' backward. Neither let the noncontrollable branch take more sprites discs
 (docs/results/world_model_demo.md); flooring the logits' gradient as well made training diverge there,
 with the push lifted in both directions (within 200 updates) and in the claiming direction only (after
-~3800 updates), so the logits' gradients are always the exact ones.
+~3800 updates), so the logits' gradients are always the exact ones. The logits' side has its own term in
+the loss instead: :mod:`isodream_rl.objectives.mask_assignment` pulls the masks towards each branch's
+responsibility for a pixel (``IsoDreamModelLoss(lambda_mask_assignment=...)``, off by default).
 
 :meth:`MaskComposition.compose_decoded` composes straight from the decoders' ``RGB + logit`` outputs; in
 softmax mode it runs the whole composition as one autograd function with a hand-written backward (see

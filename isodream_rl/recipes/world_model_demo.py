@@ -126,6 +126,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="the whole frame, or the pixels the background misses and the controllable branch leaves",
     )
     p.add_argument(
+        "--residual-scale",
+        type=float,
+        default=0.1,
+        help="kappa of the residual weighting (IsoDreamModelLoss.residual_scale)",
+    )
+    p.add_argument(
         "--free-component-until",
         type=int,
         default=0,
@@ -295,6 +301,7 @@ def main(argv=None) -> dict:
         free_branch=args.free_branch,
         lambda_free_component=args.free_component_weight,
         free_component_pixels=args.free_component_pixels,
+        residual_scale=args.residual_scale,
         lambda_mask_assignment=args.mask_assignment,
         assignment_std=args.assignment_std,
         assignment_branches=None
