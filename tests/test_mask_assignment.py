@@ -16,12 +16,17 @@ def _scene(logits: torch.Tensor, colors: torch.Tensor):
     return masks, dict(zip(NAMES, colors.unbind(1)))
 
 
-def test_logit_gradient_is_mask_minus_responsibility():
-    torch.manual_seed(0)
+def _random_scene(seed: int):
+    """float64 logits (leaf, with grad) ``[2, 3, 4, 5]``, colours ``[2, 3, 3, 4, 5]``, a target, and their dicts."""
+    torch.manual_seed(seed)
     logits = torch.randn(2, 3, 4, 5, dtype=torch.float64, requires_grad=True)
     colors = torch.rand(2, 3, 3, 4, 5, dtype=torch.float64) - 0.5
     target = torch.rand(2, 3, 4, 5, dtype=torch.float64) - 0.5
-    masks, comps = _scene(logits, colors)
+    return logits, colors, target, *_scene(logits, colors)
+
+
+def test_logit_gradient_is_mask_minus_responsibility():
+    logits, colors, target, masks, comps = _random_scene(0)
     loss, resp = mask_assignment(masks, comps, target, std=0.2)
     loss.backward()
     r = torch.cat([resp[n] for n in NAMES], dim=1)
@@ -38,11 +43,7 @@ def test_logit_gradient_is_mask_minus_responsibility():
 
 
 def test_a_subset_assigns_inside_its_share_and_leaves_the_other_logits_alone():
-    torch.manual_seed(1)
-    logits = torch.randn(2, 3, 4, 5, dtype=torch.float64, requires_grad=True)
-    colors = torch.rand(2, 3, 3, 4, 5, dtype=torch.float64) - 0.5
-    target = torch.rand(2, 3, 4, 5, dtype=torch.float64) - 0.5
-    masks, comps = _scene(logits, colors)
+    logits, colors, target, masks, comps = _random_scene(1)
     loss, resp = mask_assignment(masks, comps, target, std=0.2, branches=("free", "static"))
     loss.backward()
     assert set(resp) == {"free", "static"}
