@@ -81,7 +81,7 @@ def mask_assignment(
         log_resp = torch.log_softmax(scores + log_masks.detach(), dim=-3)
         resp = log_resp.exp()
         share = log_share.detach().exp()
-    frames = log_masks[..., 0, :, :].numel() // log_masks.shape[-1] // log_masks.shape[-2]
+    frames = log_masks.numel() // log_masks.shape[-3:].numel()
     loss = (share * resp * (log_resp - log_conditional)).sum() / frames
     return loss, dict(zip(names, resp.split(1, dim=-3)))
 

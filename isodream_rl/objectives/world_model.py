@@ -17,6 +17,8 @@ from isodream_rl.objectives.kl import balanced_kl
 from isodream_rl.objectives.mask_assignment import mask_assignment
 
 FREE_BRANCH_MODES = ("kl", "recon_only")
+#: where each branch's component (as composed) sits in the world model's output
+COMPONENT_KEYS = {"control": ("next", "reco_control"), "free": ("next", "reco_free"), "static": "background"}
 
 
 class IsoDreamModelLoss(LossModule):
@@ -164,22 +166,16 @@ class IsoDreamModelLoss(LossModule):
                 f"lambda_mask_assignment must be >= 0 and assignment_std > 0, got {lambda_mask_assignment} "
                 f"and {assignment_std}"
             )
-        present = ["control"] + [
-            name
-            for name, on in (
-                ("free", world_model.config.free_branch),
-                ("static", world_model.config.static_branch),
+        cfg = world_model.config
+        present = [name for name in COMPONENT_KEYS if name == "control" or getattr(cfg, f"{name}_branch")]
+        chosen = tuple(present if assignment_branches is None else assignment_branches)
+        if lambda_mask_assignment and (len(chosen) < 2 or not set(chosen) <= set(present)):
+            raise ValueError(
+                f"lambda_mask_assignment needs two or more of the model's branches {present}, got "
+                f"assignment_branches={assignment_branches}"
             )
-            if on
-        ]
-        if lambda_mask_assignment:
-            chosen = present if assignment_branches is None else list(assignment_branches)
-            if len(chosen) < 2 or not set(chosen) <= set(present):
-                raise ValueError(
-                    f"lambda_mask_assignment needs two or more of the model's branches {present}, got "
-                    f"assignment_branches={assignment_branches}"
-                )
-        self.assignment_branches = None if assignment_branches is None else tuple(assignment_branches)
+        #: the branches the assignment term reads (its masks and components), and assigns between
+        self.assignment_branches = chosen
         self.lambda_mask_assignment = lambda_mask_assignment
         self.assignment_std = assignment_std
 
@@ -231,15 +227,10 @@ class IsoDreamModelLoss(LossModule):
                 squared = ((component - target).pow(2) * weight).sum()
             losses["loss_model_free_component"] = self.lambda_free_component * 0.5 * squared / frames
         if self.lambda_mask_assignment:
-            colors = {"control": nxt.get("reco_control")}
-            if cfg.free_branch:
-                colors["free"] = nxt.get("reco_free")
-            if cfg.static_branch:
-                colors["static"] = out.get("background")
-            masks = {name: nxt.get(f"mask_{name}") for name in colors}
-            assignment, _ = mask_assignment(
-                masks, colors, target, std=self.assignment_std, branches=self.assignment_branches
-            )
+            names = self.assignment_branches
+            colors = {name: out.get(COMPONENT_KEYS[name]) for name in names}
+            masks = {name: nxt.get(f"mask_{name}") for name in names}
+            assignment, _ = mask_assignment(masks, colors, target, std=self.assignment_std)
             losses["loss_model_mask_assignment"] = self.lambda_mask_assignment * assignment
         if reward.shape != nxt.get("reward_pred").shape:
             raise ValueError(f"reward must have shape [B, T, 1], got {tuple(reward.shape)}")

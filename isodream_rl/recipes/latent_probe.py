@@ -23,7 +23,7 @@ import json
 import torch
 
 from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
-from isodream_rl.recipes.sprites_data import collect_sprites_episodes
+from isodream_rl.recipes.sprites_data import collect_sprites_episodes, episode_windows, model_input
 
 
 def sprite_centres(truth, num_distractors: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -62,9 +62,7 @@ def branch_features(model: IsoDreamWorldModel, data, *, window: int) -> dict[str
     """Posterior features ``[N, D]`` of each dynamic branch over flat episode data cut into windows.
 
     The first ``window // 4`` steps of each window are dropped (the filter is still settling there)."""
-    windows = data.reshape(-1, window)
-    windows["is_init"][:, 0] = True
-    out = model(windows.select("action", "is_init", ("next", "pixels")))["next"]
+    out = model(model_input(episode_windows(data, window=window)))["next"]
     keep = slice(window // 4, None)
     feats = {"control": torch.cat([out["state"], out["belief"]], dim=-1)[:, keep]}
     if "free_state" in out.keys():

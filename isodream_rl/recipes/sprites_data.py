@@ -88,6 +88,24 @@ def collect_sprites_episodes(
     )
 
 
+def episode_windows(data: TensorDict, *, window: int) -> TensorDict:
+    """Flat episode data ``[episodes * steps]`` cut into consecutive windows ``[episodes * steps / window, window]``.
+
+    ``steps`` must be a multiple of ``window``. Each window starts with ``is_init=True`` (a copy: ``data`` is
+    not changed), so a world model filters it from zero states.
+    """
+    windows = data.reshape(-1, window)
+    is_init = windows["is_init"].clone()
+    is_init[:, 0] = True
+    windows.set("is_init", is_init)
+    return windows
+
+
+def model_input(windows: TensorDict) -> TensorDict:
+    """The keys a world model reads from a window: ``"action"``, ``"is_init"``, ``("next", "pixels")``."""
+    return windows.select("action", "is_init", ("next", "pixels"))
+
+
 def make_window_buffer(data: TensorDict, *, batch_size: int, window: int) -> TensorDictReplayBuffer:
     """A TorchRL replay buffer sampling ``batch_size`` windows of ``window`` steps inside episodes.
 

@@ -28,7 +28,12 @@ from tqdm import tqdm
 from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
 from isodream_rl.modules.encoder import preprocess_pixels
 from isodream_rl.objectives import IsoDreamModelLoss
-from isodream_rl.recipes.sprites_data import collect_sprites_episodes, make_window_buffer
+from isodream_rl.recipes.sprites_data import (
+    collect_sprites_episodes,
+    episode_windows,
+    make_window_buffer,
+    model_input,
+)
 from isodream_rl.recipes.visualize import branch_grid, mask_iou, save_png
 
 #: ``WorldModelConfig`` overrides of each ``--model``.
@@ -185,11 +190,10 @@ def evaluate(loss: IsoDreamModelLoss, data, *, window: int, device) -> tuple[dic
     drawn at all (error of the disc against the background, ~0.3-0.5); ``reco_error_agent`` the same on
     the agent's pixels.
     """
-    windows = data.reshape(-1, window)  # episodes are a multiple of the window long
-    windows["is_init"][:, 0] = True
+    windows = episode_windows(data, window=window)  # episodes are a multiple of the window long
     model = loss.world_model
     with torch.no_grad():
-        out = model(windows.select("action", "is_init", ("next", "pixels")).to(device))
+        out = model(model_input(windows).to(device))
     nxt, truth = out["next"].cpu(), windows["next"]
     scores = {}
     for branch in ("control", "free"):
