@@ -36,6 +36,9 @@ def test_probe_scores_every_branch_and_sprite_and_the_cli_writes_json(tmp_path):
     names = ["agent", "distractor_0", "distractor_1", "distractor_2"]
     assert set(scores) == {f"r2_{b}_{n}" for b in ("control", "free") for n in names}
     assert all(v <= 1.0 for v in scores.values())
+    # the latent samples are seeded: the same scores again, whatever the global generator did meanwhile
+    torch.rand(7)
+    assert probe(model, window=8, episodes=4, episode_length=16) == scores
     path = tmp_path / "model.pt"
     torch.save({"config": model.config.to_dict(), "model": model.state_dict()}, path)
     out = main([str(path), "--episodes", "4", "--window", "8", "--json", str(tmp_path / "p.json")])

@@ -85,7 +85,8 @@ def probe(
 ) -> dict[str, float]:
     """``r2_{branch}_{sprite}`` for each dynamic branch and sprite (``agent``, ``distractor_0`` ...).
 
-    Half of the episodes fit the probes, the other half score them."""
+    Half of the episodes fit the probes, the other half score them. ``seed`` makes the episodes and the
+    model's latent samples; the scores of one checkpoint are the same on every call."""
     if episode_length % window:
         raise ValueError(f"episode_length ({episode_length}) must be a multiple of window ({window})")
     scene = {
@@ -97,7 +98,11 @@ def probe(
     data = collect_sprites_episodes(episodes=episodes, steps=episode_length, seed=seed, **scene)
     model.eval()
     device = next(model.parameters()).device
-    feats = branch_features(model, data.to(device), window=window)
+    # the posterior states are samples: seeded here (without touching the caller's generator), so a probe
+    # of one checkpoint gives the same scores every time
+    with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+        torch.manual_seed(seed)
+        feats = branch_features(model, data.to(device), window=window)
     truth = data["next"].reshape(-1, window)[:, window // 4 :].reshape(-1)
     centres, visible = sprite_centres(truth, num_distractors)
     half = len(centres) // 2
