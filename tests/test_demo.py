@@ -77,17 +77,29 @@ def test_mask_assignment_weight_waits_then_ramps_up():
     weights = [ramp_weight(2.0, step, 100) for step in (0, 99, 100, 150, 200, 300)]
     assert weights == pytest.approx([0.0, 0.0, 0.0, 1.0, 2.0, 2.0])
     assert ramp_weight(2.0, 0, 0) == 2.0
+    # a late start with a ramp of its own length (--ramp-updates), and a step switch-on
+    weights = [ramp_weight(2.0, step, 4000, 1000) for step in (3999, 4000, 4500, 5000, 9000)]
+    assert weights == pytest.approx([0.0, 0.0, 1.0, 2.0, 2.0])
+    assert [ramp_weight(2.0, step, 10, 0) for step in (9, 10)] == [0.0, 2.0]
 
 
 def test_demo_logs_the_mask_assignment_term_once_it_starts(tmp_path):
     args = ["--steps", "41", "--episodes", "2", "--episode-length", "16", "--window", "8"]
     args += ["--batch-size", "2", "--size", "tiny", "--eval-every", "41", "--precision", "fp32"]
     args += ["--mask-assignment", "1", "--mask-assignment-from", "15", "--out", str(tmp_path)]
-    main(args)
-    (csv,) = tmp_path.rglob("loss_model_mask_assignment.csv")
+    args += ["--free-component-weight", "1", "--free-component-pixels", "residual"]
+    main([*args, "--free-component-from", "25", "--ramp-updates", "5"])
+
+    def logged(name):
+        (csv,) = tmp_path.rglob(f"{name}.csv")
+        return [int(float(line.split(",")[0])) for line in csv.read_text().split()]
+
     # logged every 20 updates while its weight is above zero: from update 16 on, so at 20 and 40
-    steps = [int(float(line.split(",")[0])) for line in csv.read_text().split()]
-    assert steps == [20, 40]
+    assert logged("loss_model_mask_assignment") == [20, 40]
+    # the residual term from update 26 on (--ramp-updates 5 after --free-component-from 25)
+    assert logged("loss_model_free_component") == [40]
+    with pytest.raises(SystemExit, match="two schedules"):
+        main([*args, "--free-component-from", "25", "--free-component-until", "30"])
 
 
 def test_demo_runs_the_single_branch_ablation_scored_by_disc_reconstruction(tmp_path):

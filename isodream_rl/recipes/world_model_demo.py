@@ -144,6 +144,14 @@ def parse_args(argv=None) -> argparse.Namespace:
         "(0: constant)",
     )
     p.add_argument(
+        "--free-component-from",
+        type=int,
+        default=0,
+        help="update at which that term starts; its weight then rises linearly over --ramp-updates "
+        "(0: from the start). Starting it once the controllable branch holds the agent keeps the agent's "
+        "pixels, which 1 - M^s then excludes, out of the noncontrollable state",
+    )
+    p.add_argument(
         "--mask-assignment",
         type=float,
         default=0.0,
@@ -154,7 +162,13 @@ def parse_args(argv=None) -> argparse.Namespace:
         type=int,
         default=0,
         help="update at which the mask-assignment term starts; its weight then rises linearly to "
-        "--mask-assignment over as many updates again (0: full weight from the start)",
+        "--mask-assignment over --ramp-updates (0: full weight from the start)",
+    )
+    p.add_argument(
+        "--ramp-updates",
+        type=int,
+        default=None,
+        help="updates over which a late-starting term rises to its weight (default: as many as it waited)",
     )
     p.add_argument(
         "--assignment-std", type=float, default=0.1, help="sigma of the mask-assignment responsibilities"
@@ -252,11 +266,15 @@ def load_checkpoint(path, config, loss: IsoDreamModelLoss, optimizer) -> int:
     return int(state["step"])
 
 
-def ramp_weight(weight: float, step: int, start: int) -> float:
-    """0 before update ``start``, then linearly up to ``weight`` at update ``2 * start``."""
+def ramp_weight(weight: float, step: int, start: int, length: int | None = None) -> float:
+    """0 before update ``start``, then linearly up to ``weight`` at update ``start + length``
+    (``length`` defaults to ``start``; ``start = 0``: ``weight`` throughout)."""
     if not start:
         return weight
-    return weight * min(1.0, max(0.0, step / start - 1.0))
+    length = start if length is None else length
+    if length <= 0:
+        return weight if step >= start else 0.0
+    return weight * min(1.0, max(0.0, (step - start) / length))
 
 
 def free_component_weight(weight: float, step: int, until: int) -> float:
@@ -275,6 +293,9 @@ def main(argv=None) -> dict:
         raise SystemExit(
             f"--episode-length ({args.episode_length}) must be a multiple of --window ({args.window})"
         )
+
+    if args.free_component_from and args.free_component_until:
+        raise SystemExit("--free-component-from and --free-component-until are two schedules; give one")
 
     print(f"collecting {args.episodes} random-action sprites episodes of {args.episode_length} steps ...")
     scene = {
@@ -329,7 +350,13 @@ def main(argv=None) -> dict:
     start = time.perf_counter()
     for step in bar:
         if args.mask_assignment_from:
-            loss.lambda_mask_assignment = ramp_weight(args.mask_assignment, step, args.mask_assignment_from)
+            loss.lambda_mask_assignment = ramp_weight(
+                args.mask_assignment, step, args.mask_assignment_from, args.ramp_updates
+            )
+        if args.free_component_from:
+            loss.lambda_free_component = ramp_weight(
+                args.free_component_weight, step, args.free_component_from, args.ramp_updates
+            )
         if args.free_component_until:
             loss.lambda_free_component = free_component_weight(
                 args.free_component_weight, step, args.free_component_until
