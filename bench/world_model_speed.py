@@ -30,7 +30,11 @@ import statistics
 import time
 from pathlib import Path
 
-import torch
+# Huge pages for CPU tensors >= 2 MB, on both sides (PyTorch reads this at its first allocation, hence before
+# `import torch`); as isodream_rl's own entry points do. THP_MEM_ALLOC_ENABLE=0 measures without.
+os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
+
+import torch  # noqa: E402
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
@@ -304,6 +308,7 @@ def main(argv=None):
             "bf16_steps": bf16_steps,
             "warmup": args.warmup,
             "threads": torch.get_num_threads(),
+            "thp_mem_alloc": os.environ["THP_MEM_ALLOC_ENABLE"],
             "torch": torch.__version__,
             "cpu": platform.processor() or platform.machine(),
             "cpu_capability": torch.backends.cpu.get_cpu_capability(),

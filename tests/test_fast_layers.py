@@ -219,3 +219,21 @@ def test_mask_floors_against_their_formulas():
 def test_mask_floors_reject_bad_values(kwargs):
     with pytest.raises(ValueError, match="floor"):
         MaskComposition(**kwargs)
+
+
+@pytest.mark.parametrize("preset", [None, "0"])
+def test_importing_the_package_first_turns_on_huge_pages_unless_the_user_chose(preset):
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "THP_MEM_ALLOC_ENABLE"}
+    if preset is not None:
+        env["THP_MEM_ALLOC_ENABLE"] = preset
+    code = "import isodream_rl, os; print(os.environ.get('THP_MEM_ALLOC_ENABLE'))"
+    first = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert first.stdout.strip() == (preset or "1")
+    # torch imported before: its allocator has read the variable already, so the package leaves it alone
+    code = "import torch, isodream_rl, os; print(os.environ.get('THP_MEM_ALLOC_ENABLE'))"
+    after = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert after.stdout.strip() == str(preset)
