@@ -48,6 +48,7 @@ CONFIGS = {
         "discount_head": True,
     },
     "posterior_decoding": {"decoder_input": "posterior"},
+    "free_from_prior": {"free_decoder_input": "prior"},
     "no_static": {"static_branch": False},
     "no_inverse": {"inverse_dynamics": False},
     "dreamerv2": {"free_branch": False, "static_branch": False, "inverse_dynamics": False},
@@ -161,6 +162,22 @@ class TestWorldModel:
         assert all((m >= 0).all() for m in masks)
         torch.testing.assert_close(sum(masks), torch.ones_like(masks[0]))
 
+    @pytest.mark.parametrize("free_input", ["posterior", "prior"])
+    def test_free_component_reads_the_current_frame_only_from_the_posterior(self, free_input):
+        wm = IsoDreamWorldModel(tiny(free_decoder_input=free_input))
+        td = make_batch()
+        changed = td.clone()
+        changed["next", "pixels"][:, 4] = 255 - changed["next", "pixels"][:, 4]
+        outputs = []
+        for batch in (td, changed):
+            torch.manual_seed(0)  # the same latent samples
+            outputs.append(wm(batch)["next", "reco_free"])
+        # steps before the change agree either way; at the changed step only the posterior has seen it
+        torch.testing.assert_close(outputs[0][:, :4], outputs[1][:, :4])
+        same_at_change = torch.allclose(outputs[0][:, 4], outputs[1][:, 4])
+        assert same_at_change == (free_input == "prior")
+        assert not torch.allclose(outputs[0][:, 5], outputs[1][:, 5])  # the prior sees it one step later
+
     def test_is_init_mid_window_resets_both_branches(self):
         wm = IsoDreamWorldModel(tiny())
         td = make_batch()
@@ -207,6 +224,8 @@ class TestWorldModel:
             tiny(static_branch=False, mask_mode="sigmoid")
         with pytest.raises(ValueError, match="unknown size preset"):
             WorldModelConfig.from_preset("huge", action_dim=2)
+        with pytest.raises(ValueError, match="free_decoder_input 'state'"):
+            tiny(free_decoder_input="state")
 
     def test_short_windows_reuse_their_last_frame_for_the_background(self):
         wm = IsoDreamWorldModel(tiny(static_frames=10))

@@ -15,6 +15,7 @@ SIZE_PRESETS: dict[str, dict[str, int]] = {
     "tiny": {"depth": 4, "state_dim": 8, "belief_dim": 16, "hidden_dim": 16, "units": 32},
 }
 DECODER_INPUTS = ("paper", "posterior")
+FREE_DECODER_INPUTS = ("posterior", "prior")
 PRECISIONS = ("fp32", "bf16")
 
 
@@ -54,6 +55,11 @@ class WorldModelConfig:
     decoder_input: str = "paper"
     """``"paper"``: controllable component from the one-step prior s~_t, noncontrollable from the posterior z_t
     (§3.2, against collapse); ``"posterior"``: both from posteriors."""
+    free_decoder_input: str = "posterior"
+    """The noncontrollable component from the posterior z_t (paper, the default) or from the action-free prior
+    z~_t (``"prior"``: §3.2's guard against collapse applied to this branch too). From its one-step prior the
+    branch can draw only what it predicts without actions and without the current frame: the objects that
+    move on their own, not the agent, whose moves the actions decide."""
     static_frames: int = 10
     """K, the number of first frames of a window that the static branch reads (clamped to the window)."""
     static_mask_bias: float = 0.0
@@ -85,6 +91,7 @@ class WorldModelConfig:
             ("inverse_input", self.inverse_input, INVERSE_INPUTS),
             ("mask_mode", self.mask_mode, MASK_MODES),
             ("decoder_input", self.decoder_input, DECODER_INPUTS),
+            ("free_decoder_input", self.free_decoder_input, FREE_DECODER_INPUTS),
             ("precision", self.precision, PRECISIONS),
         ):
             if value not in valid:

@@ -102,6 +102,13 @@ def parse_args(argv=None) -> argparse.Namespace:
         "the one-step prior (paper; the library's default, slower to pick up the agent: see docs/results/world_model_demo.md)",
     )
     p.add_argument(
+        "--free-decoder-input",
+        choices=["posterior", "prior"],
+        default="posterior",
+        help="noncontrollable component from the posterior z_t (paper) or the action-free prior z~_t, which "
+        "can draw only what moves predictably without actions (WorldModelConfig.free_decoder_input)",
+    )
+    p.add_argument(
         "--free-branch",
         choices=["kl", "recon_only"],
         default="kl",
@@ -314,6 +321,7 @@ def main(argv=None) -> dict:
         "static_mask_bias": args.static_mask_bias,
         "inverse_input": args.inverse_input,
         "decoder_input": args.decoder_input,
+        "free_decoder_input": args.free_decoder_input,
         "mask_floor": args.mask_floor,
         "gradient_floor": args.gradient_floor,
     }
