@@ -337,7 +337,9 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             control_out = self.control_decoder(control_feat)
             free_out = None
             if self.free_decoder is not None:
-                free_input = latents["free_prior_state" if cfg.free_decoder_input == "prior" else "free_state"]
+                free_input = latents[
+                    "free_prior_state" if cfg.free_decoder_input == "prior" else "free_state"
+                ]
                 free_feat = torch.cat([free_input, latents["free_belief"]], dim=-1)
                 free_out = self.free_decoder(free_feat.reshape(batch * time, -1))
 
