@@ -237,3 +237,53 @@ def test_importing_the_package_first_turns_on_huge_pages_unless_the_user_chose(p
     code = "import torch, isodream_rl, os; print(os.environ.get('THP_MEM_ALLOC_ENABLE'))"
     after = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     assert after.stdout.strip() == str(preset)
+
+
+def test_inward_clamp_passes_only_the_gradients_that_point_back_into_the_range():
+    from isodream_rl.modules.composition import inward_pass
+
+    value = torch.tensor([-0.9, -0.5, -0.5, 0.0, 0.5, 0.5, 0.9, 0.9])
+    grad = torch.tensor([-1.0, -1.0, 1.0, 1.0, 1.0, -1.0, 1.0, -1.0])
+    # below the range: a negative gradient (descent raises x) passes; above it: a positive one
+    assert inward_pass(grad, value, -0.5, 0.5).tolist() == [1, 1, 0, 1, 1, 0, 1, 0]
+
+    torch.manual_seed(2)
+    names = ("control", "free", "static")
+    leads = {"control": (2, 3), "free": (2, 3), "static": (2, 1)}
+    raw = {
+        n: (torch.randn(lead[0] * lead[1], 4, 8, 8, dtype=torch.float64) * 1.5) for n, lead in leads.items()
+    }
+    for x in raw.values():
+        x.requires_grad_()
+    target = torch.rand(2, 3, 3, 8, 8, dtype=torch.float64) - 0.5
+
+    def grads(mode, fused=True):
+        composition = MaskComposition(
+            clamp_gradient="zero" if mode == "straight_through" else mode, gradient_floor=0.05
+        )
+        outputs = {n: raw[n].reshape(*leads[n], 4, 8, 8) for n in names}
+        if fused:
+            composite, _, _ = composition.compose_decoded(outputs)
+        else:
+            colors = {n: o[..., :3, :, :] for n, o in outputs.items()}
+            if mode == "straight_through":  # clamped forward, identity backward: the gradient before gating
+                colors = {n: c + (c.clamp(-0.5, 0.5) - c).detach() for n, c in colors.items()}
+            else:
+                colors = composition.bound(colors)
+            logits = {n: o[..., 3:, :, :] for n, o in outputs.items()}
+            composite, _ = composition(colors, logits, bounded=True)
+        return torch.autograd.grad((composite - target).pow(2).sum(), [raw[n] for n in names])
+
+    inward, plain, zero = grads("inward"), grads("inward", fused=False), grads("zero")
+    full = grads("straight_through", fused=False)
+    for name, got, want, closed, ungated in zip(names, inward, plain, zero, full):
+        torch.testing.assert_close(got, want)  # the fused node and the plain operations agree
+        rgb = raw[name][:, :3].detach()
+        expected = ungated[:, :3] * inward_pass(ungated[:, :3], rgb, -0.5, 0.5)
+        torch.testing.assert_close(got[:, :3], expected)
+        torch.testing.assert_close(got[:, 3:], closed[:, 3:])  # the logits' gradients are unchanged
+        outside = rgb.abs() > 0.5
+        assert (closed[:, :3][outside] == 0).all()  # a plain clamp passes nothing beyond the range
+        assert (got[:, :3][outside] != 0).any()  # the inward one passes some
+    with pytest.raises(ValueError, match="clamp_gradient"):
+        MaskComposition(clamp_gradient="straight")

@@ -40,6 +40,32 @@ MASK_MODES = ("softmax", "sigmoid")
 BRANCHES = ("control", "free", "static")
 #: The preprocessed pixel range (``isodream_rl.modules.encoder.preprocess_pixels``).
 PIXEL_RANGE = (-0.5, 0.5)
+CLAMP_GRADIENTS = ("zero", "inward")
+
+
+def inward_pass(grad: torch.Tensor, value: torch.Tensor, low: float, high: float) -> torch.Tensor:
+    """Where the gradient of ``clamp(x, low, high)`` passes in ``"inward"`` mode, as 0/1 of ``grad``'s dtype:
+    inside the range, and on or beyond a bound where a descent step (``x -= lr * grad``) moves ``x`` back
+    towards the range (``grad > 0`` at the top, ``grad < 0`` at the bottom). ``value`` may be ``x`` or the
+    clamped ``x`` (the same answer)."""
+    keep = ((value > low) & (value < high)) | ((value >= high) & (grad > 0)) | ((value <= low) & (grad < 0))
+    return keep.to(grad.dtype)
+
+
+class _InwardClamp(torch.autograd.Function):
+    """``x.clamp(low, high)`` whose backward passes the gradients that point back into the range."""
+
+    @staticmethod
+    def forward(ctx, x, low, high):
+        out = x.clamp(low, high)
+        ctx.save_for_backward(out)
+        ctx.bounds = (low, high)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        (out,) = ctx.saved_tensors
+        return grad * inward_pass(grad, out, *ctx.bounds), None, None
 
 
 class MaskComposition(nn.Module):
@@ -53,6 +79,10 @@ class MaskComposition(nn.Module):
             ``[0, 1)``.
         gradient_floor: softmax mode, backward only: colours' gradients see masks ``>= gradient_floor``
             (the logits' gradients stay exact), in ``[0, 1)``.
+        clamp_gradient: backward of the clamp: ``"zero"`` (a plain clamp: no gradient to a colour outside the
+            range, in either direction) or ``"inward"`` (the forward unchanged; a colour outside the range gets
+            the gradients that move it back towards the range, so a branch whose colours all overshoot where
+            its mask is shut can come back).
 
     Forward:
         ``colors`` and ``logits`` map branch names (``"control"``, ``"free"``, ``"static"``; any subset
@@ -72,8 +102,12 @@ class MaskComposition(nn.Module):
         clamp_components: bool = True,
         mask_floor: float = 0.0,
         gradient_floor: float = 0.0,
+        clamp_gradient: str = "zero",
     ):
         super().__init__()
+        if clamp_gradient not in CLAMP_GRADIENTS:
+            raise ValueError(f"unknown clamp_gradient {clamp_gradient!r}; valid: {CLAMP_GRADIENTS}")
+        self.clamp_gradient = clamp_gradient
         if mask_mode not in MASK_MODES:
             raise ValueError(f"unknown mask_mode {mask_mode!r}; valid: {MASK_MODES}")
         if not 0.0 <= mask_floor < 1.0 or not 0.0 <= gradient_floor < 1.0:
@@ -91,6 +125,8 @@ class MaskComposition(nn.Module):
         """The components as :meth:`forward` mixes them: clamped to ``PIXEL_RANGE`` (see ``clamp_components``)."""
         if not self.clamp_components or len(colors) < 2:
             return dict(colors)
+        if self.clamp_gradient == "inward":
+            return {name: _InwardClamp.apply(color, *PIXEL_RANGE) for name, color in colors.items()}
         return {name: color.clamp(*PIXEL_RANGE) for name, color in colors.items()}
 
     def forward(
@@ -165,7 +201,7 @@ class MaskComposition(nn.Module):
         leads = [tuple(outputs[n].shape[:-3]) for n in names]
         flat = [outputs[n].reshape(-1, *outputs[n].shape[-3:]) for n in names]
         composite, stacked, *colors = _SoftmaxComposition.apply(
-            bounds, leads, (self.mask_floor, self.gradient_floor), *flat
+            bounds, self.clamp_gradient == "inward", leads, (self.mask_floor, self.gradient_floor), *flat
         )
         return composite, dict(zip(names, stacked.split(1, dim=-3))), dict(zip(names, colors))
 
@@ -194,8 +230,9 @@ class _SoftmaxComposition(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, bounds, leads, floors, *raw):
+    def forward(ctx, bounds, inward, leads, floors, *raw):
         shape = torch.broadcast_shapes(*leads)
+        ctx.inward = inward
         size = raw[0].shape[-2:]
         ctx.formats = [memory_format_of(r) for r in raw]
         ctx.leads, ctx.bounds = leads, bounds
@@ -241,8 +278,11 @@ class _SoftmaxComposition(torch.autograd.Function):
             if grad_colors[i] is not None:
                 g = grad_colors[i].clone() if g is None else g.add_(grad_colors[i])
             if g is not None and ctx.bounds is not None:
-                # zero outside the range; a clamped colour sits exactly on a bound, an unclamped one inside
-                g = torch.ops.aten.hardtanh_backward.grad_input(g, color, *ctx.bounds, grad_input=g)
+                if ctx.inward:
+                    g = g.mul_(inward_pass(g, color, *ctx.bounds))
+                else:
+                    # zero outside the range; a clamped colour sits exactly on a bound, an unclamped one inside
+                    g = torch.ops.aten.hardtanh_backward.grad_input(g, color, *ctx.bounds, grad_input=g)
             grads.append(g)
             q_i = None
             if grad_composite is not None:
@@ -281,4 +321,4 @@ class _SoftmaxComposition(torch.autograd.Function):
                 else:
                     part.copy_(value.reshape(count, -1, *size))
             out.append(grad)
-        return (None, None, None, *out)
+        return (None, None, None, None, *out)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
-from isodream_rl.modules.composition import MASK_MODES
+from isodream_rl.modules.composition import CLAMP_GRADIENTS, MASK_MODES
 from isodream_rl.modules.inverse_dynamics import INVERSE_INPUTS
 
 #: Size presets. ``paper``: Table 5 and isodream_reference.md §8 (cnn depth 32, deter 200, stoch 50,
@@ -52,6 +52,10 @@ class WorldModelConfig:
     clamp_components: bool = True
     """Clamp each branch's RGB component to the pixel range before composing (the authors' code); without it
     faint masks times out-of-range colours reproduce objects and the masks never separate the scene."""
+    clamp_gradient: str = "zero"
+    """Backward of that clamp: ``"zero"`` (a plain clamp) or ``"inward"`` (forward unchanged; a colour beyond
+    the range gets the gradients that move it back, so a branch whose colours overshoot under a shut mask can
+    come back; see :class:`~isodream_rl.modules.composition.MaskComposition`)."""
     decoder_input: str = "paper"
     """``"paper"``: controllable component from the one-step prior s~_t, noncontrollable from the posterior z_t
     (§3.2, against collapse); ``"posterior"``: both from posteriors."""
@@ -92,6 +96,7 @@ class WorldModelConfig:
             ("mask_mode", self.mask_mode, MASK_MODES),
             ("decoder_input", self.decoder_input, DECODER_INPUTS),
             ("free_decoder_input", self.free_decoder_input, FREE_DECODER_INPUTS),
+            ("clamp_gradient", self.clamp_gradient, CLAMP_GRADIENTS),
             ("precision", self.precision, PRECISIONS),
         ):
             if value not in valid:

@@ -112,6 +112,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             clamp_components=cfg.clamp_components,
             mask_floor=cfg.mask_floor,
             gradient_floor=cfg.gradient_floor,
+            clamp_gradient=cfg.clamp_gradient,
         )
         self.inverse_cell = (
             InverseDynamicsCell(

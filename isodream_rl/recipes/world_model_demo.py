@@ -109,6 +109,13 @@ def parse_args(argv=None) -> argparse.Namespace:
         "can draw only what moves predictably without actions (WorldModelConfig.free_decoder_input)",
     )
     p.add_argument(
+        "--clamp-gradient",
+        choices=["zero", "inward"],
+        default="zero",
+        help="backward of the components' clamp: none beyond the pixel range, or the gradients pointing back "
+        "into it (WorldModelConfig.clamp_gradient)",
+    )
+    p.add_argument(
         "--free-branch",
         choices=["kl", "recon_only"],
         default="kl",
@@ -322,6 +329,7 @@ def main(argv=None) -> dict:
         "inverse_input": args.inverse_input,
         "decoder_input": args.decoder_input,
         "free_decoder_input": args.free_decoder_input,
+        "clamp_gradient": args.clamp_gradient,
         "mask_floor": args.mask_floor,
         "gradient_floor": args.gradient_floor,
     }
