@@ -287,3 +287,5 @@ def test_inward_clamp_passes_only_the_gradients_that_point_back_into_the_range()
         assert (got[:, :3][outside] != 0).any()  # the inward one passes some
     with pytest.raises(ValueError, match="clamp_gradient"):
         MaskComposition(clamp_gradient="straight")
+    with pytest.raises(ValueError, match="needs clamp_components=True"):
+        MaskComposition(clamp_gradient="inward", clamp_components=False)

@@ -226,6 +226,8 @@ class TestWorldModel:
             WorldModelConfig.from_preset("huge", action_dim=2)
         with pytest.raises(ValueError, match="free_decoder_input 'state'"):
             tiny(free_decoder_input="state")
+        with pytest.raises(ValueError, match="needs clamp_components=True"):
+            tiny(clamp_gradient="inward", clamp_components=False)
 
     def test_short_windows_reuse_their_last_frame_for_the_background(self):
         wm = IsoDreamWorldModel(tiny(static_frames=10))

@@ -105,9 +105,6 @@ class MaskComposition(nn.Module):
         clamp_gradient: str = "zero",
     ):
         super().__init__()
-        if clamp_gradient not in CLAMP_GRADIENTS:
-            raise ValueError(f"unknown clamp_gradient {clamp_gradient!r}; valid: {CLAMP_GRADIENTS}")
-        self.clamp_gradient = clamp_gradient
         if mask_mode not in MASK_MODES:
             raise ValueError(f"unknown mask_mode {mask_mode!r}; valid: {MASK_MODES}")
         if not 0.0 <= mask_floor < 1.0 or not 0.0 <= gradient_floor < 1.0:
@@ -116,8 +113,15 @@ class MaskComposition(nn.Module):
             )
         if (mask_floor or gradient_floor) and mask_mode != "softmax":
             raise ValueError("mask_floor / gradient_floor need mask_mode='softmax'")
+        if clamp_gradient not in CLAMP_GRADIENTS:
+            raise ValueError(f"unknown clamp_gradient {clamp_gradient!r}; valid: {CLAMP_GRADIENTS}")
+        if clamp_gradient == "inward" and not clamp_components:
+            raise ValueError(
+                "clamp_gradient='inward' is the backward of the clamp; it needs clamp_components=True"
+            )
         self.mask_mode = mask_mode
         self.clamp_components = clamp_components
+        self.clamp_gradient = clamp_gradient
         self.mask_floor = mask_floor
         self.gradient_floor = gradient_floor
 

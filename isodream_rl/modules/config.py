@@ -109,6 +109,10 @@ class WorldModelConfig:
             raise ValueError("static_mask_bias needs the static branch with mask_mode='softmax'")
         if (self.mask_floor or self.gradient_floor) and self.mask_mode != "softmax":
             raise ValueError("mask_floor / gradient_floor need mask_mode='softmax'")
+        if self.clamp_gradient == "inward" and not self.clamp_components:
+            raise ValueError(
+                "clamp_gradient='inward' is the backward of the clamp; it needs clamp_components=True"
+            )
         if self.static_frames < 1:
             raise ValueError(f"static_frames must be >= 1, got {self.static_frames}")
 
