@@ -46,7 +46,11 @@ class WorldModelConfig:
     inverse_dynamics: bool = True
     """The inverse-dynamics cell."""
     inverse_input: str = "state"
-    """``"state"``: MLP(s_{t-1}, s_t) on posterior states (paper); ``"embedding"``: e^s_t - e^s_{t-1} (authors)."""
+    """``"state"``: MLP(s_{t-1}, s_t) on posterior states (paper); ``"embedding"``: e^s_t - e^s_{t-1} (authors).
+
+    The posterior sees ``h_t``, computed from ``a_{t-1}``, so ``"state"`` can be solved without the pixels;
+    ``"embedding"`` cannot, but needs a larger ``lambda_inverse`` (30 in the sprites demo) to learn against
+    the pixel-sum image loss (docs/results/world_model_demo.md)."""
     mask_mode: str = "softmax"
     """``"softmax"`` over three logits, or the authors' ``"sigmoid"`` masks with 1 - M^s - M^z background."""
     clamp_components: bool = True
