@@ -28,6 +28,8 @@ def test_demo_writes_picture_scores_checkpoint_and_csv(tmp_path):
             "2",
             "--precision",
             "fp32",
+            "--adam-eps",
+            "1e-7",
             "--out",
             str(tmp_path),
         ]
@@ -35,6 +37,7 @@ def test_demo_writes_picture_scores_checkpoint_and_csv(tmp_path):
     assert (tmp_path / "branches.png").stat().st_size > 0
     saved_model = torch.load(tmp_path / "world_model.pt", map_location="cpu")
     assert saved_model["step"] == 3 and set(saved_model) == {"config", "model", "optimizer", "step"}
+    assert saved_model["optimizer"]["param_groups"][0]["eps"] == 1e-7
     assert not list(tmp_path.glob("*.tmp")), "a temporary checkpoint was left behind"
     saved = json.loads((tmp_path / "summary.json").read_text())
     assert saved["updates"] == 3 and 0.0 <= saved["iou_control_vs_agent"] <= 1.0

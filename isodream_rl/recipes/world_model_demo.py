@@ -205,6 +205,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         "embedding-difference inverse does not learn here against the pixel-sum image loss)",
     )
     p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument(
+        "--adam-eps",
+        type=float,
+        default=1e-5,
+        help="Adam's epsilon (1e-5: the authors'; the encoder heads' gradients start at ~1e-7 to 1e-6)",
+    )
     p.add_argument("--precision", choices=["fp32", "bf16"], default=None, help="default: bf16 where fast")
     p.add_argument("--device", default="cpu")
     p.add_argument("--eval-every", type=int, default=200, help="updates between pictures / mask scores")
@@ -359,7 +365,7 @@ def main(argv=None) -> dict:
         if args.assignment_branches == "all"
         else tuple(args.assignment_branches.split(",")),
     )
-    optimizer = torch.optim.Adam(loss.parameters(), lr=args.lr, eps=1e-5)
+    optimizer = torch.optim.Adam(loss.parameters(), lr=args.lr, eps=args.adam_eps)
     logger = CSVLogger(exp_name="world_model_demo", log_dir=str(out_dir))
     logger.log_hparams({**config.to_dict(), **{k: v for k, v in vars(args).items() if k != "out"}})
 
