@@ -12,7 +12,7 @@ branch absorbs it), the background's mask logit starting at +3 (otherwise the th
 the controllable component decoded from the posterior (from the paper's one-step prior the agent had
 not appeared after 4000 updates), and the authors' inverse-dynamics input, embedding differences, at
 ``alpha = 30``: the paper's input, posterior states, is solved through ``h_t`` without the pixels, and in
-9 of 23 runs with it the controllable KL spiked within the first 1000 updates, after which the branch never
+9 of 23 runs with it the controllable KL spiked in the first ~1000 updates, after which the branch never
 found the agent; at ``alpha = 1`` the embedding differences are too small for the inverse cell to learn.
 """
 
@@ -209,7 +209,7 @@ def parse_args(argv=None) -> argparse.Namespace:
         "--adam-eps",
         type=float,
         default=1e-5,
-        help="Adam's epsilon (1e-5: the authors'; the encoder heads' gradients start at ~1e-7 to 1e-6)",
+        help="Adam's epsilon (1e-5: the authors'; the encoder heads' mean gradients start at ~5e-7 to 3e-6)",
     )
     p.add_argument("--precision", choices=["fp32", "bf16"], default=None, help="default: bf16 where fast")
     p.add_argument("--device", default="cpu")
