@@ -12,7 +12,7 @@ branch absorbs it), the background's mask logit starting at +3 (otherwise the th
 the controllable component decoded from the posterior (from the paper's one-step prior the agent had
 not appeared after 4000 updates), and the authors' inverse-dynamics input, embedding differences, at
 ``alpha = 30``: the paper's input, posterior states, is solved through ``h_t`` without the pixels, and in
-9 of 23 runs with it the controllable KL spiked in the first ~1000 updates, after which the branch never
+6 of 23 runs with it the controllable KL spiked in the first 700 updates, after which the branch never
 found the agent; at ``alpha = 1`` the embedding differences are too small for the inverse cell to learn.
 """
 
