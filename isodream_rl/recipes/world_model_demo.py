@@ -29,8 +29,16 @@ from torchrl.record.loggers.csv import CSVLogger
 from tqdm import tqdm
 
 from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
+from isodream_rl.modules.config import (
+    CLAMP_GRADIENTS,
+    DECODER_INPUTS,
+    FREE_DECODER_INPUTS,
+    INVERSE_INPUTS,
+    PRECISIONS,
+)
 from isodream_rl.modules.encoder import preprocess_pixels
 from isodream_rl.objectives import IsoDreamModelLoss
+from isodream_rl.objectives.world_model import FREE_BRANCH_MODES
 from isodream_rl.recipes.sprites_data import (
     collect_sprites_episodes,
     episode_windows,
@@ -93,35 +101,35 @@ def parse_args(argv=None) -> argparse.Namespace:
     )
     p.add_argument(
         "--inverse-input",
-        choices=["state", "embedding"],
+        choices=INVERSE_INPUTS,
         default="embedding",
         help="inverse-dynamics input: control-embedding differences (authors' code) or posterior states (paper, "
         "which the posterior solves through h_t without the pixels: see docs/results/world_model_demo.md)",
     )
     p.add_argument(
         "--decoder-input",
-        choices=["paper", "posterior"],
+        choices=DECODER_INPUTS,
         default="posterior",
         help="controllable component from the posterior (default here, as the authors' DMC setting) or from "
         "the one-step prior (paper; the library's default, slower to pick up the agent: see docs/results/world_model_demo.md)",
     )
     p.add_argument(
         "--free-decoder-input",
-        choices=["posterior", "prior"],
+        choices=FREE_DECODER_INPUTS,
         default="posterior",
         help="noncontrollable component from the posterior z_t (paper) or the action-free prior z~_t, which "
         "can draw only what moves predictably without actions (WorldModelConfig.free_decoder_input)",
     )
     p.add_argument(
         "--clamp-gradient",
-        choices=["zero", "inward"],
+        choices=CLAMP_GRADIENTS,
         default="zero",
         help="backward of the components' clamp: none beyond the pixel range, or the gradients pointing back "
         "into it (WorldModelConfig.clamp_gradient)",
     )
     p.add_argument(
         "--free-branch",
-        choices=["kl", "recon_only"],
+        choices=FREE_BRANCH_MODES,
         default="kl",
         help="noncontrollable branch learns with its KL (CARLA-style) or from the reconstruction only (DMC-style)",
     )
@@ -211,7 +219,7 @@ def parse_args(argv=None) -> argparse.Namespace:
         default=1e-5,
         help="Adam's epsilon (1e-5: the authors'; the encoder heads' mean gradients start at ~5e-7 to 3e-6)",
     )
-    p.add_argument("--precision", choices=["fp32", "bf16"], default=None, help="default: bf16 where fast")
+    p.add_argument("--precision", choices=PRECISIONS, default=None, help="default: bf16 where fast")
     p.add_argument("--device", default="cpu")
     p.add_argument("--eval-every", type=int, default=200, help="updates between pictures / mask scores")
     p.add_argument("--seed", type=int, default=0)
