@@ -36,7 +36,14 @@ def test_demo_writes_picture_scores_checkpoint_and_csv(tmp_path):
     )
     assert (tmp_path / "branches.png").stat().st_size > 0
     saved_model = torch.load(tmp_path / "world_model.pt", map_location="cpu")
-    assert saved_model["step"] == 3 and set(saved_model) == {"config", "model", "optimizer", "step"}
+    assert saved_model["step"] == 3 and set(saved_model) == {"config", "model", "optimizer", "step", "scene"}
+    assert saved_model["scene"] == {
+        "num_backgrounds": 8,
+        "background_seed": 0,
+        "action_hold": 8,
+        "window": 8,
+        "episode_length": 16,
+    }
     assert saved_model["optimizer"]["param_groups"][0]["eps"] == 1e-7
     assert not list(tmp_path.glob("*.tmp")), "a temporary checkpoint was left behind"
     saved = json.loads((tmp_path / "summary.json").read_text())
@@ -48,6 +55,12 @@ def test_demo_writes_picture_scores_checkpoint_and_csv(tmp_path):
         "reco_error_agent",
     ):
         assert 0.0 <= saved[name] <= 3.0 and 0.0 <= saved[f"train_{name}"] <= 3.0, name
+    # the final latent probe: every branch x sprite, an R^2 (at most 1), in the summary and the CSV log
+    probes = {k for k in saved if k.startswith("probe_r2_")}
+    sprites = ("agent", "distractor_0", "distractor_1", "distractor_2")
+    assert probes == {f"probe_r2_{b}_{n}" for b in ("control", "free") for n in sprites}
+    assert all(saved[k] <= 1.0 for k in probes)
+    assert list(tmp_path.rglob("probe_r2_free_agent.csv"))
     assert summary["png"] == str(tmp_path / "branches.png")
     assert list(tmp_path.rglob("*.csv")), "the CSV logger wrote nothing"
 
@@ -123,6 +136,10 @@ def test_demo_runs_the_single_branch_ablation_scored_by_disc_reconstruction(tmp_
         + ["--model", "dreamerv2", "--free-component-weight", "0"]
     )
     assert "iou_free_vs_distractors" not in summary and "free_covers_distractor_0" not in summary
+    # probed like the full model, on its one state
+    assert {k for k in summary if k.startswith("probe_")} == {
+        f"probe_r2_control_{n}" for n in ("agent", "distractor_0", "distractor_1", "distractor_2")
+    }
     assert 0.0 <= summary["reco_error_distractor_0"] <= 3.0
     saved = torch.load(tmp_path / "world_model.pt", map_location="cpu")
     assert saved["config"]["free_branch"] is False and saved["config"]["static_branch"] is False

@@ -43,3 +43,18 @@ def test_probe_scores_every_branch_and_sprite_and_the_cli_writes_json(tmp_path):
     torch.save({"config": model.config.to_dict(), "model": model.state_dict()}, path)
     out = main([str(path), "--episodes", "4", "--window", "8", "--json", str(tmp_path / "p.json")])
     assert set(out) == set(scores) and (tmp_path / "p.json").stat().st_size > 0
+
+
+def test_the_cli_probes_on_the_scene_the_checkpoint_was_trained_on(tmp_path):
+    torch.manual_seed(0)
+    model = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
+    scene = {"num_backgrounds": 2, "background_seed": 5, "action_hold": 4, "window": 8, "episode_length": 16}
+    path = tmp_path / "model.pt"
+    torch.save({"config": model.config.to_dict(), "model": model.state_dict(), "scene": scene}, path)
+    expected = probe(model, episodes=4, **scene)
+    assert main([str(path), "--episodes", "4"]) == expected
+    # a flag overrides the checkpoint's value
+    assert main([str(path), "--episodes", "4", "--background-seed", "6"]) == probe(
+        model, episodes=4, **{**scene, "background_seed": 6}
+    )
+    assert probe(model, episodes=4, **{**scene, "background_seed": 6}) != expected

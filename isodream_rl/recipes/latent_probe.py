@@ -11,8 +11,9 @@ position), it does not.
 
     python -m isodream_rl.recipes.latent_probe runs/world_model_demo/world_model.pt
 
-The episodes are made like the demo's (same background pool, held actions), from seeds the demo never
-trains on.
+The episodes are made like the demo's (its background pool, action hold and window, read from the
+checkpoint; flags override them), from seeds the demo never trains on. ``isodream-demo`` runs the same
+probe at the end of training and reports it as ``probe_r2_*`` in its ``summary.json``.
 """
 
 from __future__ import annotations
@@ -123,30 +124,59 @@ def probe(
     return scores
 
 
-def load_model(path, device="cpu") -> IsoDreamWorldModel:
-    """The world model of a demo checkpoint (``isodream-demo``'s ``world_model.pt``)."""
+#: The demo's data settings, for checkpoints that predate storing them (``isodream-demo``'s defaults).
+DEMO_SCENE = {
+    "num_backgrounds": 8,
+    "background_seed": 0,
+    "action_hold": 8,
+    "window": 16,
+    "episode_length": 96,
+}
+
+
+def load_checkpoint(path, device="cpu") -> tuple[IsoDreamWorldModel, dict]:
+    """The world model of a demo checkpoint and the scene it was trained on (:data:`DEMO_SCENE` where the
+    file does not say)."""
     state = torch.load(path, map_location="cpu", weights_only=False)
     config = WorldModelConfig(**{**state["config"], "precision": "fp32"})
     model = IsoDreamWorldModel(config, device=device)
     model.load_state_dict(state["model"])
-    return model
+    return model, {**DEMO_SCENE, **state.get("scene", {})}
 
 
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("checkpoint", help="a world_model.pt written by isodream-demo")
     p.add_argument("--episodes", type=int, default=32, help="probe episodes (half fit, half score)")
-    p.add_argument("--window", type=int, default=16)
-    p.add_argument("--backgrounds", type=int, default=8, help="the demo's --backgrounds (0: a new one each)")
-    p.add_argument("--action-hold", type=int, default=8)
+    p.add_argument("--window", type=int, default=None, help="default: the checkpoint's (16)")
+    p.add_argument(
+        "--backgrounds",
+        type=int,
+        default=None,
+        help="background pool size (0: a new one each); default: the checkpoint's (8)",
+    )
+    p.add_argument(
+        "--background-seed", type=int, default=None, help="the demo's --seed; default: the checkpoint's (0)"
+    )
+    p.add_argument("--action-hold", type=int, default=None, help="default: the checkpoint's (8)")
     p.add_argument("--json", default=None, help="also write the scores here")
     args = p.parse_args(argv)
+    model, scene = load_checkpoint(args.checkpoint)
+    flags = {
+        "window": args.window,
+        "num_backgrounds": args.backgrounds,
+        "background_seed": args.background_seed,
+        "action_hold": args.action_hold,
+    }
+    scene.update({k: v for k, v in flags.items() if v is not None})
     scores = probe(
-        load_model(args.checkpoint),
-        window=args.window,
+        model,
+        window=scene["window"],
         episodes=args.episodes,
-        num_backgrounds=args.backgrounds or None,
-        action_hold=args.action_hold,
+        episode_length=scene["episode_length"],
+        num_backgrounds=scene["num_backgrounds"] or None,
+        background_seed=scene["background_seed"],
+        action_hold=scene["action_hold"],
     )
     text = json.dumps({k: round(v, 3) for k, v in scores.items()}, indent=2)
     print(text)

@@ -4,7 +4,9 @@
 :class:`~isodream_rl.modules.IsoDreamWorldModel` with :class:`~isodream_rl.objectives.IsoDreamModelLoss`
 for a few minutes on CPU, then, on held-out episodes, writes a PNG grid (ground truth, composite, each
 branch's component and mask over time) and scores the learned masks against the ground-truth masks (IoU).
-Everything it needs is generated locally.
+At the end it also probes what each branch's state knows (:mod:`isodream_rl.recipes.latent_probe`: the
+held-out R^2 of a linear read-out of each sprite's position), which scores the single-branch baseline
+(``--model dreamerv2``, no masks) and Iso-Dream alike. Everything it needs is generated locally.
 
 Defaults that differ from the library's (each measured in ``docs/results/world_model_demo.md``): random
 actions held for 8 steps (a new one each step only makes the agent jitter in place, and the background
@@ -39,6 +41,7 @@ from isodream_rl.modules.config import (
 from isodream_rl.modules.encoder import preprocess_pixels
 from isodream_rl.objectives import IsoDreamModelLoss
 from isodream_rl.objectives.world_model import FREE_BRANCH_MODES
+from isodream_rl.recipes.latent_probe import probe
 from isodream_rl.recipes.sprites_data import (
     collect_sprites_episodes,
     episode_windows,
@@ -222,6 +225,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--precision", choices=PRECISIONS, default=None, help="default: bf16 where fast")
     p.add_argument("--device", default="cpu")
     p.add_argument("--eval-every", type=int, default=200, help="updates between pictures / mask scores")
+    p.add_argument(
+        "--probe-episodes",
+        type=int,
+        default=32,
+        help="fresh episodes for the final latent probe (half fit, half score; 0: no probe)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="runs/world_model_demo", help="output folder (logs, PNG, checkpoint)")
     p.add_argument(
@@ -268,9 +277,12 @@ def evaluate(loss: IsoDreamModelLoss, data, *, window: int, device) -> tuple[dic
     return scores, out.cpu()
 
 
-def save_checkpoint(path: Path, config, loss: IsoDreamModelLoss, optimizer, step: int) -> Path:
+def save_checkpoint(
+    path: Path, config, loss: IsoDreamModelLoss, optimizer, step: int, *, scene: dict | None = None
+) -> Path:
     """Write the world model, its config, the optimiser and the update count atomically (temporary file,
-    then rename): an interrupted write never leaves a truncated checkpoint."""
+    then rename): an interrupted write never leaves a truncated checkpoint. ``scene``: the data's settings
+    (background pool, action hold, window), which the latent probe reads to make episodes like these."""
     tmp = path.with_suffix(".tmp")
     state = {
         "config": config.to_dict(),
@@ -278,6 +290,8 @@ def save_checkpoint(path: Path, config, loss: IsoDreamModelLoss, optimizer, step
         "optimizer": optimizer.state_dict(),
         "step": step,
     }
+    if scene is not None:
+        state["scene"] = dict(scene)
     torch.save(state, tmp)
     os.replace(tmp, path)
     return path
@@ -424,15 +438,37 @@ def main(argv=None) -> dict:
                 logger.log_scalar(key, value, step=step + 1)
             picture = save_png(branch_grid(out, sample=0, steps=args.window), out_dir / "branches.png")
             # at every evaluation, so a long run cut short still leaves its latest model
-            checkpoint = save_checkpoint(out_dir / "world_model.pt", config, loss, optimizer, step + 1)
+            checkpoint = save_checkpoint(
+                out_dir / "world_model.pt",
+                config,
+                loss,
+                optimizer,
+                step + 1,
+                scene={**scene, "window": args.window, "episode_length": args.episode_length},
+            )
             bar.write(
                 f"update {step + 1}: "
                 + ", ".join(f"{k} {v:.3f}" for k, v in scores.items() if not k.startswith("train_"))
             )
 
+    seconds = time.perf_counter() - start
+    if args.probe_episodes:
+        # what each branch's state knows, on fresh episodes of the same scene (seeds the demo never trains on)
+        probed = probe(
+            loss.world_model,
+            window=args.window,
+            episodes=args.probe_episodes,
+            episode_length=args.episode_length,
+            seed=args.seed + 1000,
+            **scene,
+        )
+        scores.update({f"probe_{k}": v for k, v in probed.items()})
+        for key, value in probed.items():
+            logger.log_scalar(f"probe_{key}", value, step=args.steps)
+        loss.world_model.train()
     summary = {
         "updates": args.steps,
-        "seconds": round(time.perf_counter() - start, 1),
+        "seconds": round(seconds, 1),
         "precision": precision,
         "size": args.size,
         **{k: round(v, 3) for k, v in scores.items()},
