@@ -97,6 +97,7 @@ def probe(
         "num_distractors": num_distractors,
     }
     data = collect_sprites_episodes(episodes=episodes, steps=episode_length, seed=seed, **scene)
+    training = model.training
     model.eval()
     device = next(model.parameters()).device
     # the posterior states are samples: seeded here (without touching the caller's generator), so a probe
@@ -104,6 +105,7 @@ def probe(
     with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
         torch.manual_seed(seed)
         feats = branch_features(model, data.to(device), window=window)
+    model.train(training)
     truth = data["next"].reshape(-1, window)[:, window // 4 :].reshape(-1)
     centres, visible = sprite_centres(truth, num_distractors)
     half = len(centres) // 2
@@ -124,24 +126,14 @@ def probe(
     return scores
 
 
-#: The demo's data settings, for checkpoints that predate storing them (``isodream-demo``'s defaults).
-DEMO_SCENE = {
-    "num_backgrounds": 8,
-    "background_seed": 0,
-    "action_hold": 8,
-    "window": 16,
-    "episode_length": 96,
-}
-
-
 def load_checkpoint(path, device="cpu") -> tuple[IsoDreamWorldModel, dict]:
-    """The world model of a demo checkpoint and the scene it was trained on (:data:`DEMO_SCENE` where the
-    file does not say)."""
+    """The world model of a demo checkpoint and the scene it was trained on, as :func:`probe` keywords
+    (empty for checkpoints that predate storing it: :func:`probe`'s defaults are the demo's)."""
     state = torch.load(path, map_location="cpu", weights_only=False)
     config = WorldModelConfig(**{**state["config"], "precision": "fp32"})
     model = IsoDreamWorldModel(config, device=device)
     model.load_state_dict(state["model"])
-    return model, {**DEMO_SCENE, **state.get("scene", {})}
+    return model, dict(state.get("scene", {}))
 
 
 def main(argv=None) -> dict:
@@ -169,15 +161,9 @@ def main(argv=None) -> dict:
         "action_hold": args.action_hold,
     }
     scene.update({k: v for k, v in flags.items() if v is not None})
-    scores = probe(
-        model,
-        window=scene["window"],
-        episodes=args.episodes,
-        episode_length=scene["episode_length"],
-        num_backgrounds=scene["num_backgrounds"] or None,
-        background_seed=scene["background_seed"],
-        action_hold=scene["action_hold"],
-    )
+    if "num_backgrounds" in scene:
+        scene["num_backgrounds"] = scene["num_backgrounds"] or None  # 0: a new background each episode
+    scores = probe(model, episodes=args.episodes, **scene)
     text = json.dumps({k: round(v, 3) for k, v in scores.items()}, indent=2)
     print(text)
     if args.json:

@@ -359,6 +359,8 @@ def main(argv=None) -> dict:
         episodes=args.episodes, steps=args.episode_length, seed=args.seed, **scene
     )
     held_out = collect_sprites_episodes(episodes=4, steps=args.episode_length, seed=args.seed + 1, **scene)
+    # what the checkpoint records and the final probe uses: the scene and how it was cut into windows
+    data_scene = {**scene, "window": args.window, "episode_length": args.episode_length}
     buffer = make_window_buffer(train, batch_size=args.batch_size, window=args.window)
 
     options = {
@@ -444,7 +446,7 @@ def main(argv=None) -> dict:
                 loss,
                 optimizer,
                 step + 1,
-                scene={**scene, "window": args.window, "episode_length": args.episode_length},
+                scene=data_scene,
             )
             bar.write(
                 f"update {step + 1}: "
@@ -454,18 +456,10 @@ def main(argv=None) -> dict:
     seconds = time.perf_counter() - start
     if args.probe_episodes:
         # what each branch's state knows, on fresh episodes of the same scene (seeds the demo never trains on)
-        probed = probe(
-            loss.world_model,
-            window=args.window,
-            episodes=args.probe_episodes,
-            episode_length=args.episode_length,
-            seed=args.seed + 1000,
-            **scene,
-        )
+        probed = probe(loss.world_model, episodes=args.probe_episodes, seed=args.seed + 1000, **data_scene)
         scores.update({f"probe_{k}": v for k, v in probed.items()})
         for key, value in probed.items():
             logger.log_scalar(f"probe_{key}", value, step=args.steps)
-        loss.world_model.train()
     summary = {
         "updates": args.steps,
         "seconds": round(seconds, 1),
