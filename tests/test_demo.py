@@ -41,6 +41,7 @@ def test_demo_writes_picture_scores_checkpoint_and_csv(tmp_path):
         "num_backgrounds": 8,
         "background_seed": 0,
         "action_hold": 8,
+        "sprite_size": 0.06,
         "window": 8,
         "episode_length": 16,
     }

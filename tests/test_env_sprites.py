@@ -194,3 +194,20 @@ def test_default_draws_a_new_background_per_episode():
 def test_bad_background_pool_size_is_rejected():
     with pytest.raises(ValueError, match="num_backgrounds"):
         SpritesEnv(num_backgrounds=0)
+
+
+@pytest.mark.parametrize("sprite_size, radius", [(0.06, 4), (0.1, 6)])
+def test_sprite_size_sets_the_drawn_sprites_radius(sprite_size, radius):
+    env = SpritesEnv(sprite_size=sprite_size, num_distractors=1)
+    assert env.radius == radius
+    for seed in range(4):
+        _, info = env.reset(seed=seed)
+        assert info["mask_agent"].sum() == (2 * radius + 1) ** 2
+        if not (info["mask_distractors"] & ~info["mask_agent"]).any():
+            continue
+        ys, xs = np.nonzero(info["distractor_ids"] == 1)
+        assert ys.max() - ys.min() <= 2 * radius and xs.max() - xs.min() <= 2 * radius
+    with pytest.raises(ValueError, match="sprite_size"):
+        SpritesEnv(sprite_size=0.0)
+    with pytest.raises(ValueError, match="sprite_size"):
+        SpritesEnv(sprite_size=0.3)

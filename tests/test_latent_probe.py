@@ -58,3 +58,8 @@ def test_the_cli_probes_on_the_scene_the_checkpoint_was_trained_on(tmp_path):
         model, episodes=4, **{**scene, "background_seed": 6}
     )
     assert probe(model, episodes=4, **{**scene, "background_seed": 6}) != expected
+    # the sprite size is part of the scene: a checkpoint trained on larger sprites is probed on them
+    bigger = {**scene, "sprite_size": 0.1}
+    torch.save({"config": model.config.to_dict(), "model": model.state_dict(), "scene": bigger}, path)
+    assert main([str(path), "--episodes", "4"]) == probe(model, episodes=4, **bigger)
+    assert probe(model, episodes=4, **bigger) != expected

@@ -44,7 +44,8 @@ class SpritesEnv(gym.Env):
 
     Scene (``S = image_size``):
 
-    - **agent** (controllable): a white square with a black border, half-width ``round(0.06 * S)`` pixels.
+    - **agent** (controllable): a white square with a black border, half-width
+      ``radius = max(2, round(sprite_size * S))`` pixels.
       Its centre moves by ``agent_speed * S * action`` pixels per step and is clamped inside the frame.
     - **distractors** (noncontrollable): ``num_distractors`` coloured discs of the same radius, each moving
       with a constant speed ``distractor_speed * S`` pixels per step in a random direction, reflected by the
@@ -95,6 +96,8 @@ class SpritesEnv(gym.Env):
             ``None`` draws a new background every episode. Defaults to ``None``.
         background_seed (int, optional): seed of the background pool (ignored without
             ``num_backgrounds``). Defaults to 0.
+        sprite_size (float, optional): half-width of every sprite (agent, distractors, target) as a fraction
+            of ``S``, in ``(0, 0.2]``. Defaults to 0.06 (a 9-pixel disc at ``S = 64``).
 
     Observation: ``Box(0, 255, (S, S, 3), uint8)``, HWC. Action: ``Box(-1, 1, (2,), float32)``, ``(dx, dy)``.
 
@@ -122,6 +125,7 @@ class SpritesEnv(gym.Env):
         render_mode: str | None = None,
         num_backgrounds: int | None = None,
         background_seed: int = 0,
+        sprite_size: float = 0.06,
     ) -> None:
         if task not in SPRITES_TASKS:
             raise ValueError(f"Unknown sprites task {task!r}; expected one of {SPRITES_TASKS}.")
@@ -139,6 +143,10 @@ class SpritesEnv(gym.Env):
             )
         if num_backgrounds is not None and (not isinstance(num_backgrounds, int) or num_backgrounds < 1):
             raise ValueError(f"num_backgrounds must be None or an int >= 1, got {num_backgrounds!r}.")
+        if not 0.0 < sprite_size <= 0.2:
+            raise ValueError(
+                f"sprite_size must be in (0, 0.2] (a fraction of image_size), got {sprite_size!r}."
+            )
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}.")
         self.image_size = image_size
@@ -151,7 +159,8 @@ class SpritesEnv(gym.Env):
         self.contact_penalty = contact_penalty
         self.render_mode = render_mode
 
-        self.radius = max(2, round(0.06 * image_size))
+        self.sprite_size = sprite_size
+        self.radius = max(2, round(sprite_size * image_size))
         side = 2 * self.radius + 1
         self._agent_fill = np.zeros((side, side), dtype=bool)
         self._agent_fill[1:-1, 1:-1] = True

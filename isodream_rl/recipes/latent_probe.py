@@ -81,6 +81,7 @@ def probe(
     background_seed: int = 0,
     action_hold: int = 8,
     num_distractors: int = 3,
+    sprite_size: float = 0.06,
     seed: int = 1000,
     ridge: float = 10.0,
 ) -> dict[str, float]:
@@ -95,6 +96,7 @@ def probe(
         "background_seed": background_seed,
         "action_hold": action_hold,
         "num_distractors": num_distractors,
+        "sprite_size": sprite_size,
     }
     data = collect_sprites_episodes(episodes=episodes, steps=episode_length, seed=seed, **scene)
     training = model.training
@@ -151,6 +153,7 @@ def main(argv=None) -> dict:
         "--background-seed", type=int, default=None, help="the demo's --seed; default: the checkpoint's (0)"
     )
     p.add_argument("--action-hold", type=int, default=None, help="default: the checkpoint's (8)")
+    p.add_argument("--sprite-size", type=float, default=None, help="default: the checkpoint's (0.06)")
     p.add_argument("--json", default=None, help="also write the scores here")
     args = p.parse_args(argv)
     model, scene = load_checkpoint(args.checkpoint)
@@ -159,6 +162,7 @@ def main(argv=None) -> dict:
         "num_backgrounds": args.backgrounds,
         "background_seed": args.background_seed,
         "action_hold": args.action_hold,
+        "sprite_size": args.sprite_size,
     }
     scene.update({k: v for k, v in flags.items() if v is not None})
     if "num_backgrounds" in scene:

@@ -100,6 +100,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="steps each random action is kept (1: a new one every step, the agent then jitters in place)",
     )
     p.add_argument(
+        "--sprite-size",
+        type=float,
+        default=0.06,
+        help="sprite half-width as a fraction of the frame (0.06: 9-pixel discs; SpritesEnv's sprite_size)",
+    )
+    p.add_argument(
         "--static-mask-bias", type=float, default=3.0, help="initial bias of the background's mask logit"
     )
     p.add_argument(
@@ -354,6 +360,7 @@ def main(argv=None) -> dict:
         "num_backgrounds": args.backgrounds or None,
         "background_seed": args.seed,
         "action_hold": args.action_hold,
+        "sprite_size": args.sprite_size,
     }
     train = collect_sprites_episodes(
         episodes=args.episodes, steps=args.episode_length, seed=args.seed, **scene
