@@ -146,6 +146,29 @@ def test_demo_runs_the_single_branch_ablation_scored_by_disc_reconstruction(tmp_
     assert saved["config"]["free_branch"] is False and saved["config"]["static_branch"] is False
 
 
+def test_demo_composes_with_the_authors_sigmoid_masks(tmp_path):
+    small = [
+        "--steps",
+        "2",
+        "--episodes",
+        "2",
+        "--episode-length",
+        "16",
+        "--window",
+        "8",
+        "--batch-size",
+        "2",
+    ]
+    small += ["--size", "tiny", "--eval-every", "2", "--precision", "fp32", "--probe-episodes", "0"]
+    summary = main([*small, "--mask-mode", "sigmoid", "--out", str(tmp_path)])
+    assert 0.0 <= summary["iou_free_vs_distractors"] <= 1.0
+    saved = torch.load(tmp_path / "world_model.pt", map_location="cpu")
+    assert saved["config"]["mask_mode"] == "sigmoid" and saved["config"]["static_mask_bias"] == 0.0
+    # the background has no logit in sigmoid mode: a bias for it is an error, not silently dropped
+    with pytest.raises(SystemExit, match="static-mask-bias"):
+        main([*small, "--mask-mode", "sigmoid", "--static-mask-bias", "3", "--out", str(tmp_path / "b")])
+
+
 def test_demo_resumes_from_its_checkpoint_and_rejects_other_settings(tmp_path):
     small = ["--episodes", "2", "--episode-length", "16", "--window", "8", "--batch-size", "2"]
     small += ["--size", "tiny", "--eval-every", "2", "--precision", "fp32"]

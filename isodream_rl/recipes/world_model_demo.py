@@ -36,6 +36,7 @@ from isodream_rl.modules.config import (
     DECODER_INPUTS,
     FREE_DECODER_INPUTS,
     INVERSE_INPUTS,
+    MASK_MODES,
     PRECISIONS,
 )
 from isodream_rl.modules.encoder import preprocess_pixels
@@ -106,7 +107,18 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="sprite half-width as a fraction of the frame (0.06: 9-pixel discs; SpritesEnv's sprite_size)",
     )
     p.add_argument(
-        "--static-mask-bias", type=float, default=3.0, help="initial bias of the background's mask logit"
+        "--mask-mode",
+        choices=MASK_MODES,
+        default="softmax",
+        help="softmax over the three mask logits, or the authors' independent sigmoids with 1 - M^s - M^z "
+        "for the background (WorldModelConfig.mask_mode)",
+    )
+    p.add_argument(
+        "--static-mask-bias",
+        type=float,
+        default=None,
+        help="initial bias of the background's mask logit (default 3; softmax mode only: in sigmoid mode the "
+        "background has no logit)",
     )
     p.add_argument(
         "--inverse-input",
@@ -370,8 +382,15 @@ def main(argv=None) -> dict:
     data_scene = {**scene, "window": args.window, "episode_length": args.episode_length}
     buffer = make_window_buffer(train, batch_size=args.batch_size, window=args.window)
 
+    if args.static_mask_bias is None:
+        args.static_mask_bias = 3.0 if args.mask_mode == "softmax" else 0.0
+    elif args.static_mask_bias and args.mask_mode != "softmax":
+        raise SystemExit(
+            "--static-mask-bias needs --mask-mode softmax (in sigmoid mode the background has no logit)"
+        )
     options = {
         "precision": precision,
+        "mask_mode": args.mask_mode,
         "static_mask_bias": args.static_mask_bias,
         "inverse_input": args.inverse_input,
         "decoder_input": args.decoder_input,
