@@ -8,6 +8,9 @@ import torch
 from isodream_rl.recipes.sprites_data import collect_sprites_episodes
 from isodream_rl.recipes.world_model_demo import free_component_weight, main, ramp_weight
 
+# two updates on two short episodes: the arguments every tiny demo run here shares
+TINY_RUN = ("--steps", "2", "--episodes", "2", "--episode-length", "16", "--window", "8", "--batch-size", "2")
+
 
 def test_demo_writes_picture_scores_checkpoint_and_csv(tmp_path):
     summary = main(
@@ -120,18 +123,7 @@ def test_demo_logs_the_mask_assignment_term_once_it_starts(tmp_path):
 
 
 def test_demo_runs_the_single_branch_ablation_scored_by_disc_reconstruction(tmp_path):
-    small = [
-        "--steps",
-        "2",
-        "--episodes",
-        "2",
-        "--episode-length",
-        "16",
-        "--window",
-        "8",
-        "--batch-size",
-        "2",
-    ]
+    small = list(TINY_RUN)
     summary = main(
         [*small, "--size", "tiny", "--eval-every", "2", "--precision", "fp32", "--out", str(tmp_path)]
         + ["--model", "dreamerv2", "--free-component-weight", "0"]
@@ -147,18 +139,7 @@ def test_demo_runs_the_single_branch_ablation_scored_by_disc_reconstruction(tmp_
 
 
 def test_demo_composes_with_the_authors_sigmoid_masks(tmp_path):
-    small = [
-        "--steps",
-        "2",
-        "--episodes",
-        "2",
-        "--episode-length",
-        "16",
-        "--window",
-        "8",
-        "--batch-size",
-        "2",
-    ]
+    small = list(TINY_RUN)
     small += ["--size", "tiny", "--eval-every", "2", "--precision", "fp32", "--probe-episodes", "0"]
     summary = main([*small, "--mask-mode", "sigmoid", "--out", str(tmp_path)])
     assert 0.0 <= summary["iou_free_vs_distractors"] <= 1.0
