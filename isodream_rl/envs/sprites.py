@@ -15,6 +15,8 @@ import gymnasium as gym
 import numpy as np
 
 SPRITES_TASKS = ("none", "reach")
+#: default sprite half-width as a fraction of the frame (a 9-pixel disc at 64x64)
+SPRITE_SIZE = 0.06
 
 # Distractor colours: saturated hues, none of them close to the agent's white or the target's green.
 _DISTRACTOR_COLOURS = np.array(
@@ -125,7 +127,7 @@ class SpritesEnv(gym.Env):
         render_mode: str | None = None,
         num_backgrounds: int | None = None,
         background_seed: int = 0,
-        sprite_size: float = 0.06,
+        sprite_size: float = SPRITE_SIZE,
     ) -> None:
         if task not in SPRITES_TASKS:
             raise ValueError(f"Unknown sprites task {task!r}; expected one of {SPRITES_TASKS}.")

@@ -23,6 +23,7 @@ import json
 
 import torch
 
+from isodream_rl.envs.sprites import SPRITE_SIZE
 from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
 from isodream_rl.recipes.sprites_data import collect_sprites_episodes, episode_windows, model_input
 
@@ -81,7 +82,7 @@ def probe(
     background_seed: int = 0,
     action_hold: int = 8,
     num_distractors: int = 3,
-    sprite_size: float = 0.06,
+    sprite_size: float = SPRITE_SIZE,
     seed: int = 1000,
     ridge: float = 10.0,
 ) -> dict[str, float]:

@@ -7,7 +7,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, SliceSampler, TensorDictReplayBuffer
 
-from isodream_rl.envs.sprites import SpritesEnv
+from isodream_rl.envs.sprites import SPRITE_SIZE, SpritesEnv
 
 
 def collect_sprites_episodes(
@@ -20,7 +20,7 @@ def collect_sprites_episodes(
     num_backgrounds: int | None = None,
     background_seed: int = 0,
     action_hold: int = 1,
-    sprite_size: float = 0.06,
+    sprite_size: float = SPRITE_SIZE,
 ) -> TensorDict:
     """Roll out uniform random actions in :class:`~isodream_rl.envs.sprites.SpritesEnv`.
 

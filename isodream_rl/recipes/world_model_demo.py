@@ -30,6 +30,7 @@ import torch
 from torchrl.record.loggers.csv import CSVLogger
 from tqdm import tqdm
 
+from isodream_rl.envs.sprites import SPRITE_SIZE
 from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
 from isodream_rl.modules.config import (
     CLAMP_GRADIENTS,
@@ -103,8 +104,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument(
         "--sprite-size",
         type=float,
-        default=0.06,
-        help="sprite half-width as a fraction of the frame (0.06: 9-pixel discs; SpritesEnv's sprite_size)",
+        default=SPRITE_SIZE,
+        help=f"sprite half-width as a fraction of the frame ({SPRITE_SIZE}: 9-pixel discs; SpritesEnv's sprite_size)",
     )
     p.add_argument(
         "--mask-mode",
