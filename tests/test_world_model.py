@@ -49,6 +49,7 @@ CONFIGS = {
     },
     "posterior_decoding": {"decoder_input": "posterior"},
     "free_from_prior": {"free_decoder_input": "prior"},
+    "free_slots": {"free_slots": 3},
     "no_static": {"static_branch": False},
     "no_inverse": {"inverse_dynamics": False},
     "dreamerv2": {"free_branch": False, "static_branch": False, "inverse_dynamics": False},

@@ -68,6 +68,11 @@ class WorldModelConfig:
     z~_t (``"prior"``: §3.2's guard against collapse applied to this branch too). From its one-step prior the
     branch can draw only what it predicts without actions and without the current frame: the objects that
     move on their own, not the agent, whose moves the actions decide."""
+    free_slots: int = 1
+    """Object slots of the noncontrollable decoder (not in the paper; 1: the paper's single component). With
+    ``K > 1`` the features are projected to ``K`` slot latents that one shared decoder turns into ``K``
+    RGB + logit maps, combined into the branch's component and logit (in softmax mode exactly a softmax over
+    ``2 + K`` logits; :mod:`isodream_rl.modules.slots`). Costs ``K`` decoder passes instead of one."""
     static_frames: int = 10
     """K, the number of first frames of a window that the static branch reads (clamped to the window)."""
     static_mask_bias: float = 0.0
@@ -117,6 +122,10 @@ class WorldModelConfig:
             raise ValueError(
                 "clamp_gradient='inward' is the backward of the clamp; it needs clamp_components=True"
             )
+        if self.free_slots < 1:
+            raise ValueError(f"free_slots must be >= 1, got {self.free_slots}")
+        if self.free_slots > 1 and not self.free_branch:
+            raise ValueError("free_slots > 1 needs the action-free branch (free_branch=True)")
         if self.static_frames < 1:
             raise ValueError(f"static_frames must be >= 1, got {self.static_frames}")
 

@@ -14,7 +14,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from isodream_rl.modules.composition import MaskComposition
+from isodream_rl.modules.composition import PIXEL_RANGE, MaskComposition
 from isodream_rl.modules.config import WorldModelConfig
 from isodream_rl.modules.decoder import ConvDecoder
 from isodream_rl.modules.encoder import IMAGE_SHAPE, BranchedEncoder, check_pixels
@@ -22,6 +22,7 @@ from isodream_rl.modules.heads import make_discount_head, make_reward_head
 from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
 from isodream_rl.modules.rssm import ActionConditionedRSSM, ActionFreeRSSM, single_threaded
 from isodream_rl.modules.rssm_pair import OUT_KEYS, RSSMPair, can_pair
+from isodream_rl.modules.slots import SlotDecoder
 
 
 def _next(key: str) -> tuple[str, str]:
@@ -46,7 +47,8 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         ``prior_std``, ``posterior_mean``, ``posterior_std`` (each ``[..., S]`` or ``[..., D]``); the same
         with a ``free_`` prefix for the noncontrollable branch (z_t, h'_t); ``reco_pixels`` (eq. 4),
         ``reco_control``, ``reco_free`` ``[..., 3, 64, 64]``; ``mask_control``, ``mask_free``,
-        ``mask_static`` ``[..., 1, 64, 64]``; ``reward_pred`` ``[..., 1]``; ``discount_logit``
+        ``mask_static`` ``[..., 1, 64, 64]``; with ``free_slots = K > 1`` also ``mask_free_slots``
+        ``[..., K, 1, 64, 64]`` (each slot's mask, summing to ``mask_free``); ``reward_pred`` ``[..., 1]``; ``discount_logit``
         ``[..., 1]`` (with the discount head); ``action_pred`` ``[..., A]`` with ``action_pred_valid``
         ``[..., 1]`` (step 0 and reset steps have no previous state in the window). The root gets
         ``"background"`` o^b ``[B, T, 3, 64, 64]`` (one image per window, expanded over ``T``).
@@ -88,11 +90,21 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         self.control_decoder = ConvDecoder(
             in_features=feature_dim, out_channels=3 if single else 4, depth=cfg.depth, device=device
         )
-        self.free_decoder = (
-            ConvDecoder(in_features=feature_dim, out_channels=4, depth=cfg.depth, device=device)
-            if cfg.free_branch
-            else None
-        )
+        if not cfg.free_branch:
+            self.free_decoder = None
+        elif cfg.free_slots > 1:
+            self.free_decoder = SlotDecoder(
+                in_features=feature_dim,
+                num_slots=cfg.free_slots,
+                depth=cfg.depth,
+                clamp=PIXEL_RANGE if cfg.clamp_components else None,
+                inward=cfg.clamp_gradient == "inward",
+                device=device,
+            )
+        else:
+            self.free_decoder = ConvDecoder(
+                in_features=feature_dim, out_channels=4, depth=cfg.depth, device=device
+            )
         # The static branch has a mask logit of its own only in softmax mode.
         self.static_decoder = (
             ConvDecoder(
@@ -144,7 +156,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             out += [f"free_{k}" for k in out]
         out += ["reco_pixels", "reco_control", "mask_control", "reward_pred"]
         if cfg.free_branch:
-            out += ["reco_free", "mask_free"]
+            out += ["reco_free", "mask_free"] + (["mask_free_slots"] if cfg.free_slots > 1 else [])
         if cfg.static_branch:
             out += ["mask_static"]
         if cfg.discount_head:
@@ -341,8 +353,11 @@ class IsoDreamWorldModel(TensorDictModuleBase):
                 free_input = latents[
                     "free_prior_state" if cfg.free_decoder_input == "prior" else "free_state"
                 ]
-                free_feat = torch.cat([free_input, latents["free_belief"]], dim=-1)
-                free_out = self.free_decoder(free_feat.reshape(batch * time, -1))
+                free_feat = torch.cat([free_input, latents["free_belief"]], dim=-1).reshape(batch * time, -1)
+                if isinstance(self.free_decoder, SlotDecoder):
+                    free_out, slot_weights = self.free_decoder.decompose(free_feat)
+                else:
+                    free_out, slot_weights = self.free_decoder(free_feat), None
 
         decoded = {"control": control_out.float().reshape(batch, time, *control_out.shape[1:])}
         if free_out is not None:
@@ -358,6 +373,10 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             out["reco_free"] = colors["free"]
         for name, mask in masks.items():
             out[f"mask_{name}"] = mask
+        if free_out is not None and slot_weights is not None:
+            # each slot's share of the image: its weight within the branch times the branch's mask
+            weights = slot_weights.float().reshape(batch, time, *slot_weights.shape[1:])
+            out["mask_free_slots"] = masks["free"].unsqueeze(2) * weights
         features_r = self.reward_features(
             latents["state"], latents["belief"], latents.get("free_state"), latents.get("free_belief")
         )

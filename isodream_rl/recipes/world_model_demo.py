@@ -143,6 +143,13 @@ def parse_args(argv=None) -> argparse.Namespace:
         "can draw only what moves predictably without actions (WorldModelConfig.free_decoder_input)",
     )
     p.add_argument(
+        "--free-slots",
+        type=int,
+        default=1,
+        help="object slots of the noncontrollable decoder, decoded by one shared decoder (1: the paper's "
+        "single component; WorldModelConfig.free_slots)",
+    )
+    p.add_argument(
         "--clamp-gradient",
         choices=CLAMP_GRADIENTS,
         default="zero",
@@ -397,6 +404,7 @@ def main(argv=None) -> dict:
         "decoder_input": args.decoder_input,
         "free_decoder_input": args.free_decoder_input,
         "clamp_gradient": args.clamp_gradient,
+        "free_slots": args.free_slots,
         "mask_floor": args.mask_floor,
         "gradient_floor": args.gradient_floor,
     }
