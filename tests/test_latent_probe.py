@@ -4,7 +4,7 @@ import torch
 from tensordict import TensorDict
 
 from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
-from isodream_rl.recipes.latent_probe import main, probe, ridge_r2, sprite_centres
+from isodream_rl.recipes.latent_probe import main, probe, ridge_cv, ridge_r2, sprite_centres
 
 
 def test_sprite_centres_are_pixel_centroids_in_unit_coordinates():
@@ -63,3 +63,33 @@ def test_the_cli_probes_on_the_scene_the_checkpoint_was_trained_on(tmp_path):
     torch.save({"config": model.config.to_dict(), "model": model.state_dict(), "scene": bigger}, path)
     assert main([str(path), "--episodes", "4"]) == probe(model, episodes=4, **bigger)
     assert probe(model, episodes=4, **bigger) != expected
+
+
+def white_detector_trunk(model):
+    """Set the trunk to one channel that fires on white pixels only (the agent's fill), pooled: a bump at
+    the agent's position, whose centre is linear in the map (the agent always has the same size)."""
+    first, second = model.encoder.trunk[0], model.encoder.trunk[2]
+    with torch.no_grad():
+        for conv in (first, second):
+            conv.weight.zero_()
+            conv.bias.zero_()
+        first.weight[0] = 1.0 / 16  # mean of R + G + B over the 4x4 patch: 1.5 on white, <= 0.6 elsewhere
+        first.bias[0] = -1.2
+        second.weight[0, 0] = 1.0 / 16
+
+
+def test_encoder_probe_reads_positions_off_the_trunk_and_picks_its_ridge():
+    torch.manual_seed(0)
+    model = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
+    white_detector_trunk(model)
+    scores = probe(model, window=8, episodes=16, episode_length=32, encoder=True)
+    names = ["agent", "distractor_0", "distractor_1", "distractor_2"]
+    layers = ("control", "free", "trunk", "embed_control", "embed_free")
+    assert set(scores) == {f"r2_{b}_{n}" for b in layers for n in names}
+    # the trunk sees the agent and nothing else; the features are aligned with the frames they came from
+    assert scores["r2_trunk_agent"] > 0.8, scores
+    assert max(scores[f"r2_trunk_distractor_{i}"] for i in range(3)) < 0.3, scores
+    # 80 features, 100 samples: a noiseless linear target takes the smallest penalty, noise a large one
+    x = torch.randn(100, 80, generator=torch.Generator().manual_seed(0))
+    assert ridge_cv(x, x[:, :2].sum(1, keepdim=True)) == 1.0
+    assert ridge_cv(x, torch.randn(100, 1, generator=torch.Generator().manual_seed(1))) >= 1e3

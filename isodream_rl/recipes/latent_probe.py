@@ -11,6 +11,13 @@ position), it does not.
 
     python -m isodream_rl.recipes.latent_probe runs/world_model_demo/world_model.pt
 
+With ``encoder=True`` (CLI ``--encoder``) the same read-out is also fitted one step earlier, on the
+encoder: ``trunk`` (the shared trunk ``Enc_theta``'s feature map, 2x2 average-pooled and flattened),
+``embed_control`` and ``embed_free`` (the branch heads' embeddings ``e^s_t``, ``e^z_t``). These are wide
+(hundreds to thousands of features), so their ridge penalty is chosen by cross-validation on the fitting
+half. A sprite the trunk carries but ``embed_free`` does not is dropped by the noncontrollable head, before
+its RSSM.
+
 The episodes are made like the demo's (its background pool, action hold and window, read from the
 checkpoint; flags override them), from seeds the demo never trains on. ``isodream-demo`` runs the same
 probe at the end of training and reports it as ``probe_r2_*`` in its ``summary.json``.
@@ -72,6 +79,43 @@ def branch_features(model: IsoDreamWorldModel, data, *, window: int) -> dict[str
     return {name: f.reshape(-1, f.shape[-1]).float() for name, f in feats.items()}
 
 
+#: ridge penalties tried by :func:`ridge_cv` (standardised features)
+RIDGES = (1.0, 10.0, 100.0, 1e3, 1e4, 1e5)
+
+
+def ridge_cv(x: torch.Tensor, y: torch.Tensor, *, ridges=RIDGES, folds: int = 2) -> float:
+    """The ridge penalty of ``ridges`` with the best ``folds``-fold cross-validated R^2 of ``y ~ x``.
+
+    Folds are contiguous blocks (consecutive frames are correlated; shuffled folds would leak)."""
+    bounds = torch.linspace(0, len(x), folds + 1).long().tolist()
+
+    def score(ridge: float) -> float:
+        total = 0.0
+        for lo, hi in zip(bounds[:-1], bounds[1:]):
+            held = torch.zeros(len(x), dtype=torch.bool)
+            held[lo:hi] = True
+            total += ridge_r2(x[~held], y[~held], x[held], y[held], ridge=ridge)
+        return total
+
+    return max(ridges, key=score)
+
+
+@torch.no_grad()
+def encoder_features(model: IsoDreamWorldModel, data, *, window: int) -> dict[str, torch.Tensor]:
+    """Encoder features ``[N, D]`` of the same frames as :func:`branch_features` (the same steps dropped):
+    ``trunk`` (2x2-pooled shared trunk map), ``embed_control`` and, with the noncontrollable branch,
+    ``embed_free``."""
+    pixels = episode_windows(data, window=window).get(("next", "pixels"))[:, window // 4 :]
+    device = next(model.parameters()).device
+    pixels = pixels.reshape(-1, *pixels.shape[-3:]).to(device)
+    trunk = model.encoder.trunk_features(pixels)
+    feats = {"trunk": torch.nn.functional.avg_pool2d(trunk, 2).flatten(1)}
+    for name in ("control", "free"):
+        if name in model.encoder.heads:
+            feats[f"embed_{name}"] = model.encoder.head(name, trunk)
+    return {name: f.float() for name, f in feats.items()}
+
+
 def probe(
     model: IsoDreamWorldModel,
     *,
@@ -85,10 +129,14 @@ def probe(
     sprite_size: float = SPRITE_SIZE,
     seed: int = 1000,
     ridge: float = 10.0,
+    encoder: bool = False,
 ) -> dict[str, float]:
     """``r2_{branch}_{sprite}`` for each dynamic branch and sprite (``agent``, ``distractor_0`` ...).
 
-    Half of the episodes fit the probes, the other half score them. ``seed`` makes the episodes and the
+    Half of the episodes fit the probes, the other half score them. ``ridge`` is the penalty of the
+    branches' posterior features; with ``encoder=True`` the encoder's features (see :func:`encoder_features`)
+    are probed too, as ``r2_trunk_*``, ``r2_embed_control_*``, ``r2_embed_free_*``, each sprite with the
+    penalty :func:`ridge_cv` picks on the fitting half. ``seed`` makes the episodes and the
     model's latent samples; the scores of one checkpoint are the same on every call."""
     if episode_length % window:
         raise ValueError(f"episode_length ({episode_length}) must be a multiple of window ({window})")
@@ -108,6 +156,11 @@ def probe(
     with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
         torch.manual_seed(seed)
         feats = branch_features(model, data.to(device), window=window)
+    penalties = dict.fromkeys(feats, ridge)
+    if encoder:
+        wide = encoder_features(model, data, window=window)
+        feats.update(wide)
+        penalties.update(dict.fromkeys(wide))  # chosen per sprite below
     model.train(training)
     truth = data["next"].reshape(-1, window)[:, window // 4 :].reshape(-1)
     centres, visible = sprite_centres(truth, num_distractors)
@@ -119,12 +172,10 @@ def probe(
         for s, name in enumerate(names):
             train = visible[:half, s]
             test = visible[half:, s]
+            x_fit, y_fit = x[:half][train], centres[:half, s][train]
+            penalty = penalties[branch] or ridge_cv(x_fit, y_fit)
             scores[f"r2_{branch}_{name}"] = ridge_r2(
-                x[:half][train],
-                centres[:half, s][train],
-                x[half:][test],
-                centres[half:, s][test],
-                ridge=ridge,
+                x_fit, y_fit, x[half:][test], centres[half:, s][test], ridge=penalty
             )
     return scores
 
@@ -155,6 +206,11 @@ def main(argv=None) -> dict:
     )
     p.add_argument("--action-hold", type=int, default=None, help="default: the checkpoint's (8)")
     p.add_argument("--sprite-size", type=float, default=None, help="default: the checkpoint's (0.06)")
+    p.add_argument(
+        "--encoder",
+        action="store_true",
+        help="also probe the encoder's shared trunk and branch embeddings (r2_trunk_*, r2_embed_*)",
+    )
     p.add_argument("--json", default=None, help="also write the scores here")
     args = p.parse_args(argv)
     model, scene = load_checkpoint(args.checkpoint)
@@ -168,7 +224,7 @@ def main(argv=None) -> dict:
     scene.update({k: v for k, v in flags.items() if v is not None})
     if "num_backgrounds" in scene:
         scene["num_backgrounds"] = scene["num_backgrounds"] or None  # 0: a new background each episode
-    scores = probe(model, episodes=args.episodes, **scene)
+    scores = probe(model, episodes=args.episodes, encoder=args.encoder, **scene)
     text = json.dumps({k: round(v, 3) for k, v in scores.items()}, indent=2)
     print(text)
     if args.json:
