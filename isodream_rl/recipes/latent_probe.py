@@ -14,8 +14,8 @@ position), it does not.
 With ``encoder=True`` (CLI ``--encoder``) the same read-out is also fitted one step earlier, on the
 encoder: ``trunk`` (the shared trunk ``Enc_theta``'s feature map, 2x2 average-pooled and flattened),
 ``embed_control`` and ``embed_free`` (the branch heads' embeddings ``e^s_t``, ``e^z_t``). These are wide
-(hundreds to thousands of features), so their ridge penalty is chosen by cross-validation on the fitting
-half. A sprite the trunk carries but ``embed_free`` does not is dropped by the noncontrollable head, before
+(hundreds to thousands of features) and sparse (ReLU maps), so they are scaled by one common deviation
+rather than each by its own, and their ridge penalty is chosen by cross-validation on the fitting half. A sprite the trunk carries but ``embed_free`` does not is dropped by the noncontrollable head, before
 its RSSM.
 
 The episodes are made like the demo's (its background pool, action hold and window, read from the
@@ -51,11 +51,24 @@ def sprite_centres(truth, num_distractors: int) -> tuple[torch.Tensor, torch.Ten
 
 
 def ridge_r2(
-    x_train: torch.Tensor, y_train: torch.Tensor, x_test: torch.Tensor, y_test: torch.Tensor, *, ridge: float
+    x_train: torch.Tensor,
+    y_train: torch.Tensor,
+    x_test: torch.Tensor,
+    y_test: torch.Tensor,
+    *,
+    ridge: float,
+    per_feature: bool = True,
 ) -> float:
-    """Held-out R^2 of a ridge regression ``y ~ x`` (features standardised on the training set), averaged over
-    the columns of ``y``."""
-    mean, std = x_train.mean(0), x_train.std(0).clamp(min=1e-6)
+    """Held-out R^2 of a ridge regression ``y ~ x``, averaged over the columns of ``y``.
+
+    Features are centred on the training set and scaled by their standard deviation there: each its own
+    (``per_feature``, for dense features such as latent states), or all by one common scale (for sparse
+    ReLU features: a unit active in a handful of training frames would otherwise be blown up by its tiny
+    training deviation wherever it fires on the test set)."""
+    mean = x_train.mean(0)
+    std = (
+        x_train.std(0).clamp(min=1e-6) if per_feature else x_train.std(0).pow(2).mean().sqrt().clamp(min=1e-6)
+    )
     a = torch.cat([(x_train - mean) / std, torch.ones(len(x_train), 1)], dim=1).double()
     b = torch.cat([(x_test - mean) / std, torch.ones(len(x_test), 1)], dim=1).double()
     eye = torch.eye(a.shape[1], dtype=torch.float64)
@@ -83,8 +96,11 @@ def branch_features(model: IsoDreamWorldModel, data, *, window: int) -> dict[str
 RIDGES = (1.0, 10.0, 100.0, 1e3, 1e4, 1e5)
 
 
-def ridge_cv(x: torch.Tensor, y: torch.Tensor, *, ridges=RIDGES, folds: int = 2) -> float:
-    """The ridge penalty of ``ridges`` with the best ``folds``-fold cross-validated R^2 of ``y ~ x``.
+def ridge_cv(
+    x: torch.Tensor, y: torch.Tensor, *, ridges=RIDGES, folds: int = 2, per_feature: bool = True
+) -> float:
+    """The ridge penalty of ``ridges`` with the best ``folds``-fold cross-validated R^2 of ``y ~ x``
+    (``per_feature``: as :func:`ridge_r2`).
 
     Folds are contiguous blocks (consecutive frames are correlated; shuffled folds would leak)."""
     bounds = torch.linspace(0, len(x), folds + 1).long().tolist()
@@ -94,7 +110,7 @@ def ridge_cv(x: torch.Tensor, y: torch.Tensor, *, ridges=RIDGES, folds: int = 2)
         for lo, hi in zip(bounds[:-1], bounds[1:]):
             held = torch.zeros(len(x), dtype=torch.bool)
             held[lo:hi] = True
-            total += ridge_r2(x[~held], y[~held], x[held], y[held], ridge=ridge)
+            total += ridge_r2(x[~held], y[~held], x[held], y[held], ridge=ridge, per_feature=per_feature)
         return total
 
     return max(ridges, key=score)
@@ -173,9 +189,10 @@ def probe(
             train = visible[:half, s]
             test = visible[half:, s]
             x_fit, y_fit = x[:half][train], centres[:half, s][train]
-            penalty = penalties[branch] or ridge_cv(x_fit, y_fit)
+            dense = penalties[branch] is not None  # the posteriors; the encoder's ReLU maps are sparse
+            penalty = penalties[branch] if dense else ridge_cv(x_fit, y_fit, per_feature=False)
             scores[f"r2_{branch}_{name}"] = ridge_r2(
-                x_fit, y_fit, x[half:][test], centres[half:, s][test], ridge=penalty
+                x_fit, y_fit, x[half:][test], centres[half:, s][test], ridge=penalty, per_feature=dense
             )
     return scores
 
