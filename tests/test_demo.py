@@ -4,6 +4,7 @@ import json
 
 import pytest
 import torch
+from PIL import Image
 
 from isodream_rl.recipes.sprites_data import collect_sprites_episodes
 from isodream_rl.recipes.world_model_demo import free_component_weight, main, ramp_weight
@@ -62,7 +63,8 @@ def test_demo_writes_picture_scores_checkpoint_and_csv(tmp_path):
     # the final latent probe: every branch x sprite, an R^2 (at most 1), in the summary and the CSV log
     probes = {k for k in saved if k.startswith("probe_r2_")}
     sprites = ("agent", "distractor_0", "distractor_1", "distractor_2")
-    assert probes == {f"probe_r2_{b}_{n}" for b in ("control", "free") for n in sprites}
+    layers = ("control", "free", "trunk", "embed_control", "embed_free")
+    assert probes == {f"probe_r2_{b}_{n}" for b in layers for n in sprites}
     assert all(saved[k] <= 1.0 for k in probes)
     assert list(tmp_path.rglob("probe_r2_free_agent.csv"))
     assert summary["png"] == str(tmp_path / "branches.png")
@@ -131,7 +133,9 @@ def test_demo_runs_the_single_branch_ablation_scored_by_disc_reconstruction(tmp_
     assert "iou_free_vs_distractors" not in summary and "free_covers_distractor_0" not in summary
     # probed like the full model, on its one state
     assert {k for k in summary if k.startswith("probe_")} == {
-        f"probe_r2_control_{n}" for n in ("agent", "distractor_0", "distractor_1", "distractor_2")
+        f"probe_r2_{b}_{n}"
+        for b in ("control", "trunk", "embed_control")
+        for n in ("agent", "distractor_0", "distractor_1", "distractor_2")
     }
     assert 0.0 <= summary["reco_error_distractor_0"] <= 3.0
     saved = torch.load(tmp_path / "world_model.pt", map_location="cpu")
@@ -178,3 +182,17 @@ def test_demo_resumes_from_its_checkpoint_and_rejects_other_settings(tmp_path):
         )
     with pytest.raises(SystemExit, match="already at update 2"):
         main([*small, "--steps", "2", "--resume", checkpoint, "--out", str(tmp_path / "d")])
+
+
+def test_demo_trains_object_slots_and_draws_a_row_per_slot(tmp_path):
+    plain = tmp_path / "plain"
+    slots = tmp_path / "slots"
+    for out, extra in ((plain, []), (slots, ["--free-slots", "2"])):
+        main(
+            [*TINY_RUN, "--size", "tiny", "--precision", "fp32", "--probe-episodes", "0", "--out", str(out)]
+            + extra
+        )
+    saved = torch.load(slots / "world_model.pt", map_location="cpu")
+    assert saved["config"]["free_slots"] == 2
+    heights = [Image.open(d / "branches.png").height for d in (plain, slots)]
+    assert heights[1] > heights[0]

@@ -5,8 +5,9 @@
 for a few minutes on CPU, then, on held-out episodes, writes a PNG grid (ground truth, composite, each
 branch's component and mask over time) and scores the learned masks against the ground-truth masks (IoU).
 At the end it also probes what each branch's state knows (:mod:`isodream_rl.recipes.latent_probe`: the
-held-out R^2 of a linear read-out of each sprite's position), which scores the single-branch baseline
-(``--model dreamerv2``, no masks) and Iso-Dream alike. Everything it needs is generated locally.
+held-out R^2 of a linear read-out of each sprite's position, from each branch's state and from the
+encoder's trunk and branch embeddings), which scores the single-branch baseline (``--model dreamerv2``, no
+masks) and Iso-Dream alike. Everything it needs is generated locally.
 
 Defaults that differ from the library's (each measured in ``docs/results/world_model_demo.md``): random
 actions held for 8 steps (a new one each step only makes the agent jitter in place, and the background
@@ -491,7 +492,9 @@ def main(argv=None) -> dict:
     seconds = time.perf_counter() - start
     if args.probe_episodes:
         # what each branch's state knows, on fresh episodes of the same scene (seeds the demo never trains on)
-        probed = probe(loss.world_model, episodes=args.probe_episodes, seed=args.seed + 1000, **data_scene)
+        probed = probe(
+            loss.world_model, episodes=args.probe_episodes, seed=args.seed + 1000, encoder=True, **data_scene
+        )
         scores.update({f"probe_{k}": v for k, v in probed.items()})
         for key, value in probed.items():
             logger.log_scalar(f"probe_{key}", value, step=args.steps)
