@@ -196,3 +196,13 @@ def test_demo_trains_object_slots_and_draws_a_row_per_slot(tmp_path):
     assert saved["config"]["free_slots"] == 2
     heights = [Image.open(d / "branches.png").height for d in (plain, slots)]
     assert heights[1] > heights[0]
+
+
+def test_demo_scene_with_two_distractors_is_scored_and_probed_on_two(tmp_path):
+    summary = main(
+        [*TINY_RUN, "--size", "tiny", "--precision", "fp32", "--distractors", "2", "--out", str(tmp_path)]
+    )
+    assert "free_covers_distractor_1" in summary and "free_covers_distractor_2" not in summary
+    assert "probe_r2_free_distractor_1" in summary and "probe_r2_free_distractor_2" not in summary
+    saved = torch.load(tmp_path / "world_model.pt", map_location="cpu", weights_only=False)
+    assert saved["scene"]["num_distractors"] == 2

@@ -109,6 +109,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         help=f"sprite half-width as a fraction of the frame ({SPRITE_SIZE}: 9-pixel discs; SpritesEnv's sprite_size)",
     )
     p.add_argument(
+        "--distractors",
+        type=int,
+        default=3,
+        help="distractor discs in the scene (SpritesEnv's num_distractors; red, blue, yellow, ... in that order)",
+    )
+    p.add_argument(
         "--mask-mode",
         choices=MASK_MODES,
         default="softmax",
@@ -382,6 +388,7 @@ def main(argv=None) -> dict:
         "background_seed": args.seed,
         "action_hold": args.action_hold,
         "sprite_size": args.sprite_size,
+        "num_distractors": args.distractors,
     }
     train = collect_sprites_episodes(
         episodes=args.episodes, steps=args.episode_length, seed=args.seed, **scene
