@@ -206,3 +206,20 @@ def test_demo_scene_with_two_distractors_is_scored_and_probed_on_two(tmp_path):
     assert "probe_r2_free_distractor_1" in summary and "probe_r2_free_distractor_2" not in summary
     saved = torch.load(tmp_path / "world_model.pt", map_location="cpu", weights_only=False)
     assert saved["scene"]["num_distractors"] == 2
+
+
+def test_demo_scene_takes_distractor_colours_and_refuses_a_count_that_disagrees(tmp_path):
+    main(
+        [*TINY_RUN, "--size", "tiny", "--probe-episodes", "0", "--out", str(tmp_path)]
+        + ["--distractor-colours", "cyan,magenta"]
+    )
+    saved = torch.load(tmp_path / "world_model.pt", map_location="cpu", weights_only=False)
+    assert (
+        saved["scene"]["distractor_colours"] == ("cyan", "magenta") and saved["scene"]["num_distractors"] == 2
+    )
+    with pytest.raises(SystemExit, match="names 2 colours"):
+        main(
+            [*TINY_RUN, "--distractors", "3", "--distractor-colours", "cyan,magenta", "--out", str(tmp_path)]
+        )
+    with pytest.raises(SystemExit, match="unknown"):
+        main([*TINY_RUN, "--distractor-colours", "cyan,teal", "--out", str(tmp_path)])

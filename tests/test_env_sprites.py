@@ -1,7 +1,9 @@
 import numpy as np
 import pytest
 
-from isodream_rl.envs.sprites import _DISTRACTOR_COLOURS, SpritesEnv
+from isodream_rl.envs.sprites import DISTRACTOR_COLOURS, SpritesEnv
+
+_PALETTE = np.array(list(DISTRACTOR_COLOURS.values()), dtype=np.uint8)
 
 
 def _centroid(mask: np.ndarray) -> np.ndarray:
@@ -46,7 +48,7 @@ def test_masks_are_disjoint_and_match_the_drawn_sprites():
     env = SpritesEnv(task="reach", num_distractors=4)
     actions = np.random.default_rng(1).uniform(-1, 1, (40, 2))
     frames, infos, _ = _rollout(env, actions, seed=5)
-    palette = {tuple(c) for c in _DISTRACTOR_COLOURS}
+    palette = {tuple(c) for c in _PALETTE}
     for frame, info in zip(frames, infos):
         agent, distractors, target = info["mask_agent"], info["mask_distractors"], info["mask_target"]
         assert not (agent & distractors).any() and not (target & (agent | distractors)).any()
@@ -57,7 +59,7 @@ def test_masks_are_disjoint_and_match_the_drawn_sprites():
         ids = info["distractor_ids"]
         np.testing.assert_array_equal(ids > 0, distractors)
         for i in range(1, 5):  # each id marks exactly the pixels drawn in that distractor's colour
-            assert (frame[ids == i] == _DISTRACTOR_COLOURS[i - 1]).all()
+            assert (frame[ids == i] == _PALETTE[i - 1]).all()
         # Outside every mask the frame is exactly the episode's static background.
         unmasked = ~(agent | distractors | target)
         np.testing.assert_array_equal(frame[unmasked], env._background[unmasked])
@@ -211,3 +213,17 @@ def test_sprite_size_sets_the_drawn_sprites_radius(sprite_size, radius):
         SpritesEnv(sprite_size=0.0)
     with pytest.raises(ValueError, match="sprite_size"):
         SpritesEnv(sprite_size=0.3)
+
+
+def test_distractor_colours_choose_each_disc_colour_in_drawing_order():
+    env = SpritesEnv(num_distractors=2, distractor_colours=("cyan", "yellow"))
+    frames, infos, _ = _rollout(env, np.zeros((5, 2)), seed=3)
+    for frame, info in zip(frames, infos):
+        ids = info["distractor_ids"]
+        assert (frame[ids == 1] == DISTRACTOR_COLOURS["cyan"]).all()
+        assert (frame[ids == 2] == DISTRACTOR_COLOURS["yellow"]).all()
+    assert SpritesEnv(num_distractors=2).distractor_colours == ("red", "blue")
+    with pytest.raises(ValueError, match="one colour of"):
+        SpritesEnv(num_distractors=2, distractor_colours=("cyan", "teal"))
+    with pytest.raises(ValueError, match="per distractor"):
+        SpritesEnv(num_distractors=3, distractor_colours=("cyan", "yellow"))

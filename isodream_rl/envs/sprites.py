@@ -9,6 +9,7 @@ model learns can be scored against the truth.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -18,11 +19,16 @@ SPRITES_TASKS = ("none", "reach")
 #: default sprite half-width as a fraction of the frame (a 9-pixel disc at 64x64)
 SPRITE_SIZE = 0.06
 
-# Distractor colours: saturated hues, none of them close to the agent's white or the target's green.
-_DISTRACTOR_COLOURS = np.array(
-    [[230, 40, 40], [40, 90, 240], [240, 200, 20], [220, 40, 220], [20, 210, 230], [250, 130, 20]],
-    dtype=np.uint8,
-)
+#: Distractor colours by name, in the default order: saturated hues, none of them close to the agent's white
+#: or the target's green.
+DISTRACTOR_COLOURS = {
+    "red": (230, 40, 40),
+    "blue": (40, 90, 240),
+    "yellow": (240, 200, 20),
+    "magenta": (220, 40, 220),
+    "cyan": (20, 210, 230),
+    "orange": (250, 130, 20),
+}
 _AGENT_COLOUR = np.array([255, 255, 255], dtype=np.uint8)
 _AGENT_BORDER = np.array([0, 0, 0], dtype=np.uint8)
 _TARGET_COLOUR = np.array([30, 200, 60], dtype=np.uint8)
@@ -100,6 +106,9 @@ class SpritesEnv(gym.Env):
             ``num_backgrounds``). Defaults to 0.
         sprite_size (float, optional): half-width of every sprite (agent, distractors, target) as a fraction
             of ``S``, in ``(0, 0.2]``. Defaults to 0.06 (a 9-pixel disc at ``S = 64``).
+        distractor_colours (sequence of str, optional): the distractors' colours by name (keys of
+            ``DISTRACTOR_COLOURS``), one per distractor, drawn in this order (later ones on top). Defaults to
+            ``None``: the first ``num_distractors`` of red, blue, yellow, magenta, cyan, orange.
 
     Observation: ``Box(0, 255, (S, S, 3), uint8)``, HWC. Action: ``Box(-1, 1, (2,), float32)``, ``(dx, dy)``.
 
@@ -128,14 +137,15 @@ class SpritesEnv(gym.Env):
         num_backgrounds: int | None = None,
         background_seed: int = 0,
         sprite_size: float = SPRITE_SIZE,
+        distractor_colours: Sequence[str] | None = None,
     ) -> None:
         if task not in SPRITES_TASKS:
             raise ValueError(f"Unknown sprites task {task!r}; expected one of {SPRITES_TASKS}.")
         if not isinstance(image_size, int) or image_size < 16:
             raise ValueError(f"image_size must be an int >= 16, got {image_size!r}.")
-        if not 0 <= num_distractors <= len(_DISTRACTOR_COLOURS):
+        if not 0 <= num_distractors <= len(DISTRACTOR_COLOURS):
             raise ValueError(
-                f"num_distractors must be in [0, {len(_DISTRACTOR_COLOURS)}], got {num_distractors}."
+                f"num_distractors must be in [0, {len(DISTRACTOR_COLOURS)}], got {num_distractors}."
             )
         if max_steps < 1:
             raise ValueError(f"max_steps must be >= 1, got {max_steps}.")
@@ -149,6 +159,13 @@ class SpritesEnv(gym.Env):
             raise ValueError(
                 f"sprite_size must be in (0, 0.2] (a fraction of image_size), got {sprite_size!r}."
             )
+        if distractor_colours is not None:
+            unknown = [c for c in distractor_colours if c not in DISTRACTOR_COLOURS]
+            if unknown or len(distractor_colours) != num_distractors:
+                raise ValueError(
+                    f"distractor_colours must name one colour of {sorted(DISTRACTOR_COLOURS)} per distractor "
+                    f"({num_distractors}), got {list(distractor_colours)!r}."
+                )
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}.")
         self.image_size = image_size
@@ -162,6 +179,12 @@ class SpritesEnv(gym.Env):
         self.render_mode = render_mode
 
         self.sprite_size = sprite_size
+        self.distractor_colours = (
+            tuple(distractor_colours)
+            if distractor_colours is not None
+            else tuple(DISTRACTOR_COLOURS)[:num_distractors]
+        )
+        self._colours = np.array([DISTRACTOR_COLOURS[c] for c in self.distractor_colours], dtype=np.uint8)
         self.radius = max(2, round(sprite_size * image_size))
         side = 2 * self.radius + 1
         self._agent_fill = np.zeros((side, side), dtype=bool)
@@ -318,7 +341,7 @@ class SpritesEnv(gym.Env):
             frame[mask_target] = _TARGET_COLOUR
         for i, (y, x) in enumerate(np.rint(self._distractors).astype(int)):
             sl = (slice(y - r, y + r + 1), slice(x - r, x + r + 1))
-            frame[sl][self._disc] = _DISTRACTOR_COLOURS[i]
+            frame[sl][self._disc] = self._colours[i]
             mask_distractors[sl] |= self._disc
             ids[sl][self._disc] = i + 1
         y, x = np.rint(self._agent).astype(int)

@@ -143,6 +143,7 @@ def probe(
     action_hold: int = 8,
     num_distractors: int = 3,
     sprite_size: float = SPRITE_SIZE,
+    distractor_colours: tuple[str, ...] | None = None,
     seed: int = 1000,
     ridge: float = 10.0,
     encoder: bool = False,
@@ -162,6 +163,7 @@ def probe(
         "action_hold": action_hold,
         "num_distractors": num_distractors,
         "sprite_size": sprite_size,
+        "distractor_colours": distractor_colours,
     }
     data = collect_sprites_episodes(episodes=episodes, steps=episode_length, seed=seed, **scene)
     training = model.training

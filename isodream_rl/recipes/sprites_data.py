@@ -21,6 +21,7 @@ def collect_sprites_episodes(
     background_seed: int = 0,
     action_hold: int = 1,
     sprite_size: float = SPRITE_SIZE,
+    distractor_colours: tuple[str, ...] | None = None,
 ) -> TensorDict:
     """Roll out uniform random actions in :class:`~isodream_rl.envs.sprites.SpritesEnv`.
 
@@ -29,7 +30,7 @@ def collect_sprites_episodes(
     static branch reads, already show it almost where it stays; held actions make it travel as far as the
     distractors do.
 
-    ``num_backgrounds`` / ``background_seed`` / ``sprite_size`` are passed to the env (a fixed background pool; ``None``: a
+    ``num_backgrounds`` / ``background_seed`` / ``sprite_size`` / ``distractor_colours`` are passed to the env (a fixed background pool; ``None``: a
     new background per episode). The gymnasium env is stepped directly (about 0.1 ms per step, 100x less than through a TorchRL
     wrapper) and the result is laid out as TorchRL's collectors do it.
 
@@ -46,6 +47,7 @@ def collect_sprites_episodes(
         num_backgrounds=num_backgrounds,
         background_seed=background_seed,
         sprite_size=sprite_size,
+        distractor_colours=distractor_colours,
     )
     rng = np.random.default_rng(seed)
     n = episodes * steps

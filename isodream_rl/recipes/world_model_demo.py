@@ -31,7 +31,7 @@ import torch
 from torchrl.record.loggers.csv import CSVLogger
 from tqdm import tqdm
 
-from isodream_rl.envs.sprites import SPRITE_SIZE
+from isodream_rl.envs.sprites import DISTRACTOR_COLOURS, SPRITE_SIZE
 from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
 from isodream_rl.modules.config import (
     CLAMP_GRADIENTS,
@@ -111,8 +111,15 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument(
         "--distractors",
         type=int,
-        default=3,
-        help="distractor discs in the scene (SpritesEnv's num_distractors; red, blue, yellow, ... in that order)",
+        default=None,
+        help="distractor discs in the scene (SpritesEnv's num_distractors; default 3, or one per "
+        "--distractor-colours)",
+    )
+    p.add_argument(
+        "--distractor-colours",
+        default=None,
+        help="comma-separated colours of the distractors, one per disc, drawn in this order (names of "
+        "SpritesEnv's DISTRACTOR_COLOURS; default: red,blue,yellow,... for --distractors discs)",
     )
     p.add_argument(
         "--mask-mode",
@@ -382,6 +389,19 @@ def main(argv=None) -> dict:
     if args.free_component_from and args.free_component_until:
         raise SystemExit("--free-component-from and --free-component-until are two schedules; give one")
 
+    colours = None
+    if args.distractor_colours:
+        colours = tuple(c.strip() for c in args.distractor_colours.split(","))
+        unknown = sorted(set(colours) - set(DISTRACTOR_COLOURS))
+        if unknown:
+            raise SystemExit(f"--distractor-colours: unknown {unknown}; valid: {sorted(DISTRACTOR_COLOURS)}")
+        if args.distractors not in (None, len(colours)):
+            raise SystemExit(
+                f"--distractors {args.distractors} but --distractor-colours names {len(colours)} colours"
+            )
+        args.distractors = len(colours)
+    elif args.distractors is None:
+        args.distractors = 3
     print(f"collecting {args.episodes} random-action sprites episodes of {args.episode_length} steps ...")
     scene = {
         "num_backgrounds": args.backgrounds or None,
@@ -389,6 +409,7 @@ def main(argv=None) -> dict:
         "action_hold": args.action_hold,
         "sprite_size": args.sprite_size,
         "num_distractors": args.distractors,
+        "distractor_colours": colours,
     }
     train = collect_sprites_episodes(
         episodes=args.episodes, steps=args.episode_length, seed=args.seed, **scene
