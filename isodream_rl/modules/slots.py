@@ -12,11 +12,12 @@ In softmax mode this is exactly a softmax over ``2 + K`` logits (controllable, `
 ``M^z = sum_k M_k``. So everything downstream (composition, losses, pictures, open-loop predictions) sees one
 noncontrollable component and mask, as in the paper; the per-slot masks are extra outputs.
 
-Why: on the sprites scene the single decoder learns to draw one moving object at a position read from
-``z`` and then reuses that one pathway (two discs drawn as one blob) or draws no more
-(docs/results/world_model_demo.md). A decoder shared by the slots learns "a slot latent -> an object at
-its position" once, for every slot, so a second object needs only a second slot latent, not a second
-pathway through the decoder.
+Why it was tried: on the sprites scene the single decoder draws one moving object at a position read from
+``z`` and at most reuses that pathway for a second (two discs drawn as one blob). A decoder shared by the
+slots learns "a slot latent -> an object at its position" once, for every slot, so a second object would
+need only a second slot latent. Measured there (docs/results/world_model_demo.md, session 12): it does not
+add a disc; two slots split the one disc the branch draws and the third stays empty. The limit is upstream:
+the noncontrollable encoder head passes on only that disc.
 """
 
 from __future__ import annotations

@@ -48,9 +48,10 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         with a ``free_`` prefix for the noncontrollable branch (z_t, h'_t); ``reco_pixels`` (eq. 4),
         ``reco_control``, ``reco_free`` ``[..., 3, 64, 64]``; ``mask_control``, ``mask_free``,
         ``mask_static`` ``[..., 1, 64, 64]``; with ``free_slots = K > 1`` also ``mask_free_slots``
-        ``[..., K, 1, 64, 64]`` (each slot's mask, summing to ``mask_free``); ``reward_pred`` ``[..., 1]``; ``discount_logit``
-        ``[..., 1]`` (with the discount head); ``action_pred`` ``[..., A]`` with ``action_pred_valid``
-        ``[..., 1]`` (step 0 and reset steps have no previous state in the window). The root gets
+        ``[..., K, 1, 64, 64]`` (each slot's mask, summing to ``mask_free``); ``reward_pred`` ``[..., 1]``;
+        ``discount_logit`` ``[..., 1]`` (with the discount head); ``action_pred`` ``[..., A]`` with
+        ``action_pred_valid`` ``[..., 1]`` (step 0 and reset steps have no previous state in the window). The
+        root gets
         ``"background"`` o^b ``[B, T, 3, 64, 64]`` (one image per window, expanded over ``T``).
         Images are in ``[-0.5, 0.5]`` space, the targets' ``x / 255 - 0.5``.
 

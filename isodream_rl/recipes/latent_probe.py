@@ -15,8 +15,8 @@ With ``encoder=True`` (CLI ``--encoder``) the same read-out is also fitted one s
 encoder: ``trunk`` (the shared trunk ``Enc_theta``'s feature map, 2x2 average-pooled and flattened),
 ``embed_control`` and ``embed_free`` (the branch heads' embeddings ``e^s_t``, ``e^z_t``). These are wide
 (hundreds to thousands of features) and sparse (ReLU maps), so they are scaled by one common deviation
-rather than each by its own, and their ridge penalty is chosen by cross-validation on the fitting half. A sprite the trunk carries but ``embed_free`` does not is dropped by the noncontrollable head, before
-its RSSM.
+rather than each by its own, and their ridge penalty is chosen by cross-validation on the fitting half. A
+sprite the trunk carries but ``embed_free`` does not is dropped by the noncontrollable head, before its RSSM.
 
 The episodes are made like the demo's (its background pool, action hold and window, read from the
 checkpoint; flags override them), from seeds the demo never trains on. ``isodream-demo`` runs the same

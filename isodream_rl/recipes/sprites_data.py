@@ -25,14 +25,15 @@ def collect_sprites_episodes(
 ) -> TensorDict:
     """Roll out uniform random actions in :class:`~isodream_rl.envs.sprites.SpritesEnv`.
 
-    ``action_hold``: each random action is kept for this many steps. With a new action every step
-    (``1``) the agent jitters in place (its centre moves about 5 pixels in 15 steps, 20 with ``8``), so a window's first frames, which the
-    static branch reads, already show it almost where it stays; held actions make it travel as far as the
-    distractors do.
+    ``action_hold``: each random action is kept for this many steps. With a new action every step (``1``)
+    the agent jitters in place (its centre moves about 5 pixels in 15 steps, 20 with ``8``), so a window's
+    first frames, which the static branch reads, already show it almost where it stays; held actions make it
+    travel as far as the distractors do.
 
-    ``num_backgrounds`` / ``background_seed`` / ``sprite_size`` / ``distractor_colours`` are passed to the env (a fixed background pool; ``None``: a
-    new background per episode). The gymnasium env is stepped directly (about 0.1 ms per step, 100x less than through a TorchRL
-    wrapper) and the result is laid out as TorchRL's collectors do it.
+    ``num_backgrounds`` / ``background_seed`` / ``sprite_size`` / ``distractor_colours`` are passed to the env
+    (a fixed background pool; ``None``: a new background per episode). The gymnasium env is stepped directly
+    (about 0.1 ms per step, 100x less than through a TorchRL wrapper) and the result is laid out as TorchRL's
+    collectors do it.
 
     Returns:
         a flat ``[episodes * steps]`` tensordict with ``"action"``, ``"is_init"``, ``"episode"`` and under
