@@ -50,6 +50,7 @@ CONFIGS = {
     "posterior_decoding": {"decoder_input": "posterior"},
     "free_from_prior": {"free_decoder_input": "prior"},
     "free_slots": {"free_slots": 3},
+    "free_trunk": {"free_trunk": True},
     "no_static": {"static_branch": False},
     "no_inverse": {"inverse_dynamics": False},
     "dreamerv2": {"free_branch": False, "static_branch": False, "inverse_dynamics": False},
@@ -488,3 +489,26 @@ def test_decoder_matmul_first_layer_equals_the_transposed_convolution():
     latent = torch.randn(3, 20)
     reference = decoder.deconv(decoder.linear(latent)[:, :, None, None])
     torch.testing.assert_close(decoder(latent), reference, rtol=1e-5, atol=1e-5)
+
+
+def test_free_trunk_separates_what_each_branch_trains():
+    """With ``free_trunk=True`` the noncontrollable KL trains the free trunk and not the shared one, and the
+    inverse-dynamics loss the shared trunk and not the free one."""
+    torch.manual_seed(0)
+    loss = IsoDreamModelLoss(
+        IsoDreamWorldModel(tiny(free_trunk=True, inverse_input="embedding")), free_nats=0.0
+    )
+    encoder = loss.world_model.encoder
+
+    def grads(term):
+        loss.zero_grad(set_to_none=True)
+        losses, _ = loss(make_batch())
+        losses[term].backward()
+        return _grad_norm(encoder.trunk.parameters()), _grad_norm(encoder.free_trunk.parameters())
+
+    shared, free = grads("loss_model_kl_free")
+    assert free > 0 and shared == 0
+    shared, free = grads("loss_model_inverse")
+    assert shared > 0 and free == 0
+    with pytest.raises(ValueError, match="free_trunk=True needs the action-free branch"):
+        WorldModelConfig.dreamerv2("tiny", action_dim=A, free_trunk=True)

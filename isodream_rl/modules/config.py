@@ -68,6 +68,10 @@ class WorldModelConfig:
     z~_t (``"prior"``: §3.2's guard against collapse applied to this branch too). From its one-step prior the
     branch can draw only what it predicts without actions and without the current frame: the objects that
     move on their own, not the agent, whose moves the actions decide."""
+    free_trunk: bool = False
+    """The noncontrollable head ``Enc_phi2`` reads a trunk of its own instead of the shared ``Enc_theta`` (not in
+    the paper): what the controllable side trains the shared trunk to see (the agent) no longer shapes what the
+    noncontrollable branch can read."""
     free_slots: int = 1
     """Object slots of the noncontrollable decoder (not in the paper; 1: the paper's single component). With
     ``K > 1`` the features are projected to ``K`` slot latents that one shared decoder turns into ``K``
@@ -122,6 +126,8 @@ class WorldModelConfig:
             raise ValueError(
                 "clamp_gradient='inward' is the backward of the clamp; it needs clamp_components=True"
             )
+        if self.free_trunk and not self.free_branch:
+            raise ValueError("free_trunk=True needs the action-free branch (free_branch=True)")
         if self.free_slots < 1:
             raise ValueError(f"free_slots must be >= 1, got {self.free_slots}")
         if self.free_slots > 1 and not self.free_branch:

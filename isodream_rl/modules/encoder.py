@@ -55,14 +55,23 @@ class BranchedEncoder(nn.Module):
     """
 
     def __init__(
-        self, *, depth: int = 32, heads: tuple[str, ...] = ("control", "free", "static"), device=None
+        self,
+        *,
+        depth: int = 32,
+        heads: tuple[str, ...] = ("control", "free", "static"),
+        free_trunk: bool = False,
+        device=None,
     ):
         super().__init__()
         unknown = set(heads) - {"control", "free", "static"}
         if unknown:
             raise ValueError(f"unknown encoder heads {sorted(unknown)}; valid: control, free, static")
+        if free_trunk and "free" not in heads:
+            raise ValueError("free_trunk=True needs the 'free' head")
         self.depth = depth
         self.trunk = _conv_stack([3, depth, 2 * depth], device=device)
+        # Not in the paper: the noncontrollable head on a trunk of its own (WorldModelConfig.free_trunk).
+        self.free_trunk = _conv_stack([3, depth, 2 * depth], device=device) if free_trunk else None
         self.heads = nn.ModuleDict(
             {name: _conv_stack([2 * depth, 4 * depth, 8 * depth], device=device) for name in heads}
         )
@@ -74,13 +83,18 @@ class BranchedEncoder(nn.Module):
     def head(self, name: str, features: torch.Tensor) -> torch.Tensor:
         return self.heads[name](features).flatten(1)
 
-    def trunk_features(self, pixels: torch.Tensor, *, channels_last: bool = False) -> torch.Tensor:
-        """Shared trunk ``Enc_theta``: ``[N, 3, 64, 64]`` raw pixels -> ``[N, 2*depth, 14, 14]``."""
+    def trunk_features(
+        self, pixels: torch.Tensor, *, channels_last: bool = False, branch: str | None = None
+    ) -> torch.Tensor:
+        """Shared trunk ``Enc_theta``: ``[N, 3, 64, 64]`` raw pixels -> ``[N, 2*depth, 14, 14]``.
+
+        ``branch="free"``: the trunk the noncontrollable head reads (its own with ``free_trunk=True``)."""
         check_pixels(pixels)
         if channels_last:
             # Converting the uint8 input is 4x cheaper than converting the float copy.
             pixels = pixels.contiguous(memory_format=torch.channels_last)
-        return self.trunk(preprocess_pixels(pixels))
+        trunk = self.free_trunk if branch == "free" and self.free_trunk is not None else self.trunk
+        return trunk(preprocess_pixels(pixels))
 
     def forward(self, pixels: torch.Tensor, *, channels_last: bool = False) -> tuple[torch.Tensor, ...]:
         """Encode ``[*batch, 3, 64, 64]`` pixels into one embedding ``[*batch, 32*depth]`` per dynamic head.
@@ -89,9 +103,11 @@ class BranchedEncoder(nn.Module):
         """
         check_pixels(pixels)
         lead = pixels.shape[:-3]
-        features = self.trunk_features(pixels.reshape(-1, *IMAGE_SHAPE), channels_last=channels_last)
-        return tuple(
-            self.head(name, features).reshape(*lead, self.embed_dim)
-            for name in ("control", "free")
-            if name in self.heads
-        )
+        pixels = pixels.reshape(-1, *IMAGE_SHAPE)
+        features = self.trunk_features(pixels, channels_last=channels_last)
+        embeddings = [self.head("control", features).reshape(*lead, self.embed_dim)]
+        if "free" in self.heads:
+            if self.free_trunk is not None:
+                features = self.trunk_features(pixels, channels_last=channels_last, branch="free")
+            embeddings.append(self.head("free", features).reshape(*lead, self.embed_dim))
+        return tuple(embeddings)

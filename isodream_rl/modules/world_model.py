@@ -72,7 +72,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         heads = (
             ("control",) + (("free",) if cfg.free_branch else ()) + (("static",) if cfg.static_branch else ())
         )
-        self.encoder = BranchedEncoder(depth=cfg.depth, heads=heads, device=device)
+        self.encoder = BranchedEncoder(depth=cfg.depth, heads=heads, free_trunk=cfg.free_trunk, device=device)
         embed = self.encoder.embed_dim
         rssm_kwargs = {
             "state_dim": cfg.state_dim,
@@ -334,7 +334,12 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             control_proj = self.control_rssm.project_embedding(control_embed)
             free_proj = None
             if self.free_rssm is not None:
-                free_embed = self.encoder.head("free", features).reshape(batch, time, -1)
+                free_features = features
+                if self.encoder.free_trunk is not None:
+                    free_features = self.encoder.trunk_features(
+                        pixels.reshape(-1, *IMAGE_SHAPE), channels_last=cfg.channels_last, branch="free"
+                    )
+                free_embed = self.encoder.head("free", free_features).reshape(batch, time, -1)
                 free_proj = self.free_rssm.project_embedding(free_embed)
             static_out = None
             if self.static_decoder is not None:

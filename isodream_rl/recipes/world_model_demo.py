@@ -157,6 +157,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         "can draw only what moves predictably without actions (WorldModelConfig.free_decoder_input)",
     )
     p.add_argument(
+        "--free-trunk",
+        action="store_true",
+        help="the noncontrollable head on a trunk of its own instead of the shared one "
+        "(WorldModelConfig.free_trunk; not in the paper)",
+    )
+    p.add_argument(
         "--free-slots",
         type=int,
         default=1,
@@ -434,6 +440,7 @@ def main(argv=None) -> dict:
         "free_decoder_input": args.free_decoder_input,
         "clamp_gradient": args.clamp_gradient,
         "free_slots": args.free_slots,
+        "free_trunk": args.free_trunk,
         "mask_floor": args.mask_floor,
         "gradient_floor": args.gradient_floor,
     }
