@@ -46,6 +46,8 @@ def test_demo_writes_picture_scores_checkpoint_and_csv(tmp_path):
         "background_seed": 0,
         "action_hold": 8,
         "sprite_size": 0.06,
+        "num_distractors": 3,
+        "distractor_colours": None,
         "window": 8,
         "episode_length": 16,
     }
