@@ -105,7 +105,9 @@ class BranchedEncoder(nn.Module):
         lead = pixels.shape[:-3]
         pixels = pixels.reshape(-1, *IMAGE_SHAPE)
         features = self.trunk_features(pixels, channels_last=channels_last)
-        embeddings = [self.head("control", features).reshape(*lead, self.embed_dim)]
+        embeddings = []
+        if "control" in self.heads:
+            embeddings.append(self.head("control", features).reshape(*lead, self.embed_dim))
         if "free" in self.heads:
             if self.free_trunk is not None:
                 features = self.trunk_features(pixels, channels_last=channels_last, branch="free")
