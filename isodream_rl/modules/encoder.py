@@ -84,17 +84,23 @@ class BranchedEncoder(nn.Module):
         return self.heads[name](features).flatten(1)
 
     def trunk_features(
-        self, pixels: torch.Tensor, *, channels_last: bool = False, branch: str | None = None
+        self, pixels: torch.Tensor, *, channels_last: bool = False, trunk: nn.Module | None = None
     ) -> torch.Tensor:
-        """Shared trunk ``Enc_theta``: ``[N, 3, 64, 64]`` raw pixels -> ``[N, 2*depth, 14, 14]``.
-
-        ``branch="free"``: the trunk the noncontrollable head reads (its own with ``free_trunk=True``)."""
+        """Shared trunk ``Enc_theta`` (or ``trunk``): ``[N, 3, 64, 64]`` raw pixels -> ``[N, 2*depth, 14, 14]``."""
         check_pixels(pixels)
         if channels_last:
             # Converting the uint8 input is 4x cheaper than converting the float copy.
             pixels = pixels.contiguous(memory_format=torch.channels_last)
-        trunk = self.free_trunk if branch == "free" and self.free_trunk is not None else self.trunk
-        return trunk(preprocess_pixels(pixels))
+        return (trunk or self.trunk)(preprocess_pixels(pixels))
+
+    def free_features(
+        self, pixels: torch.Tensor, shared: torch.Tensor, *, channels_last: bool = False
+    ) -> torch.Tensor:
+        """What the noncontrollable head reads: ``shared`` (the shared trunk's features of ``pixels``), or,
+        with ``free_trunk=True``, its own trunk's features of ``pixels``."""
+        if self.free_trunk is None:
+            return shared
+        return self.trunk_features(pixels, channels_last=channels_last, trunk=self.free_trunk)
 
     def forward(self, pixels: torch.Tensor, *, channels_last: bool = False) -> tuple[torch.Tensor, ...]:
         """Encode ``[*batch, 3, 64, 64]`` pixels into one embedding ``[*batch, 32*depth]`` per dynamic head.
@@ -109,7 +115,6 @@ class BranchedEncoder(nn.Module):
         if "control" in self.heads:
             embeddings.append(self.head("control", features).reshape(*lead, self.embed_dim))
         if "free" in self.heads:
-            if self.free_trunk is not None:
-                features = self.trunk_features(pixels, channels_last=channels_last, branch="free")
+            features = self.free_features(pixels, features, channels_last=channels_last)
             embeddings.append(self.head("free", features).reshape(*lead, self.embed_dim))
         return tuple(embeddings)

@@ -334,11 +334,9 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             control_proj = self.control_rssm.project_embedding(control_embed)
             free_proj = None
             if self.free_rssm is not None:
-                free_features = features
-                if self.encoder.free_trunk is not None:
-                    free_features = self.encoder.trunk_features(
-                        pixels.reshape(-1, *IMAGE_SHAPE), channels_last=cfg.channels_last, branch="free"
-                    )
+                free_features = self.encoder.free_features(
+                    pixels.reshape(-1, *IMAGE_SHAPE), features, channels_last=cfg.channels_last
+                )
                 free_embed = self.encoder.head("free", free_features).reshape(batch, time, -1)
                 free_proj = self.free_rssm.project_embedding(free_embed)
             static_out = None
@@ -354,7 +352,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         control_feat = torch.cat([control_input, latents["belief"]], dim=-1).reshape(batch * time, -1)
         with self.autocast(device_type):
             control_out = self.control_decoder(control_feat)
-            free_out = None
+            free_out = slot_weights = None
             if self.free_decoder is not None:
                 free_input = latents[
                     "free_prior_state" if cfg.free_decoder_input == "prior" else "free_state"
@@ -379,7 +377,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             out["reco_free"] = colors["free"]
         for name, mask in masks.items():
             out[f"mask_{name}"] = mask
-        if free_out is not None and slot_weights is not None:
+        if slot_weights is not None:
             # each slot's share of the image: its weight within the branch times the branch's mask
             weights = slot_weights.float().reshape(batch, time, *slot_weights.shape[1:])
             out["mask_free_slots"] = masks["free"].unsqueeze(2) * weights

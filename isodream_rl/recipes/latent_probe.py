@@ -128,9 +128,7 @@ def encoder_features(model: IsoDreamWorldModel, data, *, window: int) -> dict[st
     feats = {"trunk": torch.nn.functional.avg_pool2d(trunk, 2).flatten(1)}
     feats["embed_control"] = model.encoder.head("control", trunk)
     if "free" in model.encoder.heads:
-        if model.encoder.free_trunk is not None:
-            trunk = model.encoder.trunk_features(pixels, branch="free")
-        feats["embed_free"] = model.encoder.head("free", trunk)
+        feats["embed_free"] = model.encoder.head("free", model.encoder.free_features(pixels, trunk))
     return {name: f.float() for name, f in feats.items()}
 
 
@@ -176,11 +174,8 @@ def probe(
     with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
         torch.manual_seed(seed)
         feats = branch_features(model, data.to(device), window=window)
-    penalties = dict.fromkeys(feats, ridge)
-    if encoder:
-        wide = encoder_features(model, data, window=window)
-        feats.update(wide)
-        penalties.update(dict.fromkeys(wide))  # chosen per sprite below
+    wide = encoder_features(model, data, window=window) if encoder else {}
+    feats.update(wide)
     model.train(training)
     truth = data["next"].reshape(-1, window)[:, window // 4 :].reshape(-1)
     centres, visible = sprite_centres(truth, num_distractors)
@@ -193,8 +188,8 @@ def probe(
             train = visible[:half, s]
             test = visible[half:, s]
             x_fit, y_fit = x[:half][train], centres[:half, s][train]
-            dense = penalties[branch] is not None  # the posteriors; the encoder's ReLU maps are sparse
-            penalty = penalties[branch] if dense else ridge_cv(x_fit, y_fit, per_feature=False)
+            dense = branch not in wide  # the posteriors; the encoder's ReLU maps are sparse
+            penalty = ridge if dense else ridge_cv(x_fit, y_fit, per_feature=False)
             scores[f"r2_{branch}_{name}"] = ridge_r2(
                 x_fit, y_fit, x[half:][test], centres[half:, s][test], ridge=penalty, per_feature=dense
             )
