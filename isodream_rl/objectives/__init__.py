@@ -1,10 +1,11 @@
-"""Iso-Dream objectives: world-model loss (eq. 5), inverse-dynamics loss, KL balancing, mask assignment."""
+"""Iso-Dream objectives: world-model loss (eq. 5), inverse-dynamics loss, KL balancing, mask assignment, pyramid image term."""
 
 from isodream_rl.objectives.actor import IsoDreamActorLoss, lambda_returns
 from isodream_rl.objectives.imagination import IsoDreamImagination
 from isodream_rl.objectives.inverse_dynamics import InverseDynamicsLoss
 from isodream_rl.objectives.kl import balanced_kl, gaussian_kl
 from isodream_rl.objectives.mask_assignment import mask_assignment
+from isodream_rl.objectives.pyramid import pyramid_squared_error
 from isodream_rl.objectives.value import IsoDreamValueLoss, make_target_updater
 from isodream_rl.objectives.world_model import IsoDreamModelLoss
 
@@ -19,4 +20,5 @@ __all__ = [
     "lambda_returns",
     "make_target_updater",
     "mask_assignment",
+    "pyramid_squared_error",
 ]

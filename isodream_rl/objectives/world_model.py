@@ -15,6 +15,7 @@ from isodream_rl.modules.world_model import IsoDreamWorldModel
 from isodream_rl.objectives.inverse_dynamics import InverseDynamicsLoss
 from isodream_rl.objectives.kl import balanced_kl
 from isodream_rl.objectives.mask_assignment import mask_assignment
+from isodream_rl.objectives.pyramid import pyramid_squared_error
 
 FREE_BRANCH_MODES = ("kl", "recon_only")
 #: where each branch's component (as composed) sits in the world model's output
@@ -70,12 +71,18 @@ class IsoDreamModelLoss(LossModule):
             the default: the split between what moves on its own and what does not; the controllable mask
             is left to the image loss and the action, see :mod:`isodream_rl.objectives.mask_assignment`);
             ``None``: every branch the model has.
+        lambda_reco_pyramid: weight of a coarse-to-fine image term (0: off, the paper's loss): ``0.5 *``
+            the composite's squared error on the frames average-pooled by 2, 4, ... ``2^pyramid_levels``,
+            each level weighted by the square of its pooling factor, summed over pixels, mean over ``B, T``
+            (:mod:`isodream_rl.objectives.pyramid`). Not in the paper: it gives a small object drawn off its
+            place a gradient towards it.
+        pyramid_levels: pooled levels of that term (3: 32x32, 16x16 and 8x8 for 64x64 frames).
 
     Returns:
         ``(losses, model_output)``, like TorchRL's ``DreamerModelLoss``: ``losses`` holds
         ``loss_model_reco``, ``loss_model_reward``, ``loss_model_kl_control`` and, depending on the model
         and mode, ``loss_model_kl_free``, ``loss_model_inverse``, ``loss_model_discount``,
-        ``loss_model_free_component``, ``loss_model_mask_assignment``; plus detached
+        ``loss_model_free_component``, ``loss_model_mask_assignment``, ``loss_model_reco_pyramid``; plus detached
         diagnostics ``kl_control``, ``kl_free``, ``mask_control``, ``mask_free``, ``mask_static`` (mean
         masks) and ``reco_mse``. ``model_output`` is the world model's output tensordict (posteriors
         under ``"next"``), the start states for imagination.
@@ -135,6 +142,8 @@ class IsoDreamModelLoss(LossModule):
         lambda_mask_assignment: float = 0.0,
         assignment_std: float = 0.1,
         assignment_branches: tuple[str, ...] | None = ("free", "static"),
+        lambda_reco_pyramid: float = 0.0,
+        pyramid_levels: int = 3,
     ):
         super().__init__()
         if free_branch not in FREE_BRANCH_MODES:
@@ -178,6 +187,13 @@ class IsoDreamModelLoss(LossModule):
         self.assignment_branches = chosen
         self.lambda_mask_assignment = lambda_mask_assignment
         self.assignment_std = assignment_std
+        if lambda_reco_pyramid < 0 or not 1 <= pyramid_levels <= 6:
+            raise ValueError(
+                f"lambda_reco_pyramid must be >= 0 and pyramid_levels in [1, 6] (64x64 frames), got "
+                f"{lambda_reco_pyramid} and {pyramid_levels}"
+            )
+        self.lambda_reco_pyramid = lambda_reco_pyramid
+        self.pyramid_levels = pyramid_levels
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
@@ -213,6 +229,9 @@ class IsoDreamModelLoss(LossModule):
         squared_sum = F.mse_loss(reco, target, reduction="sum")
         frames = reco.numel() // reco.shape[-3:].numel()
         losses = {"loss_model_reco": self.lambda_reco * 0.5 * squared_sum / frames}
+        if self.lambda_reco_pyramid:
+            coarse = pyramid_squared_error(reco, target, levels=self.pyramid_levels)
+            losses["loss_model_reco_pyramid"] = self.lambda_reco_pyramid * 0.5 * coarse / frames
         if self.lambda_free_component:
             if not cfg.free_branch:
                 raise ValueError("lambda_free_component needs the noncontrollable branch (free_branch=True)")

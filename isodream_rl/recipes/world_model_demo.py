@@ -227,6 +227,19 @@ def parse_args(argv=None) -> argparse.Namespace:
         "pixels, which 1 - M^s then excludes, out of the noncontrollable state",
     )
     p.add_argument(
+        "--reco-pyramid",
+        type=float,
+        default=0.0,
+        help="weight of the coarse-to-fine image term on 2x..2^L pooled frames "
+        "(IsoDreamModelLoss.lambda_reco_pyramid; 0: off, the paper's loss)",
+    )
+    p.add_argument(
+        "--pyramid-levels",
+        type=int,
+        default=3,
+        help="pooled levels L of --reco-pyramid (IsoDreamModelLoss.pyramid_levels)",
+    )
+    p.add_argument(
         "--mask-assignment",
         type=float,
         default=0.0,
@@ -459,6 +472,8 @@ def main(argv=None) -> dict:
         assignment_branches=None
         if args.assignment_branches == "all"
         else tuple(args.assignment_branches.split(",")),
+        lambda_reco_pyramid=args.reco_pyramid,
+        pyramid_levels=args.pyramid_levels,
     )
     optimizer = torch.optim.Adam(loss.parameters(), lr=args.lr, eps=args.adam_eps)
     logger = CSVLogger(exp_name="world_model_demo", log_dir=str(out_dir))
