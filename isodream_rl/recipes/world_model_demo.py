@@ -16,7 +16,10 @@ the controllable component decoded from the posterior (from the paper's one-step
 not appeared after 4000 updates), and the authors' inverse-dynamics input, embedding differences, at
 ``alpha = 30``: the paper's input, posterior states, is solved through ``h_t`` without the pixels, and in
 6 of 23 runs with it the controllable KL spiked in the first 700 updates, after which the branch never
-found the agent; at ``alpha = 1`` the embedding differences are too small for the inverse cell to learn.
+found the agent; at ``alpha = 1`` the embedding differences are too small for the inverse cell to learn;
+and the components' clamp passing the gradients that point back into the pixel range
+(``clamp_gradient="inward"``): with the authors' plain clamp, seed 1's noncontrollable component went below
+the range on every pixel by 2000 updates and never drew anything again.
 """
 
 from __future__ import annotations
@@ -172,9 +175,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument(
         "--clamp-gradient",
         choices=CLAMP_GRADIENTS,
-        default="zero",
-        help="backward of the components' clamp: none beyond the pixel range, or the gradients pointing back "
-        "into it (WorldModelConfig.clamp_gradient)",
+        default="inward",
+        help="backward of the components' clamp: the gradients pointing back into the pixel range (default "
+        "here), or none beyond it (the authors' clamp and the library's default, with which a branch whose "
+        "colours all overshoot stays dead: see docs/results/world_model_demo.md, session 13) "
+        "(WorldModelConfig.clamp_gradient)",
     )
     p.add_argument(
         "--free-branch",
