@@ -35,7 +35,7 @@ def pyramid_squared_error(reco: torch.Tensor, target: torch.Tensor, *, levels: i
     Args:
         reco: composed frames ``[*batch, C, H, W]``.
         target: true frames, same shape; ``H`` and ``W`` divisible by ``2^levels``.
-        levels: number of pooled levels (>= 1).
+        levels: number of pyramid levels (>= 1).
 
     Returns:
         A scalar: the weighted squared errors summed over pixels, channels, levels and frames (divide by the

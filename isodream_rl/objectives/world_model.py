@@ -72,11 +72,11 @@ class IsoDreamModelLoss(LossModule):
             is left to the image loss and the action, see :mod:`isodream_rl.objectives.mask_assignment`);
             ``None``: every branch the model has.
         lambda_reco_pyramid: weight of a coarse-to-fine image term (0: off, the paper's loss): ``0.5 *``
-            the composite's squared error on the frames average-pooled by 2, 4, ... ``2^pyramid_levels``,
-            each level weighted by the square of its pooling factor, summed over pixels, mean over ``B, T``
+            the composite's squared error on levels 1 ... ``pyramid_levels`` of a Gaussian pyramid (blurred
+            and halved each level), level ``l`` weighted by ``4^l``, summed over pixels, mean over ``B, T``
             (:mod:`isodream_rl.objectives.pyramid`). Not in the paper: it gives a small object drawn off its
             place a gradient towards it.
-        pyramid_levels: pooled levels of that term (3: 32x32, 16x16 and 8x8 for 64x64 frames).
+        pyramid_levels: pyramid levels of that term (3: 32x32, 16x16 and 8x8 for 64x64 frames).
 
     Returns:
         ``(losses, model_output)``, like TorchRL's ``DreamerModelLoss``: ``losses`` holds

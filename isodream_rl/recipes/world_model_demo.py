@@ -235,14 +235,14 @@ def parse_args(argv=None) -> argparse.Namespace:
         "--reco-pyramid",
         type=float,
         default=0.0,
-        help="weight of the coarse-to-fine image term on 2x..2^L pooled frames "
+        help="weight of the coarse-to-fine image term on levels 1..L of a Gaussian pyramid "
         "(IsoDreamModelLoss.lambda_reco_pyramid; 0: off, the paper's loss)",
     )
     p.add_argument(
         "--pyramid-levels",
         type=int,
         default=3,
-        help="pooled levels L of --reco-pyramid (IsoDreamModelLoss.pyramid_levels)",
+        help="pyramid levels L of --reco-pyramid (IsoDreamModelLoss.pyramid_levels)",
     )
     p.add_argument(
         "--mask-assignment",
