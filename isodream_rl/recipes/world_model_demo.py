@@ -18,8 +18,8 @@ not appeared after 4000 updates), and the authors' inverse-dynamics input, embed
 6 of 23 runs with it the controllable KL spiked in the first 700 updates, after which the branch never
 found the agent; at ``alpha = 1`` the embedding differences are too small for the inverse cell to learn;
 and the components' clamp passing the gradients that point back into the pixel range
-(``clamp_gradient="inward"``): with the authors' plain clamp, seed 1's noncontrollable component went below
-the range on every pixel by 2000 updates and never drew anything again.
+(``clamp_gradient="inward"``): with the authors' plain clamp, seed 1's noncontrollable component drew no disc
+in 5000 updates and by then sat below the range on every pixel, where that clamp passes no gradient.
 """
 
 from __future__ import annotations
