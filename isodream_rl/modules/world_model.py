@@ -51,8 +51,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         ``[..., K, 1, 64, 64]`` (each slot's mask, summing to ``mask_free``); ``reward_pred`` ``[..., 1]``;
         ``discount_logit`` ``[..., 1]`` (with the discount head); ``action_pred`` ``[..., A]`` with
         ``action_pred_valid`` ``[..., 1]`` (step 0 and reset steps have no previous state in the window). The
-        root gets
-        ``"background"`` o^b ``[B, T, 3, 64, 64]`` (one image per window, expanded over ``T``).
+        root gets ``"background"`` o^b ``[B, T, 3, 64, 64]`` (one image per window, expanded over ``T``).
         Images are in ``[-0.5, 0.5]`` space, the targets' ``x / 255 - 0.5``.
 
     Examples:
@@ -327,16 +326,13 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         batch, time = action.shape[:2]
         device_type = pixels.device.type
         with self.autocast(device_type):
-            features = self.encoder.trunk_features(
-                pixels.reshape(-1, *IMAGE_SHAPE), channels_last=cfg.channels_last
-            )
+            frames = pixels.reshape(-1, *IMAGE_SHAPE)
+            features = self.encoder.trunk_features(frames, channels_last=cfg.channels_last)
             control_embed = self.encoder.head("control", features).reshape(batch, time, -1)
             control_proj = self.control_rssm.project_embedding(control_embed)
             free_proj = None
             if self.free_rssm is not None:
-                free_features = self.encoder.free_features(
-                    pixels.reshape(-1, *IMAGE_SHAPE), features, channels_last=cfg.channels_last
-                )
+                free_features = self.encoder.free_features(frames, features, channels_last=cfg.channels_last)
                 free_embed = self.encoder.head("free", free_features).reshape(batch, time, -1)
                 free_proj = self.free_rssm.project_embedding(free_embed)
             static_out = None
