@@ -48,6 +48,7 @@ def test_demo_writes_picture_scores_checkpoint_and_csv(tmp_path):
         "sprite_size": 0.06,
         "num_distractors": 3,
         "distractor_colours": None,
+        "agent_colour": "white",
         "window": 8,
         "episode_length": 16,
     }
@@ -219,6 +220,10 @@ def test_demo_scene_takes_distractor_colours_and_refuses_a_count_that_disagrees(
     assert (
         saved["scene"]["distractor_colours"] == ("cyan", "magenta") and saved["scene"]["num_distractors"] == 2
     )
+    agent_cyan = ["--agent-colour", "cyan"]
+    main([*TINY_RUN, "--size", "tiny", "--probe-episodes", "0", "--out", str(tmp_path), *agent_cyan])
+    saved = torch.load(tmp_path / "world_model.pt", map_location="cpu", weights_only=False)
+    assert saved["scene"]["agent_colour"] == "cyan"
     with pytest.raises(SystemExit, match="names 2 colours"):
         main(
             [*TINY_RUN, "--distractors", "3", "--distractor-colours", "cyan,magenta", "--out", str(tmp_path)]

@@ -227,3 +227,17 @@ def test_distractor_colours_choose_each_disc_colour_in_drawing_order():
         SpritesEnv(num_distractors=2, distractor_colours=("cyan", "teal"))
     with pytest.raises(ValueError, match="per distractor"):
         SpritesEnv(num_distractors=3, distractor_colours=("cyan", "yellow"))
+
+
+def test_agent_colour_fills_the_agent_inside_its_black_border():
+    frames, infos, _ = _rollout(SpritesEnv(agent_colour="magenta"), np.zeros((3, 2)), seed=5)
+    white_frames, _, _ = _rollout(SpritesEnv(), np.zeros((3, 2)), seed=5)
+    for frame, white, info in zip(frames, white_frames, infos):
+        ys, xs = np.nonzero(info["mask_agent"])
+        inner = frame[ys.min() + 1 : ys.max(), xs.min() + 1 : xs.max()]
+        assert (inner == DISTRACTOR_COLOURS["magenta"]).all()
+        assert (frame[ys.min(), xs.min() : xs.max() + 1] == 0).all()  # the border
+        outside = ~info["mask_agent"]
+        assert (frame[outside] == white[outside]).all()  # the rest of the scene is the same
+    with pytest.raises(ValueError, match="agent_colour"):
+        SpritesEnv(agent_colour="black")

@@ -29,7 +29,7 @@ DISTRACTOR_COLOURS = {
     "cyan": (20, 210, 230),
     "orange": (250, 130, 20),
 }
-_AGENT_COLOUR = np.array([255, 255, 255], dtype=np.uint8)
+AGENT_COLOURS = {"white": (255, 255, 255), **DISTRACTOR_COLOURS}
 _AGENT_BORDER = np.array([0, 0, 0], dtype=np.uint8)
 _TARGET_COLOUR = np.array([30, 200, 60], dtype=np.uint8)
 
@@ -109,6 +109,8 @@ class SpritesEnv(gym.Env):
         distractor_colours (sequence of str, optional): the distractors' colours by name (keys of
             ``DISTRACTOR_COLOURS``), one per distractor, drawn in this order (later ones on top). Defaults to
             ``None``: the first ``num_distractors`` of red, blue, yellow, magenta, cyan, orange.
+        agent_colour (str, optional): the agent's fill colour by name (keys of ``AGENT_COLOURS``: ``"white"``
+            or a distractor colour; its border stays black). Defaults to ``"white"``.
 
     Observation: ``Box(0, 255, (S, S, 3), uint8)``, HWC. Action: ``Box(-1, 1, (2,), float32)``, ``(dx, dy)``.
 
@@ -138,6 +140,7 @@ class SpritesEnv(gym.Env):
         background_seed: int = 0,
         sprite_size: float = SPRITE_SIZE,
         distractor_colours: Sequence[str] | None = None,
+        agent_colour: str = "white",
     ) -> None:
         if task not in SPRITES_TASKS:
             raise ValueError(f"Unknown sprites task {task!r}; expected one of {SPRITES_TASKS}.")
@@ -166,6 +169,8 @@ class SpritesEnv(gym.Env):
                     f"distractor_colours must name one colour of {sorted(DISTRACTOR_COLOURS)} per distractor "
                     f"({num_distractors}), got {list(distractor_colours)!r}."
                 )
+        if agent_colour not in AGENT_COLOURS:
+            raise ValueError(f"agent_colour must be one of {sorted(AGENT_COLOURS)}, got {agent_colour!r}.")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}.")
         self.image_size = image_size
@@ -185,6 +190,8 @@ class SpritesEnv(gym.Env):
             else tuple(DISTRACTOR_COLOURS)[:num_distractors]
         )
         self._colours = np.array([DISTRACTOR_COLOURS[c] for c in self.distractor_colours], dtype=np.uint8)
+        self.agent_colour = agent_colour
+        self._agent_rgb = np.array(AGENT_COLOURS[agent_colour], dtype=np.uint8)
         self.radius = max(2, round(sprite_size * image_size))
         side = 2 * self.radius + 1
         self._agent_fill = np.zeros((side, side), dtype=bool)
@@ -347,7 +354,7 @@ class SpritesEnv(gym.Env):
         y, x = np.rint(self._agent).astype(int)
         sl = (slice(y - r, y + r + 1), slice(x - r, x + r + 1))
         frame[sl] = _AGENT_BORDER
-        frame[sl][self._agent_fill] = _AGENT_COLOUR
+        frame[sl][self._agent_fill] = self._agent_rgb
         mask_agent[sl] = True
         mask_distractors &= ~mask_agent
         ids[mask_agent] = 0

@@ -144,6 +144,7 @@ def probe(
     num_distractors: int = 3,
     sprite_size: float = SPRITE_SIZE,
     distractor_colours: tuple[str, ...] | None = None,
+    agent_colour: str = "white",
     seed: int = 1000,
     ridge: float = 10.0,
     encoder: bool = False,
@@ -164,6 +165,7 @@ def probe(
         "num_distractors": num_distractors,
         "sprite_size": sprite_size,
         "distractor_colours": distractor_colours,
+        "agent_colour": agent_colour,
     }
     data = collect_sprites_episodes(episodes=episodes, steps=episode_length, seed=seed, **scene)
     training = model.training

@@ -22,6 +22,7 @@ def collect_sprites_episodes(
     action_hold: int = 1,
     sprite_size: float = SPRITE_SIZE,
     distractor_colours: tuple[str, ...] | None = None,
+    agent_colour: str = "white",
 ) -> TensorDict:
     """Roll out uniform random actions in :class:`~isodream_rl.envs.sprites.SpritesEnv`.
 
@@ -30,10 +31,10 @@ def collect_sprites_episodes(
     first frames, which the static branch reads, already show it almost where it stays; held actions make it
     travel as far as the distractors do.
 
-    ``num_backgrounds`` / ``background_seed`` / ``sprite_size`` / ``distractor_colours`` are passed to the env
-    (a fixed background pool; ``None``: a new background per episode). The gymnasium env is stepped directly
-    (about 0.1 ms per step, 100x less than through a TorchRL wrapper) and the result is laid out as TorchRL's
-    collectors do it.
+    ``num_backgrounds`` / ``background_seed`` / ``sprite_size`` / ``distractor_colours`` / ``agent_colour`` are
+    passed to the env (a fixed background pool; ``None``: a new background per episode). The gymnasium env is
+    stepped directly (about 0.1 ms per step, 100x less than through a TorchRL wrapper) and the result is laid
+    out as TorchRL's collectors do it.
 
     Returns:
         a flat ``[episodes * steps]`` tensordict with ``"action"``, ``"is_init"``, ``"episode"`` and under
@@ -49,6 +50,7 @@ def collect_sprites_episodes(
         background_seed=background_seed,
         sprite_size=sprite_size,
         distractor_colours=distractor_colours,
+        agent_colour=agent_colour,
     )
     rng = np.random.default_rng(seed)
     n = episodes * steps

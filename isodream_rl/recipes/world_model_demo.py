@@ -34,7 +34,7 @@ import torch
 from torchrl.record.loggers.csv import CSVLogger
 from tqdm import tqdm
 
-from isodream_rl.envs.sprites import DISTRACTOR_COLOURS, SPRITE_SIZE
+from isodream_rl.envs.sprites import AGENT_COLOURS, DISTRACTOR_COLOURS, SPRITE_SIZE
 from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
 from isodream_rl.modules.config import (
     CLAMP_GRADIENTS,
@@ -123,6 +123,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         default=None,
         help="comma-separated colours of the distractors, one per disc, drawn in this order (names of "
         "SpritesEnv's DISTRACTOR_COLOURS; default: red,blue,yellow,... for --distractors discs)",
+    )
+    p.add_argument(
+        "--agent-colour",
+        choices=sorted(AGENT_COLOURS),
+        default="white",
+        help="the agent's fill colour (SpritesEnv's agent_colour; its border stays black)",
     )
     p.add_argument(
         "--mask-mode",
@@ -434,6 +440,7 @@ def main(argv=None) -> dict:
         "sprite_size": args.sprite_size,
         "num_distractors": args.distractors,
         "distractor_colours": colours,
+        "agent_colour": args.agent_colour,
     }
     train = collect_sprites_episodes(
         episodes=args.episodes, steps=args.episode_length, seed=args.seed, **scene
