@@ -230,3 +230,31 @@ def test_demo_scene_takes_distractor_colours_and_refuses_a_count_that_disagrees(
         )
     with pytest.raises(SystemExit, match="unknown"):
         main([*TINY_RUN, "--distractor-colours", "cyan,teal", "--out", str(tmp_path)])
+
+
+def _static_mask_bias(path) -> torch.Tensor:
+    model = torch.load(path, map_location="cpu")["model"]
+    (bias,) = [
+        v for k, v in model.items() if k.startswith("static_decoder.") and k.endswith("bias") and v[3] > 1
+    ]
+    return bias
+
+
+def test_demo_raises_the_background_prior_on_schedule_and_across_a_resume(tmp_path):
+    # lr 0: the parameters move only by the raise, so the bias shows exactly how much of it was applied
+    small = [*TINY_RUN[2:], "--size", "tiny", "--eval-every", "2", "--precision", "fp32", "--lr", "0"]
+    raise_ = ["--static-mask-bias-raise", "2", "--static-mask-bias-raise-from", "1", "--ramp-updates", "2"]
+    main([*small, "--steps", "4", "--out", str(tmp_path / "plain")])
+    main([*small, *raise_, "--steps", "4", "--out", str(tmp_path / "raised")])
+    plain = _static_mask_bias(tmp_path / "plain" / "world_model.pt")
+    raised = _static_mask_bias(tmp_path / "raised" / "world_model.pt")
+    assert torch.allclose(raised - plain, torch.tensor([0.0, 0.0, 0.0, 2.0]))
+    # half-way (updates 0, 1, 2 ran: 1.0 of the raise at update 2), then resumed: 2.0 in all, not more
+    main([*small, *raise_, "--steps", "3", "--out", str(tmp_path / "half")])
+    half = _static_mask_bias(tmp_path / "half" / "world_model.pt")
+    assert torch.allclose(half - plain, torch.tensor([0.0, 0.0, 0.0, 1.0]))
+    checkpoint = str(tmp_path / "half" / "world_model.pt")
+    main([*small, *raise_, "--steps", "4", "--resume", checkpoint, "--out", str(tmp_path / "rest")])
+    assert torch.allclose(_static_mask_bias(tmp_path / "rest" / "world_model.pt"), raised)
+    with pytest.raises(SystemExit, match="static-mask-bias-raise"):
+        main([*small, *raise_, "--mask-mode", "sigmoid", "--out", str(tmp_path / "sigmoid")])

@@ -33,3 +33,18 @@ def test_static_mask_bias_needs_a_static_softmax_mask():
         WorldModelConfig.from_preset("tiny", action_dim=2, static_mask_bias=1.0, static_branch=False)
     with pytest.raises(ValueError, match="static_mask_bias"):
         WorldModelConfig.from_preset("tiny", action_dim=2, static_mask_bias=1.0, mask_mode="sigmoid")
+
+
+def test_shift_static_mask_bias_moves_the_background_logit_only_and_needs_it():
+    torch.manual_seed(0)
+    model = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2, static_mask_bias=1.0))
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    model.shift_static_mask_bias(2.5)
+    changed = {k for k, v in model.state_dict().items() if not torch.equal(v, before[k])}
+    (key,) = changed
+    assert key.startswith("static_decoder.") and key.endswith(".bias")
+    assert torch.allclose(model.state_dict()[key] - before[key], torch.tensor([0.0, 0.0, 0.0, 2.5]))
+    for options in ({"mask_mode": "sigmoid"}, {"static_branch": False}):
+        other = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2, **options))
+        with pytest.raises(ValueError, match="static branch in softmax mode"):
+            other.shift_static_mask_bias(1.0)

@@ -117,8 +117,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             else None
         )
         if cfg.static_mask_bias:
-            with torch.no_grad():
-                self.static_decoder.deconv[-1].bias[3] += cfg.static_mask_bias
+            self.shift_static_mask_bias(cfg.static_mask_bias)
         self.composition = MaskComposition(
             mask_mode=cfg.mask_mode,
             clamp_components=cfg.clamp_components,
@@ -176,6 +175,21 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         if self.config.precision == "bf16":
             return torch.autocast(device_type=device_type, dtype=torch.bfloat16)
         return contextlib.nullcontext()
+
+    def shift_static_mask_bias(self, delta: float) -> None:
+        """Add ``delta`` to the bias of the background's mask logit (softmax mode), in place.
+
+        The constructor applies ``config.static_mask_bias`` this way; a training loop can raise it later
+        (a background prior that grows once the dynamic branches' components have structure: see
+        ``isodream-demo --static-mask-bias-raise``). The bias stays a learned parameter.
+
+        Raises:
+            ValueError: without the static branch or outside softmax mode (the background has no logit).
+        """
+        if self.static_decoder is None or self.config.mask_mode != "softmax":
+            raise ValueError("the background's mask logit exists only with the static branch in softmax mode")
+        with torch.no_grad():
+            self.static_decoder.deconv[-1].bias[3] += delta
 
     def encode(self, pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
         """``[*N, 3, 64, 64]`` -> ``(e^s, e^z)`` each ``[*N, E]`` (``e^z`` is ``None`` without the free branch)."""

@@ -145,6 +145,20 @@ def parse_args(argv=None) -> argparse.Namespace:
         "background has no logit)",
     )
     p.add_argument(
+        "--static-mask-bias-raise",
+        type=float,
+        default=0.0,
+        help="added to that bias during training, from --static-mask-bias-raise-from on, linearly over "
+        "--ramp-updates (0: off; not in the paper). A weak prior first lets the noncontrollable component "
+        "learn the whole frame; the raise then hands the background back to the static branch",
+    )
+    p.add_argument(
+        "--static-mask-bias-raise-from",
+        type=int,
+        default=0,
+        help="update at which --static-mask-bias-raise starts (0: all of it at the start)",
+    )
+    p.add_argument(
         "--inverse-input",
         choices=INVERSE_INPUTS,
         default="embedding",
@@ -399,6 +413,11 @@ def ramp_weight(weight: float, step: int, start: int, length: int | None = None)
     return weight * min(1.0, max(0.0, (step - start) / length))
 
 
+def bias_raise(args: argparse.Namespace, step: int) -> float:
+    """The part of ``--static-mask-bias-raise`` added to the background's mask-logit bias by update ``step``."""
+    return ramp_weight(args.static_mask_bias_raise, step, args.static_mask_bias_raise_from, args.ramp_updates)
+
+
 def free_component_weight(weight: float, step: int, until: int) -> float:
     """``weight`` for the first ``until / 2`` updates, then linearly down to 0 at update ``until``."""
     return weight * min(1.0, max(0.0, 2.0 * (1.0 - step / until)))
@@ -456,6 +475,10 @@ def main(argv=None) -> dict:
         raise SystemExit(
             "--static-mask-bias needs --mask-mode softmax (in sigmoid mode the background has no logit)"
         )
+    if args.static_mask_bias_raise and (args.mask_mode != "softmax" or args.model != "isodream"):
+        raise SystemExit(
+            "--static-mask-bias-raise needs --mask-mode softmax and --model isodream (the background's logit)"
+        )
     options = {
         "precision": precision,
         "mask_mode": args.mask_mode,
@@ -502,7 +525,14 @@ def main(argv=None) -> dict:
         total=args.steps,
     )
     start = time.perf_counter()
+    # how much of --static-mask-bias-raise the model's bias already holds (a resumed run: up to update first - 1)
+    raised = bias_raise(args, first - 1) if first else 0.0
     for step in bar:
+        if args.static_mask_bias_raise:
+            target = bias_raise(args, step)
+            if target != raised:
+                loss.world_model.shift_static_mask_bias(target - raised)
+                raised = target
         if args.mask_assignment_from:
             loss.lambda_mask_assignment = ramp_weight(
                 args.mask_assignment, step, args.mask_assignment_from, args.ramp_updates
