@@ -61,6 +61,8 @@ def test_demo_writes_picture_scores_checkpoint_and_csv(tmp_path):
         "free_covers_distractor_2",
         "reco_error_distractor_0",
         "reco_error_agent",
+        "free_on_background",
+        "control_on_background",
     ):
         assert 0.0 <= saved[name] <= 3.0 and 0.0 <= saved[f"train_{name}"] <= 3.0, name
     # the final latent probe: every branch x sprite, an R^2 (at most 1), in the summary and the CSV log
@@ -258,3 +260,42 @@ def test_demo_raises_the_background_prior_on_schedule_and_across_a_resume(tmp_pa
     assert torch.allclose(_static_mask_bias(tmp_path / "rest" / "world_model.pt"), raised)
     with pytest.raises(SystemExit, match="static-mask-bias-raise"):
         main([*small, *raise_, "--mask-mode", "sigmoid", "--out", str(tmp_path / "sigmoid")])
+
+
+class _MasksFromTruth(torch.nn.Module):
+    """A stand-in world model whose masks are built from the ground truth: ``free`` on the distractors plus
+    the left half of the frame, ``control`` on the agent; the composite is the true frame."""
+
+    def __init__(self, truth):
+        super().__init__()
+        self.truth = truth
+
+    def forward(self, td):
+        nxt = self.truth["next"]
+        shape = nxt["mask_agent"].shape
+        left = torch.zeros(shape, dtype=torch.bool)
+        left[..., : shape[-1] // 2] = True
+        free = (nxt["mask_distractors"].bool() | left).float()
+        out = td.clone()
+        out["next", "mask_free"] = free
+        out["next", "mask_control"] = nxt["mask_agent"].float()
+        out["next", "reco_pixels"] = nxt["pixels"].float() / 255.0 - 0.5
+        return out
+
+
+def test_evaluate_scores_the_share_of_background_each_mask_holds():
+    from types import SimpleNamespace
+
+    from isodream_rl.recipes.sprites_data import episode_windows
+    from isodream_rl.recipes.world_model_demo import evaluate
+
+    data = collect_sprites_episodes(episodes=1, steps=16, seed=0)
+    truth = episode_windows(data, window=8)
+    scores, _ = evaluate(SimpleNamespace(world_model=_MasksFromTruth(truth)), data, window=8, device="cpu")
+    background = ~truth["next", "mask_agent"].bool() & ~truth["next", "mask_distractors"].bool()
+    left = background[..., :32].sum() / background.sum()  # the background pixels in the left half
+    assert scores["control_on_background"] == 0.0
+    assert scores["free_on_background"] == pytest.approx(float(left), abs=1e-6)
+    assert 0.3 < scores["free_on_background"] < 0.7
+    assert all(scores[f"free_covers_distractor_{i}"] == 1.0 for i in range(3))
+    assert scores["reco_error_agent"] == pytest.approx(0.0, abs=1e-6)

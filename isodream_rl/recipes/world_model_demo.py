@@ -333,7 +333,9 @@ def evaluate(loss: IsoDreamModelLoss, data, *, window: int, device) -> tuple[dic
     ``reco_error_distractor_{i}``: the composite's squared error on those pixels (summed over RGB, in the
     ``[-0.5, 0.5]`` pixel range), which tells a disc drawn by the wrong branch (low error) from a disc not
     drawn at all (error of the disc against the background, ~0.3-0.5); ``reco_error_agent`` the same on
-    the agent's pixels.
+    the agent's pixels. ``{branch}_on_background``: the fraction of the pixels of neither the agent nor a
+    distractor where that branch's mask is above 0.5 (a branch sharing the background with the static one,
+    which the IoU counts only against the objects' area).
     """
     windows = episode_windows(data, window=window)  # episodes are a multiple of the window long
     model = loss.world_model
@@ -358,6 +360,13 @@ def evaluate(loss: IsoDreamModelLoss, data, *, window: int, device) -> tuple[dic
             scores[f"reco_error_distractor_{i - 1}"] = float(error[pixels].sum() / count)
         agent = truth["mask_agent"].reshape(ids.shape).bool()
         scores["reco_error_agent"] = float(error[agent].sum() / agent.sum().clamp(min=1))
+        background = ~agent & (ids == 0)
+        for branch in ("control", "free"):
+            if f"mask_{branch}" in nxt.keys():
+                held = nxt[f"mask_{branch}"].reshape(ids.shape) > 0.5
+                scores[f"{branch}_on_background"] = float(
+                    (held & background).sum() / background.sum().clamp(min=1)
+                )
     return scores, out.cpu()
 
 
