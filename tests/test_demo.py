@@ -1,5 +1,6 @@
 """The world-model recipe (``isodream-demo``), at a tiny size: it trains, scores the masks and writes its outputs."""
 
+import argparse
 import json
 
 import pytest
@@ -7,7 +8,13 @@ import torch
 from PIL import Image
 
 from isodream_rl.recipes.sprites_data import collect_sprites_episodes
-from isodream_rl.recipes.world_model_demo import free_component_weight, main, ramp_weight
+from isodream_rl.recipes.world_model_demo import (
+    free_component_weight,
+    main,
+    parse_schedule,
+    ramp_weight,
+    schedule_value,
+)
 
 # two updates on two short episodes: the arguments every tiny demo run here shares
 TINY_RUN = ("--steps", "2", "--episodes", "2", "--episode-length", "16", "--window", "8", "--batch-size", "2")
@@ -245,7 +252,7 @@ def _static_mask_bias(path) -> torch.Tensor:
 def test_demo_raises_the_background_prior_on_schedule_and_across_a_resume(tmp_path):
     # lr 0: the parameters move only by the raise, so the bias shows exactly how much of it was applied
     small = [*TINY_RUN[2:], "--size", "tiny", "--eval-every", "2", "--precision", "fp32", "--lr", "0"]
-    raise_ = ["--static-mask-bias-raise", "2", "--static-mask-bias-raise-from", "1", "--ramp-updates", "2"]
+    raise_ = ["--static-mask-bias-schedule", "1:0,3:2"]
     main([*small, "--steps", "4", "--out", str(tmp_path / "plain")])
     main([*small, *raise_, "--steps", "4", "--out", str(tmp_path / "raised")])
     plain = _static_mask_bias(tmp_path / "plain" / "world_model.pt")
@@ -258,7 +265,7 @@ def test_demo_raises_the_background_prior_on_schedule_and_across_a_resume(tmp_pa
     checkpoint = str(tmp_path / "half" / "world_model.pt")
     main([*small, *raise_, "--steps", "4", "--resume", checkpoint, "--out", str(tmp_path / "rest")])
     assert torch.allclose(_static_mask_bias(tmp_path / "rest" / "world_model.pt"), raised)
-    with pytest.raises(SystemExit, match="static-mask-bias-raise"):
+    with pytest.raises(SystemExit, match="static-mask-bias-schedule"):
         main([*small, *raise_, "--mask-mode", "sigmoid", "--out", str(tmp_path / "sigmoid")])
 
 
@@ -299,3 +306,15 @@ def test_evaluate_scores_the_share_of_background_each_mask_holds():
     assert 0.3 < scores["free_on_background"] < 0.7
     assert all(scores[f"free_covers_distractor_{i}"] == 1.0 for i in range(3))
     assert scores["reco_error_agent"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_schedule_is_piecewise_linear_from_zero_and_held_after_its_last_point():
+    raise_ = parse_schedule("2500:0,3500:3")
+    assert [schedule_value(raise_, s) for s in (0, 2500, 3000, 3500, 9000)] == [0.0, 0.0, 1.5, 3.0, 3.0]
+    dip = parse_schedule("0:-3,1000:-3,2000:0")
+    assert [schedule_value(dip, s) for s in (0, 999, 1500, 2000, 5000)] == [-3.0, -3.0, -1.5, 0.0, 0.0]
+    assert [schedule_value(parse_schedule("100:2"), s) for s in (0, 50, 100)] == [0.0, 1.0, 2.0]
+    assert schedule_value((), 10) == 0.0
+    for bad in ("3500:3,2500:0", "1:2,1:3", "-1:0", "a:b", "100"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            parse_schedule(bad)

@@ -145,18 +145,14 @@ def parse_args(argv=None) -> argparse.Namespace:
         "background has no logit)",
     )
     p.add_argument(
-        "--static-mask-bias-raise",
-        type=float,
-        default=0.0,
-        help="added to that bias during training, from --static-mask-bias-raise-from on, linearly over "
-        "--ramp-updates (0: off; not in the paper). A weak prior first lets the noncontrollable component "
-        "learn the whole frame; the raise then hands the background back to the static branch",
-    )
-    p.add_argument(
-        "--static-mask-bias-raise-from",
-        type=int,
-        default=0,
-        help="update at which --static-mask-bias-raise starts (0: all of it at the start)",
+        "--static-mask-bias-schedule",
+        type=parse_schedule,
+        default=(),
+        help="a change of that bias during training (not in the paper): comma-separated UPDATE:OFFSET points, "
+        "the offset added to the initial bias, linear from 0 at update 0 through the points, held after the "
+        "last (e.g. '2500:0,3500:3' raises it by 3 over updates 2500-3500: a weak prior first lets the "
+        "noncontrollable component learn the whole frame, the raise then hands the background back to the "
+        "static branch)",
     )
     p.add_argument(
         "--inverse-input",
@@ -422,9 +418,29 @@ def ramp_weight(weight: float, step: int, start: int, length: int | None = None)
     return weight * min(1.0, max(0.0, (step - start) / length))
 
 
-def bias_raise(args: argparse.Namespace, step: int) -> float:
-    """The part of ``--static-mask-bias-raise`` added to the background's mask-logit bias by update ``step``."""
-    return ramp_weight(args.static_mask_bias_raise, step, args.static_mask_bias_raise_from, args.ramp_updates)
+def parse_schedule(text: str) -> tuple[tuple[int, float], ...]:
+    """``"U0:V0,U1:V1,..."`` -> ``((U0, V0), (U1, V1), ...)``; updates non-negative and increasing."""
+    try:
+        points = tuple((int(u), float(v)) for u, v in (item.split(":") for item in text.split(",") if item))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: expected UPDATE:VALUE points, e.g. '2500:0,3500:3'"
+        ) from None
+    updates = [u for u, _ in points]
+    if not points or updates[0] < 0 or any(b <= a for a, b in zip(updates, updates[1:])):
+        raise argparse.ArgumentTypeError(f"{text!r}: the updates must be non-negative and increasing")
+    return points
+
+
+def schedule_value(points: tuple[tuple[int, float], ...], step: int) -> float:
+    """The piecewise-linear schedule ``points`` at update ``step``: linear from 0 at update 0 through the points
+    (a point at update 0 sets the start), the last value held after the last point."""
+    if not points:
+        return 0.0
+    for (u0, v0), (u1, v1) in zip(((0, 0.0), *points), points):
+        if step < u1:
+            return v0 + (v1 - v0) * max(0.0, step - u0) / (u1 - u0)
+    return points[-1][1]
 
 
 def free_component_weight(weight: float, step: int, until: int) -> float:
@@ -484,9 +500,9 @@ def main(argv=None) -> dict:
         raise SystemExit(
             "--static-mask-bias needs --mask-mode softmax (in sigmoid mode the background has no logit)"
         )
-    if args.static_mask_bias_raise and (args.mask_mode != "softmax" or args.model != "isodream"):
+    if args.static_mask_bias_schedule and (args.mask_mode != "softmax" or args.model != "isodream"):
         raise SystemExit(
-            "--static-mask-bias-raise needs --mask-mode softmax and --model isodream (the background's logit)"
+            "--static-mask-bias-schedule needs --mask-mode softmax and --model isodream (the background's logit)"
         )
     options = {
         "precision": precision,
@@ -534,14 +550,13 @@ def main(argv=None) -> dict:
         total=args.steps,
     )
     start = time.perf_counter()
-    # how much of --static-mask-bias-raise the model's bias already holds (a resumed run: up to update first - 1)
-    raised = bias_raise(args, first - 1) if first else 0.0
+    # the offset of --static-mask-bias-schedule the model's bias already holds (resumed: that of update first - 1)
+    shifted = schedule_value(args.static_mask_bias_schedule, first - 1) if first else 0.0
     for step in bar:
-        if args.static_mask_bias_raise:
-            target = bias_raise(args, step)
-            if target != raised:
-                loss.world_model.shift_static_mask_bias(target - raised)
-                raised = target
+        offset = schedule_value(args.static_mask_bias_schedule, step)
+        if offset != shifted:
+            loss.world_model.shift_static_mask_bias(offset - shifted)
+            shifted = offset
         if args.mask_assignment_from:
             loss.lambda_mask_assignment = ramp_weight(
                 args.mask_assignment, step, args.mask_assignment_from, args.ramp_updates
