@@ -117,11 +117,12 @@ def test_mask_assignment_weight_waits_then_ramps_up():
     assert [ramp_weight(2.0, step, 10, 0) for step in (9, 10)] == [0.0, 2.0]
 
 
-def test_demo_logs_the_mask_assignment_term_once_it_starts(tmp_path):
+def test_demo_logs_the_late_terms_once_they_start(tmp_path):
     args = ["--steps", "41", "--episodes", "2", "--episode-length", "16", "--window", "8"]
     args += ["--batch-size", "2", "--size", "tiny", "--eval-every", "41", "--precision", "fp32"]
     args += ["--mask-assignment", "1", "--mask-assignment-from", "15", "--out", str(tmp_path)]
     args += ["--free-component-weight", "1", "--free-component-pixels", "residual"]
+    args += ["--reco-pyramid", "1", "--reco-pyramid-from", "30"]
     main([*args, "--free-component-from", "25", "--ramp-updates", "5"])
 
     def logged(name):
@@ -132,6 +133,8 @@ def test_demo_logs_the_mask_assignment_term_once_it_starts(tmp_path):
     assert logged("loss_model_mask_assignment") == [20, 40]
     # the residual term from update 26 on (--ramp-updates 5 after --free-component-from 25)
     assert logged("loss_model_free_component") == [40]
+    # the pyramid term from update 31 on, so at 40 only
+    assert logged("loss_model_reco_pyramid") == [40]
     with pytest.raises(SystemExit, match="two schedules"):
         main([*args, "--free-component-from", "25", "--free-component-until", "30"])
 

@@ -261,6 +261,14 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="pyramid levels L of --reco-pyramid (IsoDreamModelLoss.pyramid_levels)",
     )
     p.add_argument(
+        "--reco-pyramid-from",
+        type=int,
+        default=0,
+        help="update at which --reco-pyramid starts; its weight then rises linearly over --ramp-updates (0: "
+        "from the start). Started once the controllable branch holds the agent: with it from the start, seed "
+        "1's controllable branch took a disc instead (docs/results/world_model_demo.md)",
+    )
+    p.add_argument(
         "--mask-assignment",
         type=float,
         default=0.0,
@@ -564,6 +572,10 @@ def main(argv=None) -> dict:
         if args.free_component_from:
             loss.lambda_free_component = ramp_weight(
                 args.free_component_weight, step, args.free_component_from, args.ramp_updates
+            )
+        if args.reco_pyramid_from:
+            loss.lambda_reco_pyramid = ramp_weight(
+                args.reco_pyramid, step, args.reco_pyramid_from, args.ramp_updates
             )
         if args.free_component_until:
             loss.lambda_free_component = free_component_weight(
