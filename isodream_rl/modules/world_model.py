@@ -181,7 +181,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
 
         The constructor applies ``config.static_mask_bias`` this way; a training loop can raise it later
         (a background prior that grows once the dynamic branches' components have structure: see
-        ``isodream-demo --static-mask-bias-raise``). The bias stays a learned parameter.
+        ``isodream-demo --static-mask-bias-schedule``). The bias stays a learned parameter.
 
         Raises:
             ValueError: without the static branch or outside softmax mode (the background has no logit).
