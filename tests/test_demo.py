@@ -318,6 +318,7 @@ def test_schedule_is_piecewise_linear_from_zero_and_held_after_its_last_point():
     assert [schedule_value(dip, s) for s in (0, 999, 1500, 2000, 5000)] == [-3.0, -3.0, -1.5, 0.0, 0.0]
     assert [schedule_value(parse_schedule("100:2"), s) for s in (0, 50, 100)] == [0.0, 1.0, 2.0]
     assert schedule_value((), 10) == 0.0
+    assert schedule_value(dip, -1) == 0.0  # before update 0: nothing applied yet
     for bad in ("3500:3,2500:0", "1:2,1:3", "-1:0", "a:b", "100"):
         with pytest.raises(argparse.ArgumentTypeError):
             parse_schedule(bad)

@@ -353,7 +353,13 @@ def evaluate(loss: IsoDreamModelLoss, data, *, window: int, device) -> tuple[dic
                 scores[f"iou_{branch}_vs_{gt}"] = mask_iou(nxt[f"mask_{branch}"], truth[f"mask_{gt}"])
     ids = truth.get("distractor_ids", None)
     if ids is not None:
-        taken = nxt["mask_free"].reshape(ids.shape) > 0.5 if "mask_free" in nxt.keys() else None
+        # where each dynamic branch's mask holds a pixel
+        held = {
+            b: nxt[f"mask_{b}"].reshape(ids.shape) > 0.5
+            for b in ("control", "free")
+            if f"mask_{b}" in nxt.keys()
+        }
+        taken = held.get("free")
         target = preprocess_pixels(truth["pixels"])
         error = (nxt["reco_pixels"].float() - target).pow(2).sum(-3).reshape(ids.shape)
         for i in range(1, int(ids.max()) + 1):
@@ -365,12 +371,10 @@ def evaluate(loss: IsoDreamModelLoss, data, *, window: int, device) -> tuple[dic
         agent = truth["mask_agent"].reshape(ids.shape).bool()
         scores["reco_error_agent"] = float(error[agent].sum() / agent.sum().clamp(min=1))
         background = ~agent & (ids == 0)
-        for branch in ("control", "free"):
-            if f"mask_{branch}" in nxt.keys():
-                held = nxt[f"mask_{branch}"].reshape(ids.shape) > 0.5
-                scores[f"{branch}_on_background"] = float(
-                    (held & background).sum() / background.sum().clamp(min=1)
-                )
+        for branch, mask in held.items():
+            scores[f"{branch}_on_background"] = float(
+                (mask & background).sum() / background.sum().clamp(min=1)
+            )
     return scores, out.cpu()
 
 
@@ -442,8 +446,8 @@ def parse_schedule(text: str) -> tuple[tuple[int, float], ...]:
 
 def schedule_value(points: tuple[tuple[int, float], ...], step: int) -> float:
     """The piecewise-linear schedule ``points`` at update ``step``: linear from 0 at update 0 through the points
-    (a point at update 0 sets the start), the last value held after the last point."""
-    if not points:
+    (a point at update 0 sets the start), the last value held after the last point; 0 before update 0."""
+    if not points or step < 0:
         return 0.0
     for (u0, v0), (u1, v1) in zip(((0, 0.0), *points), points):
         if step < u1:
@@ -558,13 +562,13 @@ def main(argv=None) -> dict:
         total=args.steps,
     )
     start = time.perf_counter()
-    # the offset of --static-mask-bias-schedule the model's bias already holds (resumed: that of update first - 1)
-    shifted = schedule_value(args.static_mask_bias_schedule, first - 1) if first else 0.0
     for step in bar:
-        offset = schedule_value(args.static_mask_bias_schedule, step)
-        if offset != shifted:
-            loss.world_model.shift_static_mask_bias(offset - shifted)
-            shifted = offset
+        # the bias holds the schedule's offset of update step - 1 (also when resumed): move it to this update's
+        change = schedule_value(args.static_mask_bias_schedule, step) - schedule_value(
+            args.static_mask_bias_schedule, step - 1
+        )
+        if change:
+            loss.world_model.shift_static_mask_bias(change)
         if args.mask_assignment_from:
             loss.lambda_mask_assignment = ramp_weight(
                 args.mask_assignment, step, args.mask_assignment_from, args.ramp_updates
