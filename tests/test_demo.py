@@ -322,3 +322,14 @@ def test_schedule_is_piecewise_linear_from_zero_and_held_after_its_last_point():
     for bad in ("3500:3,2500:0", "1:2,1:3", "-1:0", "a:b", "100"):
         with pytest.raises(argparse.ArgumentTypeError):
             parse_schedule(bad)
+
+
+def test_demo_eval_every_zero_scores_once_at_the_end(tmp_path, capsys):
+    small = ["--steps", "3", *TINY_RUN[2:], "--size", "tiny", "--precision", "fp32", "--probe-episodes", "0"]
+    summary = main([*small, "--eval-every", "0", "--out", str(tmp_path)])
+    evaluations = [line for line in capsys.readouterr().out.splitlines() if line.startswith("update ")]
+    assert len(evaluations) == 1 and evaluations[0].startswith("update 3:")
+    assert summary["updates"] == 3 and (tmp_path / "branches.png").exists()
+    with pytest.raises(SystemExit):
+        main([*small, "--eval-every", "-1", "--out", str(tmp_path / "b")])
+    assert "--eval-every must be >= 0" in capsys.readouterr().err

@@ -182,6 +182,40 @@ def test_fused_composition_passes_only_the_gradients_asked_for():
         torch.testing.assert_close(g[:, :3], torch.zeros_like(g[:, :3]))
 
 
+@pytest.mark.parametrize("channels_last", [False, True])
+def test_fused_composition_reads_bf16_decoder_outputs_and_composes_in_float32(channels_last):
+    """bf16 dynamic outputs with a float32 background (the model under bf16 autocast): the same values as
+    composing their float32 copies, float32 results, gradients in each output's dtype and layout."""
+    torch.manual_seed(2)
+    leads = {"control": (2, 3), "free": (2, 3), "static": (2, 1)}
+    raw = {}
+    for name, lead in leads.items():
+        x = torch.randn(
+            lead[0] * lead[1], 4, 8, 8, dtype=torch.float32 if name == "static" else torch.bfloat16
+        )
+        raw[name] = (x.contiguous(memory_format=torch.channels_last) if channels_last else x).requires_grad_()
+    composition = MaskComposition(clamp_gradient="inward")
+    weights = torch.randn(2, 3, 3, 8, 8)
+
+    def run(inputs):
+        composite, masks, colors = composition.compose_decoded(
+            {n: x.reshape(*leads[n], 4, 8, 8) for n, x in inputs.items()}
+        )
+        loss = (composite * weights).sum() + masks["free"].pow(2).sum() + colors["control"].sum()
+        return composite, masks, colors, torch.autograd.grad(loss, list(inputs.values()))
+
+    widened = {n: x.detach().float().requires_grad_() for n, x in raw.items()}
+    got, want = run(raw), run(widened)
+    assert got[0].dtype == torch.float32 and all(m.dtype == torch.float32 for m in got[1].values())
+    torch.testing.assert_close(got[0], want[0])
+    for name in leads:
+        torch.testing.assert_close(got[1][name], want[1][name])
+        torch.testing.assert_close(got[2][name], want[2][name])
+    for x, g, w in zip(raw.values(), got[3], want[3]):
+        assert g.dtype == x.dtype and g.stride() == x.stride()
+        torch.testing.assert_close(g, w.to(x.dtype))
+
+
 def test_mask_floors_against_their_formulas():
     """mask_floor: masks = floor / N + (1 - floor) softmax; gradient_floor: the composite is unchanged, a
     colour's gradient is dL/dy * max(m, floor) and a logit's the exact m_i (q_i - sum_j m_j q_j) with

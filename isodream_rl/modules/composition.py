@@ -181,7 +181,9 @@ class MaskComposition(nn.Module):
         Args:
             outputs: branch name -> decoder output ``[*lead, C, H, W]`` with ``C = 4`` (RGB + mask logit)
                 or ``C = 3`` (no logit: a lone controllable branch, the static branch in sigmoid mode);
-                the ``lead`` shapes broadcast (``[B, T]`` dynamic branches, ``[B, 1]`` background).
+                the ``lead`` shapes broadcast (``[B, T]`` dynamic branches, ``[B, 1]`` background). Any
+                floating dtype: a bf16/fp16 decoder output is read as it is and composed in float32 (its
+                gradient is returned in its own dtype and memory format).
 
         Returns:
             ``(composite, masks, colors)``: the composite ``[*N, 3, H, W]``, the masks ``[*N, 1, H, W]`` and
@@ -190,12 +192,10 @@ class MaskComposition(nn.Module):
         """
         names = [name for name in BRANCHES if name in outputs]
         fused = (
-            self.mask_mode == "softmax"
-            and len(names) >= 2
-            and all(outputs[n].shape[-3] == 4 for n in names)
-            and len({outputs[n].dtype for n in names}) == 1
+            self.mask_mode == "softmax" and len(names) >= 2 and all(outputs[n].shape[-3] == 4 for n in names)
         )
         if not fused:
+            outputs = {n: outputs[n].to(_compute_dtype(outputs[n].dtype)) for n in names}
             colors = {n: outputs[n][..., :3, :, :] for n in names}
             logits = {n: outputs[n][..., 3:, :, :] for n in names if outputs[n].shape[-3] == 4}
             colors = self.bound(colors)
@@ -208,6 +208,15 @@ class MaskComposition(nn.Module):
             bounds, self.clamp_gradient == "inward", leads, (self.mask_floor, self.gradient_floor), *flat
         )
         return composite, dict(zip(names, stacked.split(1, dim=-3))), dict(zip(names, colors))
+
+
+def _compute_dtype(*dtypes: torch.dtype) -> torch.dtype:
+    """float32, or a wider floating dtype among ``dtypes``: the composition and the image loss never run in
+    bf16/fp16."""
+    out = torch.float32
+    for dtype in dtypes:
+        out = torch.promote_types(out, dtype)
+    return out
 
 
 def memory_format_of(x: torch.Tensor) -> torch.memory_format:
@@ -239,20 +248,20 @@ class _SoftmaxComposition(torch.autograd.Function):
         ctx.inward = inward
         size = raw[0].shape[-2:]
         ctx.formats = [memory_format_of(r) for r in raw]
+        ctx.dtypes = [r.dtype for r in raw]
         ctx.leads, ctx.bounds = leads, bounds
+        dtype = _compute_dtype(*ctx.dtypes)
         colors = []
         for r, lead in zip(raw, leads):
-            # written planar whatever the decoder's layout: the products below then run over whole planes
-            color = r.new_empty(r.shape[0], 3, *size)
-            if bounds is None:
-                color.copy_(r[:, :3])
-            else:
-                torch.clamp(r[:, :3], *bounds, out=color)
+            # written planar (and in float32) whatever the decoder's layout and dtype, in one pass: the
+            # products below then run over whole planes
+            color = r.new_empty(r.shape[0], 3, *size, dtype=dtype).copy_(r[:, :3])
+            if bounds is not None:
+                color.clamp_(*bounds)
             colors.append(color.view(*lead, 3, *size))
-        logits = torch.cat(
-            [r[:, 3:].reshape(*lead, 1, *size).expand(*shape, 1, *size) for r, lead in zip(raw, leads)],
-            dim=-3,
-        )
+        logits = r.new_empty(*shape, len(raw), *size, dtype=dtype)
+        for i, (r, lead) in enumerate(zip(raw, leads)):
+            logits[..., i : i + 1, :, :].copy_(r[:, 3:].reshape(*lead, 1, *size).expand(*shape, 1, *size))
         probs = torch.softmax(logits, dim=-3)
         ctx.floors = floors
         masks = probs * (1.0 - floors[0]) + floors[0] / len(raw) if floors[0] else probs
@@ -310,15 +319,13 @@ class _SoftmaxComposition(torch.autograd.Function):
                 for i, lead in enumerate(ctx.leads)
             ]
         out = []
-        for rgb, logit, lead, memory_format in zip(grads, logits, ctx.leads, ctx.formats):
+        for rgb, logit, lead, memory_format, dtype in zip(grads, logits, ctx.leads, ctx.formats, ctx.dtypes):
             if rgb is None and logit is None:
                 out.append(None)
                 continue
             count = math.prod(lead)
-            # allocated in the decoder output's layout and filled with two strided copies
-            grad = torch.empty(
-                count, 4, *size, dtype=masks.dtype, device=masks.device, memory_format=memory_format
-            )
+            # allocated in the decoder output's layout and dtype, filled with two strided copies
+            grad = torch.empty(count, 4, *size, dtype=dtype, device=masks.device, memory_format=memory_format)
             for part, value in ((grad[:, :3], rgb), (grad[:, 3:], logit)):
                 if value is None:
                     part.zero_()

@@ -373,9 +373,10 @@ class IsoDreamWorldModel(TensorDictModuleBase):
                 else:
                     free_out, slot_weights = self.free_decoder(free_feat), None
 
-        decoded = {"control": control_out.float().reshape(batch, time, *control_out.shape[1:])}
+        # in the decoders' dtype: the composition reads bf16 outputs as they are and composes in float32
+        decoded = {"control": control_out.reshape(batch, time, *control_out.shape[1:])}
         if free_out is not None:
-            decoded["free"] = free_out.float().reshape(batch, time, *free_out.shape[1:])
+            decoded["free"] = free_out.reshape(batch, time, *free_out.shape[1:])
         if static_out is not None:
             decoded["static"] = static_out[:, None]
         composite, masks, colors = self.composition.compose_decoded(decoded)

@@ -312,7 +312,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     )
     p.add_argument("--precision", choices=PRECISIONS, default=None, help="default: bf16 where fast")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--eval-every", type=int, default=200, help="updates between pictures / mask scores")
+    p.add_argument(
+        "--eval-every",
+        type=int,
+        default=200,
+        help="updates between pictures / mask scores (0: only after the last update)",
+    )
     p.add_argument(
         "--probe-episodes",
         type=int,
@@ -326,7 +331,10 @@ def parse_args(argv=None) -> argparse.Namespace:
         default=None,
         help="a world_model.pt of an earlier run with the same settings: continue from its update count to --steps",
     )
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    if args.eval_every < 0:
+        p.error(f"--eval-every must be >= 0, got {args.eval_every}")
+    return args
 
 
 def evaluate(loss: IsoDreamModelLoss, data, *, window: int, device) -> tuple[dict, object]:
@@ -421,13 +429,14 @@ def load_checkpoint(path, config, loss: IsoDreamModelLoss, optimizer) -> int:
 
 def ramp_weight(weight: float, step: int, start: int, length: int | None = None) -> float:
     """0 before update ``start``, then linearly up to ``weight`` at update ``start + length``
-    (``length`` defaults to ``start``; ``start = 0``: ``weight`` throughout)."""
+    (``length`` defaults to ``start``; ``start = 0``: ``weight`` throughout). The schedule
+    ``((start, 0), (start + length, weight))`` of :func:`schedule_value`."""
     if not start:
         return weight
     length = start if length is None else length
     if length <= 0:
         return weight if step >= start else 0.0
-    return weight * min(1.0, max(0.0, (step - start) / length))
+    return schedule_value(((start, 0.0), (start + length, weight)), step)
 
 
 def parse_schedule(text: str) -> tuple[tuple[int, float], ...]:
@@ -598,7 +607,7 @@ def main(argv=None) -> dict:
             for key, value in values.items():
                 logger.log_scalar(key, value, step=step)
             bar.set_postfix(loss=f"{total.item():.1f}", mse=f"{values['reco_mse']:.4f}")
-        if (step + 1) % args.eval_every == 0 or step == args.steps - 1:
+        if (args.eval_every and (step + 1) % args.eval_every == 0) or step == args.steps - 1:
             scores, out = evaluate(loss, held_out, window=args.window, device=device)
             # the same scores on as many training episodes (both are flat [episodes * steps], episodes of
             # one length): a gap to the held-out scores is memorisation
