@@ -259,7 +259,7 @@ class _SoftmaxComposition(torch.autograd.Function):
             if bounds is not None:
                 color.clamp_(*bounds)
             colors.append(color.view(*lead, 3, *size))
-        logits = r.new_empty(*shape, len(raw), *size, dtype=dtype)
+        logits = raw[0].new_empty(*shape, len(raw), *size, dtype=dtype)
         for i, (r, lead) in enumerate(zip(raw, leads)):
             logits[..., i : i + 1, :, :].copy_(r[:, 3:].reshape(*lead, 1, *size).expand(*shape, 1, *size))
         probs = torch.softmax(logits, dim=-3)
