@@ -39,6 +39,30 @@ def test_decoder_matches_plain_transposed_convolutions_in_values_and_gradients(c
         torch.testing.assert_close(g_fast, g_ref)
 
 
+@pytest.mark.parametrize("channels_last", [False, True])
+def test_decoder_under_bf16_autocast_matches_the_plain_layers(channels_last):
+    """bf16 outputs (the biases, added outside the convolutions, in the output's dtype; the 4-channel layer's
+    bias as a repeated pattern when channels-last): values and gradients as the plain layers under the same
+    autocast, within bf16 rounding."""
+    torch.manual_seed(0)
+    decoder = ConvDecoder(in_features=12, out_channels=4, depth=4)
+    with torch.no_grad():  # biases large enough that adding one in the wrong place shows
+        for module in decoder.modules():
+            if isinstance(module, nn.ConvTranspose2d):
+                module.bias.uniform_(-1.0, 1.0)
+    if channels_last:
+        decoder.to(memory_format=torch.channels_last)
+    latent = torch.randn(3, 12, requires_grad=True)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        fast, ref = decoder(latent), reference_decoder(decoder, latent)
+    assert fast.dtype == ref.dtype == torch.bfloat16 and fast.shape == (3, 4, 64, 64)
+    torch.testing.assert_close(fast.float(), ref.float(), atol=0.05, rtol=0.02)
+    upstream = torch.randn_like(ref)
+    for g_fast, g_ref in zip(grads(decoder, latent, fast, upstream), grads(decoder, latent, ref, upstream)):
+        assert g_fast.dtype == g_ref.dtype
+        assert (g_fast - g_ref).norm() <= 0.1 * g_ref.norm()
+
+
 def test_decoder_state_dict_keeps_the_layer_names_and_shapes():
     decoder = ConvDecoder(in_features=12, out_channels=4, depth=4)
     shapes = {k: tuple(v.shape) for k, v in decoder.state_dict().items()}
