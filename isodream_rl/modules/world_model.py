@@ -351,9 +351,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
                 free_proj = self.free_rssm.project_embedding(free_embed)
             static_out = None
             if self.static_decoder is not None:
-                static_out = self.static_background(
-                    features.reshape(batch, time, *features.shape[1:])
-                ).float()
+                static_out = self.static_background(features.reshape(batch, time, *features.shape[1:]))
         latents = self._rollout(
             control_proj.float(), None if free_proj is None else free_proj.float(), action, is_init
         )

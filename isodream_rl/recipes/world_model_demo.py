@@ -434,9 +434,8 @@ def ramp_weight(weight: float, step: int, start: int, length: int | None = None)
     if not start:
         return weight
     length = start if length is None else length
-    if length <= 0:
-        return weight if step >= start else 0.0
-    return schedule_value(((start, 0.0), (start + length, weight)), step)
+    # length <= 0: the schedule jumps from 0 to weight at update start
+    return schedule_value(((start, 0.0), (start + max(length, 0), weight)), step)
 
 
 def parse_schedule(text: str) -> tuple[tuple[int, float], ...]:

@@ -77,7 +77,8 @@ def open_loop_prediction(
 
     def decode(decoder, inputs, beliefs) -> torch.Tensor:
         feat = torch.cat([torch.cat(inputs, 1), torch.cat(beliefs, 1)], -1).reshape(batch * time, -1)
-        return decoder(feat).float().reshape(batch, time, -1, *IMAGE_SHAPE[1:])
+        # in the decoder's dtype: the composition composes bf16 outputs in float32
+        return decoder(feat).reshape(batch, time, -1, *IMAGE_SHAPE[1:])
 
     decoded = {"control": decode(world_model.control_decoder, control_inputs, control_beliefs)}
     if cfg.free_branch:
@@ -87,7 +88,7 @@ def open_loop_prediction(
         trunk = world_model.encoder.trunk_features(
             pixels.reshape(-1, *IMAGE_SHAPE), channels_last=cfg.channels_last
         )
-        static = world_model.static_background(trunk.reshape(batch, context, *trunk.shape[1:])).float()
+        static = world_model.static_background(trunk.reshape(batch, context, *trunk.shape[1:]))
         decoded["static"] = static[:, None]
     composite, masks, colors = world_model.composition.compose_decoded(decoded)
     world_model.train(was_training)
