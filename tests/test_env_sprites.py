@@ -119,8 +119,8 @@ def test_task_none_gives_zero_reward_and_truncates_at_max_steps():
         assert truncated == (t == 4)
 
 
-def test_reach_rewards_reaching_the_target_and_penalises_contact():
-    env = SpritesEnv(task="reach", num_distractors=0, max_steps=300)
+def test_sparse_reach_rewards_reaching_the_target_and_penalises_contact():
+    env = SpritesEnv(task="reach", num_distractors=0, max_steps=300, progress_reward=0.0)
     _, info = env.reset(seed=0)
     total = 0.0
     for _ in range(300):
@@ -131,7 +131,7 @@ def test_reach_rewards_reaching_the_target_and_penalises_contact():
         total += reward
     assert total >= 5  # a greedy reacher collects several respawned targets
 
-    env = SpritesEnv(task="reach", num_distractors=6, contact_penalty=0.5)
+    env = SpritesEnv(task="reach", num_distractors=6, contact_penalty=0.5, progress_reward=0.0)
     env.reset(seed=1)
     touched = 0
     for _ in range(200):
@@ -144,7 +144,49 @@ def test_reach_rewards_reaching_the_target_and_penalises_contact():
     assert touched > 0
 
 
+def test_progress_reward_is_the_distance_gained_towards_the_target_it_was_heading_for():
+    env = SpritesEnv(task="reach", num_distractors=0, progress_reward=10.0, reach_reward=1.0)
+    env.reset(seed=3)
+    reaches, total, steps = 0, 0.0, 0
+    while reaches < 3:
+        before = np.sqrt(((env._agent - env._target) ** 2).sum())
+        target = env._target.copy()
+        delta = target - env._agent
+        _, reward, _, _, info = env.step(np.clip(np.array([delta[1], delta[0]]) / 3.2, -1, 1))
+        after = np.sqrt(((env._agent - target) ** 2).sum())  # to the same target, even if it respawned
+        expected = 10.0 * (before - after) / 64 + float(info["reached"])
+        assert reward == pytest.approx(expected, abs=1e-9)
+        # Heading straight at the target never loses shaping reward, a respawn included.
+        assert reward > 0
+        reaches += info["reached"]
+        total += reward
+        steps += 1
+        assert steps < 200
+
+
+def test_progress_reward_of_a_parked_agent_is_zero():
+    env = SpritesEnv(task="reach", num_distractors=0, progress_reward=10.0)
+    env.reset(seed=0)
+    for _ in range(40):  # into a corner, then pushing against it
+        env.step(np.array([-1.0, -1.0]))
+    rewards = [env.step(np.array([-1.0, -1.0]))[1] for _ in range(10)]
+    assert rewards == [0.0] * 10
+
+
+@pytest.mark.parametrize("style, filled", [("disc", True), ("ring", False)])
+def test_target_style_draws_a_filled_disc_or_a_ring(style, filled):
+    env = SpritesEnv(task="reach", num_distractors=0, target_style=style)
+    _, info = env.reset(seed=0)
+    y, x = np.rint(env._target).astype(int)
+    assert info["mask_target"].any()
+    assert bool(info["mask_target"][y, x]) == filled  # the centre pixel
+
+
 def test_bad_arguments_raise_clear_errors():
+    with pytest.raises(ValueError, match="target_style"):
+        SpritesEnv(target_style="square")
+    with pytest.raises(ValueError, match="progress_reward"):
+        SpritesEnv(progress_reward=float("nan"))
     with pytest.raises(ValueError, match="none.*reach"):
         SpritesEnv(task="dance")
     with pytest.raises(ValueError, match="image_size"):

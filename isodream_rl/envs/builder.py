@@ -9,6 +9,9 @@
 - ``"is_init"`` (``InitTracker``) and ``"step_count"`` (``StepCounter``);
 - ``("next", "reward")``: float32 ``[1]``; ``done``/``terminated``/``truncated``;
 - ``"sim_error"``: bool ``[]``, ``True`` on the step where the simulator raised (see ``SimulatorFaultGuard``);
+- the info entries the task's success counts read (``isodream_rl.envs.reference.TASK_METRICS``), float32
+  ``[]``: ``"reached"`` and ``"touching"`` for sprites, ``"distance"`` and ``"collision_impulse"`` for the
+  highway;
 - with ``return_masks=True``, the env's ground-truth masks, bool ``[H, W]``: ``"mask_agent"``,
   ``"mask_distractors"`` and ``"mask_target"`` for sprites, ``"background_mask"`` (the pixels showing the
   video) for DMC.
@@ -109,7 +112,8 @@ class GymPixelsEnv(EnvBase):
     """A gymnasium env with HxWx3 uint8 frames and a [-1, 1] ``Box`` action, as a TorchRL ``EnvBase``.
 
     Output keys: ``"pixels"`` uint8 ``[3, H, W]``, ``"sim_error"`` bool ``[]`` (from ``SimulatorFaultGuard``,
-    ``False`` when the env has no such info), the ``mask_keys`` info entries as bool ``[H, W]``, and
+    ``False`` when the env has no such info), the ``mask_keys`` info entries as bool ``[H, W]``, the
+    ``info_keys`` entries as float32 ``[]`` (0 at reset), and
     ``reward`` float32 ``[1]``, ``done``/``terminated``/``truncated`` bool ``[1]``. ``set_seed(s)`` makes the
     next reset ``env.reset(seed=s)``; later resets continue the env's own generator.
 
@@ -117,10 +121,16 @@ class GymPixelsEnv(EnvBase):
         env (gymnasium.Env): observation ``Box(0, 255, (H, W, 3), uint8)``, action ``Box(-1, 1, (A,))``.
         device (torch.device or str, optional): device of the output tensors. Defaults to ``"cpu"``.
         mask_keys (tuple of str, optional): bool ``[H, W]`` info entries copied into the output.
+        info_keys (tuple of str, optional): scalar info entries copied into the output as float32 ``[]``.
     """
 
     def __init__(
-        self, env: gym.Env, *, device: torch.device | str = "cpu", mask_keys: tuple[str, ...] = ()
+        self,
+        env: gym.Env,
+        *,
+        device: torch.device | str = "cpu",
+        mask_keys: tuple[str, ...] = (),
+        info_keys: tuple[str, ...] = (),
     ) -> None:
         obs_space, act_space = env.observation_space, env.action_space
         if not (
@@ -142,6 +152,7 @@ class GymPixelsEnv(EnvBase):
         super().__init__(device=device, batch_size=())
         self.env = env
         self.mask_keys = tuple(mask_keys)
+        self.info_keys = tuple(info_keys)
         height, width = obs_space.shape[:2]
         observations = {
             "pixels": Bounded(0, 255, (3, height, width), dtype=torch.uint8, device=device),
@@ -149,6 +160,8 @@ class GymPixelsEnv(EnvBase):
         }
         for key in self.mask_keys:
             observations[key] = Binary(shape=(height, width), dtype=torch.bool, device=device)
+        for key in self.info_keys:
+            observations[key] = Unbounded(shape=(), dtype=torch.float32, device=device)
         self.observation_spec = Composite(observations)
         self.action_spec = Bounded(-1.0, 1.0, act_space.shape, dtype=torch.float32, device=device)
         self.reward_spec = Unbounded((1,), dtype=torch.float32, device=device)
@@ -165,6 +178,9 @@ class GymPixelsEnv(EnvBase):
         }
         for key in self.mask_keys:
             out[key] = torch.from_numpy(np.asarray(info[key], dtype=bool))
+        for key in self.info_keys:
+            # Reset infos carry no step outcome (e.g. no reach yet): 0.
+            out[key] = torch.tensor(float(info.get(key, 0.0)), dtype=torch.float32)
         return out
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
@@ -199,6 +215,7 @@ def wrap_gym_env(
     seed: int | None = None,
     device: torch.device | str = "cpu",
     mask_keys: tuple[str, ...] = (),
+    info_keys: tuple[str, ...] = (),
     name: str | None = None,
 ) -> TransformedEnv:
     """Wraps a gymnasium env with an HxWx3 uint8 observation into the TorchRL env ``make_env`` returns.
@@ -210,12 +227,16 @@ def wrap_gym_env(
         device (torch.device or str, optional): device of the output tensors. Defaults to ``"cpu"``.
         mask_keys (tuple of str, optional): bool ``[H, W]`` info entries copied into the step output.
             Defaults to none.
+        info_keys (tuple of str, optional): scalar info entries copied into the step output as float32 ``[]``.
+            Defaults to none.
         name (str, optional): name used in fault log lines.
 
     Returns:
         TransformedEnv: ``GymPixelsEnv(SimulatorFaultGuard(env))`` with ``InitTracker`` and ``StepCounter``.
     """
-    base = GymPixelsEnv(SimulatorFaultGuard(env, name=name), device=device, mask_keys=mask_keys)
+    base = GymPixelsEnv(
+        SimulatorFaultGuard(env, name=name), device=device, mask_keys=mask_keys, info_keys=info_keys
+    )
     transformed = TransformedEnv(base, Compose(InitTracker(), StepCounter()))
     if seed is not None:
         transformed.set_seed(seed)
@@ -308,8 +329,17 @@ def make_env(
         raise ValueError(
             f"return_masks=True needs ground-truth masks: 'sprites' and 'dmc_*' have them, {name!r} not."
         )
+    from isodream_rl.envs.reference import task_info_keys
+
     env = make_gym_env(name, **cfg)
-    return wrap_gym_env(env, seed=seed, device=device, mask_keys=mask_keys if return_masks else (), name=name)
+    return wrap_gym_env(
+        env,
+        seed=seed,
+        device=device,
+        mask_keys=mask_keys if return_masks else (),
+        info_keys=task_info_keys(name),
+        name=name,
+    )
 
 
 def make_parallel_env(

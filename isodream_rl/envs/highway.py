@@ -191,7 +191,9 @@ class HighwayIsoEnv(gym.Env):
         self._done = False
         self._crashed_before = False
         self._last_obs = self._observe()
-        return self._last_obs, self._info(progress=0.0, collision=0.0, steer=0.0, impulse=0.0, stuck=False)
+        info = self._info(progress=0.0, collision=0.0, steer=0.0, impulse=0.0, stuck=False)
+        info["distance"] = 0.0
+        return self._last_obs, info
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         """Applies [steer, throttle/brake] for ``action_repeat`` ticks (fewer if the episode ends sooner).
@@ -203,8 +205,8 @@ class HighwayIsoEnv(gym.Env):
         Returns:
             tuple: observation [image_size, image_size, 3] uint8, reward (mean over the ticks run), terminated,
             truncated, and info with the mean reward terms ``progress``, ``collision_penalty``,
-            ``steer_penalty``, and ``collision_impulse`` (N s, summed), ``crashed``, ``off_road``, ``stuck``,
-            ``speed`` (m/s) and ``ticks``.
+            ``steer_penalty``, and ``collision_impulse`` (N s, summed), ``distance`` (metres along the lane
+            over the ticks run, summed), ``crashed``, ``off_road``, ``stuck``, ``speed`` (m/s) and ``ticks``.
         """
         if self._done:
             raise RuntimeError("step() called on a finished episode (or before reset()); call reset() first")
@@ -237,6 +239,7 @@ class HighwayIsoEnv(gym.Env):
         info = self._info(
             progress=progress, collision=collision, steer=steer_penalty, impulse=totals[3], stuck=stuck
         )
+        info["distance"] = float(totals[0])
         return self._last_obs, float(reward), bool(terminated), bool(truncated), info
 
     def progress(self) -> float:

@@ -16,6 +16,7 @@ import gymnasium as gym
 import numpy as np
 
 SPRITES_TASKS = ("none", "reach")
+TARGET_STYLES = ("disc", "ring")
 #: default sprite half-width as a fraction of the frame (a 9-pixel disc at 64x64)
 SPRITE_SIZE = 0.06
 
@@ -62,8 +63,8 @@ class SpritesEnv(gym.Env):
       the whole episode. By default every episode draws a new one from its random generator at reset; with
       ``num_backgrounds=N`` the episodes pick one of ``N`` backgrounds made once from ``background_seed``
       (a scene family whose backgrounds a world model can learn, like a DMC floor).
-    - **target** (``task="reach"`` only): a green ring that the agent has to reach; it respawns elsewhere
-      when reached.
+    - **target** (``task="reach"`` only): a green disc (``target_style="disc"``, the default) or a two-pixel
+      ring (``"ring"``) that the agent has to reach; it respawns elsewhere when reached.
 
     Occlusion order, back to front: background, target, distractors (in index order), agent. The masks in
     ``info`` are the pixels where each sprite is visible in the final frame, so they never overlap:
@@ -71,7 +72,7 @@ class SpritesEnv(gym.Env):
     - ``info["mask_agent"]``: bool ``[S, S]``, the agent's pixels;
     - ``info["mask_distractors"]``: bool ``[S, S]``, the visible pixels of any distractor (agent pixels
       excluded);
-    - ``info["mask_target"]``: bool ``[S, S]``, the visible pixels of the target ring (all ``False`` for
+    - ``info["mask_target"]``: bool ``[S, S]``, the visible pixels of the target (all ``False`` for
       ``task="none"``). The target is part of neither other mask: it is static between respawns and only
       moves when the agent reaches it;
     - ``info["distractor_ids"]``: uint8 ``[S, S]``, ``i + 1`` where distractor ``i`` is visible, else 0
@@ -82,8 +83,13 @@ class SpritesEnv(gym.Env):
     - ``"none"``: reward 0; world-model data with random actions.
     - ``"reach"``: ``+reach_reward`` each time the agent's centre comes within ``2 * radius`` pixels of the
       target's centre (the target then respawns), ``-contact_penalty`` on every step the agent touches a
-      distractor (centres closer than ``2 * radius``). The distractors cross the way to the target, so a
-      policy that anticipates their motion scores higher than one that only reacts.
+      distractor (centres closer than ``2 * radius``), and ``progress_reward * (d_{t-1} - d_t) / S`` where
+      ``d`` is the agent's distance to the target it was heading for (measured before a respawn, so
+      reaching never costs shaping reward). The shaping term is potential-based: it sums to
+      ``progress_reward * d_spawn / S`` per target reached and to about zero for a policy that wanders or
+      parks, so it does not change which policies are best; it gives a learner a signal on every step
+      instead of on the few random reaches (0.2 per episode). The distractors cross the way to the target,
+      so a policy that anticipates their motion scores higher than one that only reacts.
 
     ``info`` also carries ``"reached"`` and ``"touching"`` (bool). Episodes never terminate; they are
     truncated after ``max_steps`` steps.
@@ -99,6 +105,10 @@ class SpritesEnv(gym.Env):
             to 0.03.
         reach_reward (float, optional): reward for reaching the target. Defaults to 1.0.
         contact_penalty (float, optional): penalty per step touching a distractor. Defaults to 0.5.
+        progress_reward (float, optional): weight of the dense progress term (distance to the target gained
+            this step, as a fraction of ``S``); 0 gives the sparse task. Defaults to 10.0 (about 0.5 per step
+            at full speed straight at the target).
+        target_style (str, optional): ``"disc"`` (filled, the default) or ``"ring"`` (two pixels wide).
         render_mode (str, optional): ``None`` or ``"rgb_array"``. Defaults to ``None``.
         num_backgrounds (int, optional): size of a fixed pool of backgrounds that episodes draw from;
             ``None`` draws a new background every episode. Defaults to ``None``.
@@ -135,6 +145,8 @@ class SpritesEnv(gym.Env):
         distractor_speed: float = 0.03,
         reach_reward: float = 1.0,
         contact_penalty: float = 0.5,
+        progress_reward: float = 10.0,
+        target_style: str = "disc",
         render_mode: str | None = None,
         num_backgrounds: int | None = None,
         background_seed: int = 0,
@@ -171,6 +183,10 @@ class SpritesEnv(gym.Env):
                 )
         if agent_colour not in AGENT_COLOURS:
             raise ValueError(f"agent_colour must be one of {sorted(AGENT_COLOURS)}, got {agent_colour!r}.")
+        if target_style not in TARGET_STYLES:
+            raise ValueError(f"target_style must be one of {TARGET_STYLES}, got {target_style!r}.")
+        if not np.isfinite(progress_reward):
+            raise ValueError(f"progress_reward must be a finite float, got {progress_reward!r}.")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}.")
         self.image_size = image_size
@@ -181,6 +197,8 @@ class SpritesEnv(gym.Env):
         self.distractor_speed = distractor_speed
         self.reach_reward = reach_reward
         self.contact_penalty = contact_penalty
+        self.progress_reward = float(progress_reward)
+        self.target_style = target_style
         self.render_mode = render_mode
 
         self.sprite_size = sprite_size
@@ -197,7 +215,7 @@ class SpritesEnv(gym.Env):
         self._agent_fill = np.zeros((side, side), dtype=bool)
         self._agent_fill[1:-1, 1:-1] = True
         self._disc = _disc(self.radius)
-        self._ring = _ring(self.radius)
+        self._target_stamp = _disc(self.radius) if target_style == "disc" else _ring(self.radius)
         # Sprite centres stay in [lo, hi] so every stamp lies fully inside the frame: no clipping per step.
         self._lo = float(self.radius)
         self._hi = float(image_size - 1 - self.radius)
@@ -266,6 +284,7 @@ class SpritesEnv(gym.Env):
         if not np.isfinite(action).all():
             raise ValueError(f"SpritesEnv got a non-finite action {action}.")
         step = self.agent_speed * self.image_size
+        distance_before = float(np.sqrt(((self._agent - self._target) ** 2).sum()))
         # Action (dx, dy) is in image coordinates; positions are stored as (row, col) = (y, x).
         self._agent[0] += step * min(max(action[1], -1.0), 1.0)
         self._agent[1] += step * min(max(action[0], -1.0), 1.0)
@@ -277,10 +296,16 @@ class SpritesEnv(gym.Env):
         reached = False
         touching = self._touching()
         if self.task == "reach":
-            reached = bool(((self._agent - self._target) ** 2).sum() <= (2 * self.radius) ** 2)
+            distance = float(np.sqrt(((self._agent - self._target) ** 2).sum()))
+            reached = distance <= 2 * self.radius
+            progress = (distance_before - distance) / self.image_size
             if reached:
                 self._target = self._spawn_target(self.np_random)
-            reward = self.reach_reward * reached - self.contact_penalty * touching
+            reward = (
+                self.reach_reward * reached
+                - self.contact_penalty * touching
+                + self.progress_reward * progress
+            )
         obs, info = self._render_with_masks()
         info["reached"] = reached
         info["touching"] = touching
@@ -344,7 +369,7 @@ class SpritesEnv(gym.Env):
         ids = np.zeros((size, size), dtype=np.uint8)
         if self.task == "reach":
             y, x = np.rint(self._target).astype(int)
-            mask_target[y - r : y + r + 1, x - r : x + r + 1] = self._ring
+            mask_target[y - r : y + r + 1, x - r : x + r + 1] = self._target_stamp
             frame[mask_target] = _TARGET_COLOUR
         for i, (y, x) in enumerate(np.rint(self._distractors).astype(int)):
             sl = (slice(y - r, y + r + 1), slice(x - r, x + r + 1))

@@ -20,7 +20,14 @@ REMOTE_BACKENDS = ("ray", "distributed")
 DISTRIBUTED_LAUNCHERS = ("mp", "submitit", "submitit_delayed")
 DISTRIBUTED_BACKENDS = ("gloo", "nccl", "mpi", "ucc")
 LOGGER_BACKENDS = ("csv", "tensorboard", "wandb")
-ALGO_NAMES = ("isodream", "dreamerv2", "isodream_no_inverse", "isodream_no_attention", "isodream_no_static")
+ALGO_NAMES = (
+    "isodream",
+    "dreamerv2",
+    "isodream_no_inverse",
+    "isodream_no_attention",
+    "isodream_no_static",
+    "torchrl_dreamer",
+)
 
 
 class ConfigError(ValueError):
@@ -168,6 +175,9 @@ class LoggingConfig:
     0 disables them."""
     eval_episodes: int = 1
     """Episodes per evaluation."""
+    final_eval_episodes: int = 10
+    """Episodes of the evaluation after the last update, written with the task's reference policies (random,
+    best constant action, scripted) and the normalised score to ``<run_dir>/summary.json``; 0 skips it."""
     video_context: int = 5
     """Context frames of the open-loop prediction; the rest of the window is imagined."""
     video_length: int = 20
@@ -262,6 +272,7 @@ def validate_config(cfg: RunConfig) -> None:
     _positive(errors, "checkpoint.keep", cfg.checkpoint.keep, 2)
     _positive(errors, "train.prefill_steps", train.prefill_steps, 0)
     _positive(errors, "logging.eval_every", cfg.logging.eval_every, 0)
+    _positive(errors, "logging.final_eval_episodes", cfg.logging.final_eval_episodes, 0)
 
     if algo.policy_input in ("attention", "concat") and not algo.free_branch:
         errors.append(

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
-import math
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +14,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.record.loggers import Logger
 from torchrl.trainers import TrainerHookBase
 
+from isodream_rl.envs.reference import TASK_METRICS
 from isodream_rl.trainers.openloop import open_loop_prediction, prediction_frames, prediction_video, save_gif
 
 #: Upper bound on evaluation episode length; every env here truncates well before (sprites 200, highway 250,
@@ -21,8 +22,41 @@ from isodream_rl.trainers.openloop import open_loop_prediction, prediction_frame
 MAX_EVAL_STEPS = 10_000
 
 
+@dataclass
+class EpisodeResults:
+    """Returns and task success counts of evaluation episodes.
+
+    Attributes:
+        returns: one return per episode.
+        metrics: one dict per episode of the task's success counts (``TASK_METRICS``: ``reaches``,
+            ``contacts`` on sprites; ``distance``, ``collisions`` on the highway; empty elsewhere).
+        frames: the first episode's frames (uint8 ``[3, H, W]`` each) when recorded, else empty.
+    """
+
+    returns: list[float]
+    metrics: list[dict[str, float]] = field(default_factory=list)
+    frames: list[torch.Tensor] = field(default_factory=list)
+
+    @property
+    def mean(self) -> float:
+        return float(np.mean(self.returns))
+
+    @property
+    def std(self) -> float:
+        return float(np.std(self.returns))
+
+    def summary(self, prefix: str = "eval_") -> dict[str, float]:
+        """``{prefix}return``, ``{prefix}return_std`` and the mean of every success count ``{prefix}<name>``."""
+        out = {f"{prefix}return": self.mean, f"{prefix}return_std": self.std}
+        for name in self.metrics[0] if self.metrics else ():
+            out[f"{prefix}{name}"] = float(np.mean([m[name] for m in self.metrics]))
+        return out
+
+
 @torch.no_grad()
-def run_episodes(policy, env: EnvBase, *, episodes: int, record: bool = False) -> tuple[list[float], list]:
+def run_episodes(
+    policy, env: EnvBase, *, episodes: int, record: bool = False, task: str | None = None
+) -> EpisodeResults:
     """Run ``episodes`` episodes with the policy's mode action.
 
     Args:
@@ -30,18 +64,27 @@ def run_episodes(policy, env: EnvBase, *, episodes: int, record: bool = False) -
         env: an unbatched env.
         episodes: how many.
         record: keep the first episode's frames (uint8 ``[3, H, W]`` each).
+        task: the env's name in ``TASK_METRICS`` (``"sprites"``, ``"highway"``) to count its successes from
+            the info keys ``make_env`` exports; ``None`` counts none.
 
     Returns:
-        ``(returns, frames)``.
+        :class:`EpisodeResults`.
     """
-    returns, frames = [], []
+    results = EpisodeResults(returns=[])
+    counts = TASK_METRICS.get(task, {}) if task is not None else {}
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for episode in range(episodes):
             rollout = env.rollout(MAX_EVAL_STEPS, policy, break_when_any_done=True)
-            returns.append(float(rollout.get(("next", "reward")).sum()))
+            results.returns.append(float(rollout.get(("next", "reward")).sum()))
+            results.metrics.append(
+                {
+                    name: float(transform(rollout.get(("next", key))).sum())
+                    for name, (key, transform) in counts.items()
+                }
+            )
             if record and episode == 0:
-                frames = list(rollout.get(("next", "pixels")).unbind(0))
-    return returns, frames
+                results.frames = list(rollout.get(("next", "pixels")).unbind(0))
+    return results
 
 
 def log_prediction(logger: Logger, name: str, video: torch.Tensor, *, step: int) -> None:
@@ -83,19 +126,21 @@ def save_episode_gif(frames: list[torch.Tensor], path: str | Path, *, fps: int =
 class Evaluation(TrainerHookBase):
     """``post_steps_log`` hook: every ``every`` agent steps, evaluation episodes and an open-loop prediction.
 
-    Logs ``eval_return`` and ``eval_return_std``; writes ``<pictures>/openloop_<steps>.gif`` (ground truth,
+    Logs ``eval_return``, ``eval_return_std`` and the task's success counts (``eval_reaches``, ...); writes ``<pictures>/openloop_<steps>.gif`` (ground truth,
     prediction, each branch's component and mask; ``context`` frames observed, then imagined) and logs the
     same frames with :func:`log_prediction`.
 
     Args:
         policy: the acting policy.
         env_factory: ``() -> EnvBase`` (with the policy's primer) for evaluation episodes; built on first use.
-        world_model: the world model to predict with.
+        world_model: the world model to predict with, or ``None`` for no open-loop prediction (a model
+            without the :func:`~isodream_rl.trainers.openloop.open_loop_prediction` interface).
         replay_buffer: source of the prediction windows.
         sequence_length: replay window length T.
         pictures: folder of the GIFs.
         every: agent steps between evaluations.
         episodes: episodes per evaluation.
+        task: the env's name in ``TASK_METRICS``, to log its success counts (``None``: none).
         context: observed frames of the open-loop prediction.
         length: frames of the open-loop prediction.
         logger: TorchRL logger for the video (TensorBoard, W&B), or ``None`` (the GIF is written either way).
@@ -112,6 +157,7 @@ class Evaluation(TrainerHookBase):
         pictures: Path,
         every: int,
         episodes: int,
+        task: str | None = None,
         context: int,
         length: int,
         logger=None,
@@ -119,7 +165,7 @@ class Evaluation(TrainerHookBase):
         self.policy, self.env_factory, self.env = policy, env_factory, None
         self.world_model, self.replay_buffer = world_model, replay_buffer
         self.sequence_length, self.pictures = sequence_length, Path(pictures)
-        self.every, self.episodes = every, episodes
+        self.every, self.episodes, self.task = every, episodes, task
         self.context, self.length, self.logger = context, length, logger
         self.last = 0
         self.last_gif: Path | None = None
@@ -129,15 +175,14 @@ class Evaluation(TrainerHookBase):
         """Run the evaluation now; returns the logged scalars."""
         if self.env is None:
             self.env = self.env_factory()
-        returns, _ = run_episodes(self.policy, self.env, episodes=self.episodes)
-        window = self.replay_buffer.sample().reshape(-1, self.sequence_length)[:1, : self.length]
-        prediction = open_loop_prediction(self.world_model, window, context=self.context)
-        self.last_gif = save_gif(prediction_frames(prediction), self.pictures / f"openloop_{step:08d}.gif")
-        if self.logger is not None:
-            log_prediction(self.logger, "openloop_prediction", prediction_video(prediction), step=step)
-        mean = sum(returns) / len(returns)
-        std = math.sqrt(sum((r - mean) ** 2 for r in returns) / len(returns))
-        return {"eval_return": mean, "eval_return_std": std}
+        results = run_episodes(self.policy, self.env, episodes=self.episodes, task=self.task)
+        if self.world_model is not None:
+            window = self.replay_buffer.sample().reshape(-1, self.sequence_length)[:1, : self.length]
+            prediction = open_loop_prediction(self.world_model, window, context=self.context)
+            self.last_gif = save_gif(prediction_frames(prediction), self.pictures / f"openloop_{step:08d}.gif")
+            if self.logger is not None:
+                log_prediction(self.logger, "openloop_prediction", prediction_video(prediction), step=step)
+        return results.summary()
 
     def __call__(self, batch) -> dict | None:
         step = self._trainer.collected_frames
@@ -155,3 +200,46 @@ class Evaluation(TrainerHookBase):
     def register(self, trainer, name: str = "evaluation") -> None:
         self._trainer = trainer
         trainer.register_op("post_steps_log", self)
+
+
+def learning_summary(
+    results: EpisodeResults,
+    *,
+    env_name: str,
+    env_kwargs: dict,
+    env_steps: int,
+    wall_s: float,
+    seed: int = 10_000,
+) -> dict:
+    """The agent's evaluation next to the task's reference policies (``isodream_rl.envs.reference``).
+
+    Args:
+        results: the agent's evaluation episodes (mode actions).
+        env_name, env_kwargs: the env as ``make_env`` builds it; the references run on the same env.
+        env_steps: agent steps the run collected.
+        wall_s: the run's training wall-clock time in seconds.
+        seed: first episode seed of the reference policies.
+
+    Returns:
+        ``eval_return``, ``eval_return_std``, the success counts (``eval_reaches``, ...), ``random_return``,
+        ``constant_return``, ``scripted_return``, ``normalised_score`` (``None`` where the env has no scripted
+        controller), ``env_steps``, ``wall_s``, ``eval_episodes`` and ``references`` (each reference policy's
+        returns and success counts).
+    """
+    from isodream_rl.envs.reference import normalised_score, reference_returns
+
+    summary: dict = {**results.summary(), "eval_episodes": len(results.returns)}
+    refs = None
+    if env_name in TASK_METRICS and not (env_name == "sprites" and env_kwargs.get("task", "none") != "reach"):
+        refs = reference_returns(env_name, episodes=len(results.returns), seed=seed, **env_kwargs)
+    for name in ("random", "constant", "scripted"):
+        summary[f"{name}_return"] = None if refs is None else refs[name]["return"]
+    summary["normalised_score"] = (
+        None
+        if refs is None
+        else normalised_score(
+            results.mean, constant=refs["constant"]["return"], scripted=refs["scripted"]["return"]
+        )
+    )
+    summary.update(env_steps=int(env_steps), wall_s=float(wall_s), references=refs)
+    return summary

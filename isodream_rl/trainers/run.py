@@ -7,6 +7,7 @@ import json
 import logging
 import random
 import shutil
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,7 +27,7 @@ from isodream_rl.trainers.builders import (
 from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager, rng_state, set_rng_state
 from isodream_rl.trainers.collectors import make_collector
 from isodream_rl.trainers.config import RunConfig, validate_config
-from isodream_rl.trainers.evaluation import Evaluation, run_episodes, save_episode_gif
+from isodream_rl.trainers.evaluation import Evaluation, learning_summary, run_episodes, save_episode_gif
 from isodream_rl.trainers.hooks import (
     EpisodeReturns,
     PeriodicCheckpoint,
@@ -51,6 +52,8 @@ class RunResult:
     updates: int
     resumed_from: Path | None = None
     metrics: dict[str, float] = field(default_factory=dict)
+    summary: dict | None = None
+    """The final evaluation next to the reference policies (``<run_dir>/summary.json``), if it ran."""
 
 
 def seed_everything(seed: int) -> None:
@@ -115,13 +118,16 @@ class RunComponents:
             "value_loss": self.behavior.value_loss,
         }
 
-    def state(self, cfg: RunConfig, *, env_steps: int, trainer: Trainer | None, evaluation=None) -> dict:
+    def state(
+        self, cfg: RunConfig, *, env_steps: int, trainer: Trainer | None, evaluation=None, wall_s: float = 0.0
+    ) -> dict:
         return {
             "config": dataclasses.asdict(cfg),
             "models": {name: module.state_dict() for name, module in self.modules().items()},
             "stepper": self.stepper.state_dict(),
             "counters": {
                 "env_steps": env_steps,
+                "wall_s": wall_s,
                 "optim_count": trainer._optim_count if trainer is not None else 0,
                 "last_log": dict(trainer._last_log) if trainer is not None else {},
             },
@@ -136,6 +142,17 @@ class RunComponents:
     def load_models(self, state: dict) -> None:
         for name, module in self.modules().items():
             module.load_state_dict(state["models"][name])
+
+
+def make_components(cfg: RunConfig, *, action_dim: int, scratch_dir: Path):
+    """The run's components for ``cfg.algo.name``: :class:`RunComponents` (Iso-Dream, its ablations and the
+    DreamerV2 baseline), or, for ``torchrl_dreamer``, TorchRL's own Dreamer pieces with the same interface
+    (``isodream_rl.baselines.torchrl_dreamer``)."""
+    if cfg.algo.name == "torchrl_dreamer":
+        from isodream_rl.baselines.torchrl_dreamer import TorchRLDreamerComponents
+
+        return TorchRLDreamerComponents(cfg, action_dim=action_dim, scratch_dir=scratch_dir)
+    return RunComponents(cfg, action_dim=action_dim, scratch_dir=scratch_dir)
 
 
 def train(cfg: RunConfig) -> RunResult:
@@ -153,6 +170,7 @@ def train(cfg: RunConfig) -> RunResult:
         NonFiniteLossError: too many NaN/inf updates in a row.
     """
     validate_config(cfg)
+    started = time.perf_counter()
     train_cfg = cfg.train
     torch.set_num_threads(train_cfg.threads)
     seed_everything(train_cfg.seed)
@@ -165,7 +183,7 @@ def train(cfg: RunConfig) -> RunResult:
     # The memmap files of an earlier process of this run (killed, or finished) are stale: the replay data
     # that matters is in the checkpoints.
     shutil.rmtree(scratch, ignore_errors=True)
-    components = RunComponents(cfg, action_dim=_probe_action_dim(cfg), scratch_dir=scratch)
+    components = make_components(cfg, action_dim=_probe_action_dim(cfg), scratch_dir=scratch)
     stepper, policy = components.stepper, components.behavior.policy
     checkpoints = CheckpointManager(run_dir / "checkpoints", keep=cfg.checkpoint.keep)
     resumed_from, state = None, None
@@ -183,6 +201,10 @@ def train(cfg: RunConfig) -> RunResult:
         set_rng_state(state["rng"])
         logger.info("resumed from %s (%d env steps)", resumed_from, state["counters"]["env_steps"])
     env_steps = state["counters"]["env_steps"] if state else 0
+    wall_before = state["counters"].get("wall_s", 0.0) if state else 0.0
+
+    def wall_s() -> float:
+        return wall_before + time.perf_counter() - started
 
     if env_steps >= train_cfg.total_steps:
         return RunResult(run_dir, resumed_from, logs, pictures, env_steps, stepper.updates, resumed_from)
@@ -224,14 +246,14 @@ def train(cfg: RunConfig) -> RunResult:
     Throughput(stepper).register(trainer)
     if cfg.env.num_envs > 1 or train_cfg.collector_backend != "sync":
         UpdateWeights(collector, update_weights_interval=1).register(trainer)
+
+    def eval_env():
+        env = env_factory(cfg, eval_mode=True)()
+        env.append_transform(policy.make_tensordict_primer())
+        return env
+
     evaluation = None
     if cfg.logging.eval_every > 0:
-
-        def eval_env():
-            env = env_factory(cfg, eval_mode=True)()
-            env.append_transform(policy.make_tensordict_primer())
-            return env
-
         evaluation = Evaluation(
             policy=policy,
             env_factory=eval_env,
@@ -241,6 +263,7 @@ def train(cfg: RunConfig) -> RunResult:
             pictures=pictures,
             every=cfg.logging.eval_every,
             episodes=cfg.logging.eval_episodes,
+            task=cfg.env.name,
             context=cfg.logging.video_context,
             length=cfg.logging.video_length,
             # The CSV logger can only write videos as MP4 through torchcodec (not a dependency); the GIF suffices.
@@ -257,7 +280,13 @@ def train(cfg: RunConfig) -> RunResult:
     def save() -> Path:
         path = checkpoints.save(
             stepper.updates,
-            components.state(cfg, env_steps=trainer.collected_frames, trainer=trainer, evaluation=evaluation),
+            components.state(
+                cfg,
+                env_steps=trainer.collected_frames,
+                trainer=trainer,
+                evaluation=evaluation,
+                wall_s=wall_s(),
+            ),
             replay_buffer=components.replay_buffer if cfg.checkpoint.replay else None,
         )
         last_checkpoint[0] = path
@@ -273,6 +302,20 @@ def train(cfg: RunConfig) -> RunResult:
             collector.shutdown()
         if signals.received is None:
             save()
+    train_wall_s = wall_s()
+    summary = None
+    if signals.received is None and cfg.logging.final_eval_episodes > 0:
+        summary = final_evaluation(
+            cfg,
+            policy,
+            env_factory=eval_env,
+            env_steps=trainer.collected_frames,
+            wall_s=train_wall_s,
+            run_dir=run_dir,
+        )
+        for key, value in summary.items():
+            if isinstance(value, (int, float)):
+                log.log_scalar(f"final/{key}", value, step=trainer.collected_frames)
     close_logger(log)
     metrics = {
         key: float(values[-1])
@@ -288,7 +331,30 @@ def train(cfg: RunConfig) -> RunResult:
         updates=stepper.updates,
         resumed_from=resumed_from,
         metrics=metrics,
+        summary=summary,
     )
+
+
+def final_evaluation(
+    cfg: RunConfig, policy, *, env_factory, env_steps: int, wall_s: float, run_dir: Path
+) -> dict:
+    """Evaluate the trained policy (``logging.final_eval_episodes`` mode-action episodes) next to the task's
+    reference policies and write ``<run_dir>/summary.json`` (see :func:`learning_summary`)."""
+    env = env_factory()
+    env.set_seed(cfg.train.seed + 1)
+    try:
+        results = run_episodes(policy, env, episodes=cfg.logging.final_eval_episodes, task=cfg.env.name)
+    finally:
+        env.close()
+    summary = learning_summary(
+        results, env_name=cfg.env.name, env_kwargs=dict(cfg.env.kwargs), env_steps=env_steps, wall_s=wall_s
+    )
+    summary.update(updates_per_env_step=1.0 / cfg.train.train_every, algo=cfg.algo.name, seed=cfg.train.seed)
+    path = Path(run_dir) / "summary.json"
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(summary, indent=2))
+    tmp.replace(path)
+    return summary
 
 
 def _is_scalar(value) -> bool:
@@ -326,7 +392,7 @@ def evaluate_checkpoint(
     cfg = config_from_dict(state["config"])
     torch.set_num_threads(cfg.train.threads)
     seed_everything(seed)
-    components = RunComponents(
+    components = make_components(
         cfg, action_dim=_probe_action_dim(cfg), scratch_dir=Path(run_dir) / "eval_scratch"
     )
     components.load_models(state)
@@ -335,10 +401,9 @@ def evaluate_checkpoint(
     env.append_transform(policy.make_tensordict_primer())
     env.set_seed(seed)
     try:
-        returns, frames = run_episodes(policy, env, episodes=episodes, record=video is not None)
+        results = run_episodes(policy, env, episodes=episodes, record=video is not None, task=cfg.env.name)
     finally:
         env.close()
     if video is not None:
-        save_episode_gif(frames, video)
-    mean = float(np.mean(returns))
-    return mean, float(np.std(returns)), returns
+        save_episode_gif(results.frames, video)
+    return results.mean, results.std, results.returns
