@@ -1,5 +1,6 @@
 """The real CLI (``python -m isodream_rl.cli``) with tiny overrides, SheepRL-style, and its config errors."""
 
+import json
 import os
 import re
 import subprocess
@@ -44,6 +45,7 @@ def test_groups_hold_the_presets_the_paper_needs():
         "isodream_no_inverse",
         "isodream_no_attention",
         "isodream_no_static",
+        "torchrl_dreamer",
     }
     assert set(SIZES) == {"paper", "small", "quickstart", "tiny"}
     assert {"sprites", "highway", "dmc_walker_walk"} <= set(ENVS)
@@ -104,15 +106,25 @@ def test_every_algo_trains_on_sprites_and_evaluates(tmp_path, capsys):
     sweep = ",".join(ALGOS)
     args = ["-m", f"algo={sweep}", *TINY, "train.total_steps=40", "train.prefill_steps=20"]
     args += ["train.frames_per_batch=20", "logging.eval_every=30", "logging.log_every=10"]
-    args += ["env.kwargs.max_steps=30"]
+    args += ["env.kwargs.max_steps=30", "logging.final_eval_episodes=2"]
     out = run_cli(args, tmp_path, timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
     assert out.stdout.count("run finished: 40 env steps, 8 updates") == len(ALGOS)
     for algo in ALGOS:
         run = tmp_path / "runs" / f"sprites-{algo}-tiny"
         assert list((run / "checkpoints").glob("step_00000008")), algo
-        assert list((run / "pictures").glob("openloop_*.gif")), algo
+        if algo != "torchrl_dreamer":  # TorchRL's world model has no branches to picture
+            assert list((run / "pictures").glob("openloop_*.gif")), algo
         assert list((run / "logs").rglob("*.csv")), algo
+        summary = json.loads((run / "summary.json").read_text())
+        assert summary["eval_episodes"] == 2 and summary["env_steps"] == 40 and summary["wall_s"] > 0
+        refs = summary["references"]
+        assert summary["scripted_return"] == refs["scripted"]["return"] > summary["constant_return"]
+        expected = (summary["eval_return"] - summary["constant_return"]) / (
+            summary["scripted_return"] - summary["constant_return"]
+        )
+        assert summary["normalised_score"] == pytest.approx(expected)
+        assert summary["eval_reaches"] >= 0 and refs["scripted"]["reaches"] > refs["random"]["reaches"]
 
     # isodream-eval's entry point, in this process (its start-up would double the test's time).
     video = tmp_path / "eval.gif"
@@ -127,7 +139,7 @@ def test_every_algo_trains_on_sprites_and_evaluates(tmp_path, capsys):
 def test_every_algo_trains_on_the_simulated_envs(env, tmp_path):
     sweep = ",".join(ALGOS)
     args = ["-m", f"env={env}", f"algo={sweep}", *TINY, "train.total_steps=10", "train.prefill_steps=10"]
-    args += ["train.frames_per_batch=10"]
+    args += ["train.frames_per_batch=10", "logging.final_eval_episodes=0"]
     out = run_cli(args, tmp_path, timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
     assert out.stdout.count("run finished: 10 env steps, 2 updates") == len(ALGOS)

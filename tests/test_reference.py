@@ -30,10 +30,16 @@ def test_sprites_references_rank_scripted_above_constant_above_random():
 
 def test_constant_reference_is_the_best_candidate():
     candidates = [(1.0, 0.0), (-1.0, -1.0)]
-    refs = reference_returns("sprites", episodes=2, seed=1, constant_actions=candidates, task="reach", max_steps=50)
+    refs = reference_returns(
+        "sprites", episodes=2, seed=1, constant_actions=candidates, task="reach", max_steps=50
+    )
     env = make_gym_env("sprites", task="reach", max_steps=50)
     means = [
-        np.mean(run_reference_episodes("sprites", env, lambda _e, _r, a=np.array(c, np.float32): a, episodes=2, seed=1)[0])
+        np.mean(
+            run_reference_episodes(
+                "sprites", env, lambda _e, _r, a=np.array(c, np.float32): a, episodes=2, seed=1
+            )[0]
+        )
         for c in candidates
     ]
     assert refs["constant"]["return"] == pytest.approx(max(means))
@@ -74,7 +80,9 @@ def test_torchrl_env_exports_the_info_keys_the_success_counts_read():
 @pytest.mark.parametrize("view", ["top_down"])
 def test_highway_scripted_driver_keeps_its_lane_and_speed(view):
     env = make_gym_env("highway", view=view, vehicles_count=1, max_ticks=240)
-    returns, metrics = run_reference_episodes("highway", env, lambda e, _r: scripted_action(e), episodes=1, seed=0)
+    returns, metrics = run_reference_episodes(
+        "highway", env, lambda e, _r: scripted_action(e), episodes=1, seed=0
+    )
     ego = env.unwrapped.ego
     _, lateral = ego.lane.local_coordinates(ego.position)
     assert abs(lateral) < 0.5 and abs(ego.speed - 30.0) < 2.0

@@ -126,7 +126,8 @@ def save_episode_gif(frames: list[torch.Tensor], path: str | Path, *, fps: int =
 class Evaluation(TrainerHookBase):
     """``post_steps_log`` hook: every ``every`` agent steps, evaluation episodes and an open-loop prediction.
 
-    Logs ``eval_return``, ``eval_return_std`` and the task's success counts (``eval_reaches``, ...); writes ``<pictures>/openloop_<steps>.gif`` (ground truth,
+    Logs ``eval_return``, ``eval_return_std``, the task's success counts (``eval_reaches``, ...) and, with a
+    ``clock``, ``eval_wall_s`` (the training time when the evaluation started); writes ``<pictures>/openloop_<steps>.gif`` (ground truth,
     prediction, each branch's component and mask; ``context`` frames observed, then imagined) and logs the
     same frames with :func:`log_prediction`.
 
@@ -141,6 +142,8 @@ class Evaluation(TrainerHookBase):
         every: agent steps between evaluations.
         episodes: episodes per evaluation.
         task: the env's name in ``TASK_METRICS``, to log its success counts (``None``: none).
+        clock: ``() -> seconds`` of the run's training wall-clock, logged as ``eval_wall_s`` (``None``: not
+            logged).
         context: observed frames of the open-loop prediction.
         length: frames of the open-loop prediction.
         logger: TorchRL logger for the video (TensorBoard, W&B), or ``None`` (the GIF is written either way).
@@ -158,6 +161,7 @@ class Evaluation(TrainerHookBase):
         every: int,
         episodes: int,
         task: str | None = None,
+        clock=None,
         context: int,
         length: int,
         logger=None,
@@ -165,7 +169,7 @@ class Evaluation(TrainerHookBase):
         self.policy, self.env_factory, self.env = policy, env_factory, None
         self.world_model, self.replay_buffer = world_model, replay_buffer
         self.sequence_length, self.pictures = sequence_length, Path(pictures)
-        self.every, self.episodes, self.task = every, episodes, task
+        self.every, self.episodes, self.task, self.clock = every, episodes, task, clock
         self.context, self.length, self.logger = context, length, logger
         self.last = 0
         self.last_gif: Path | None = None
@@ -173,6 +177,7 @@ class Evaluation(TrainerHookBase):
 
     def evaluate(self, step: int) -> dict:
         """Run the evaluation now; returns the logged scalars."""
+        wall_s = None if self.clock is None else self.clock()
         if self.env is None:
             self.env = self.env_factory()
         results = run_episodes(self.policy, self.env, episodes=self.episodes, task=self.task)
@@ -182,7 +187,10 @@ class Evaluation(TrainerHookBase):
             self.last_gif = save_gif(prediction_frames(prediction), self.pictures / f"openloop_{step:08d}.gif")
             if self.logger is not None:
                 log_prediction(self.logger, "openloop_prediction", prediction_video(prediction), step=step)
-        return results.summary()
+        out = results.summary()
+        if wall_s is not None:
+            out["eval_wall_s"] = wall_s
+        return out
 
     def __call__(self, batch) -> dict | None:
         step = self._trainer.collected_frames

@@ -264,6 +264,7 @@ def train(cfg: RunConfig) -> RunResult:
             every=cfg.logging.eval_every,
             episodes=cfg.logging.eval_episodes,
             task=cfg.env.name,
+            clock=wall_s,
             context=cfg.logging.video_context,
             length=cfg.logging.video_length,
             # The CSV logger can only write videos as MP4 through torchcodec (not a dependency); the GIF suffices.

@@ -1,0 +1,280 @@
+"""Learning curves of Iso-Dream, the DreamerV2 baseline and TorchRL's Dreamer at equal env steps.
+
+Every (algorithm, seed) is one ``isodream-train`` run in its own folder under ``--runs``; ``--parallel`` runs
+share the machine at one torch thread each. A run that was interrupted resumes from its newest checkpoint
+when the bench is started again (finished runs are read back, not retrained). Each run evaluates its
+deterministic policy every ``--eval-every`` env steps and at the end (``--eval-episodes`` episodes,
+``summary.json``), next to the task's reference policies (uniform random, best constant action, scripted).
+
+Writes ``--json`` (default ``docs/results/learning.json``)::
+
+    {"env": ..., "env_kwargs": ..., "env_steps": N, "random_return": R, "constant_return": R,
+     "scripted_return": R, "references": {...},
+     "algos": {algo: {"final_per_seed": [...], "final_successes_per_seed": [...],
+                      "normalised_per_seed": [...], "wall_s_per_seed": [...],
+                      "curves": {seed: {"env_steps": [...], "eval_return": [...], "wall_s": [...]}}}},
+     "commit": ..., "cpu": ..., "command": ..., "overrides": [...]}
+
+plus a picture (``--png``: eval return against env steps, mean and range over seeds, the reference returns
+as lines) and a table (``--md``).
+
+    python bench/learning.py                       # the committed results (about 3 hours on 2 cores)
+    python bench/learning.py --algos dreamerv2 --seeds 0 --env-steps 2000 --runs /tmp/lb --json /tmp/lb.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+ALGOS = ("isodream", "dreamerv2", "torchrl_dreamer")
+#: The task's success count reported beside the return, per env.
+SUCCESS_KEY = {"sprites": "reaches", "highway": "distance"}
+
+
+def cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def git_commit() -> str:
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
+        )
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain"], cwd=ROOT, capture_output=True, text=True
+        ).stdout
+        return out.stdout.strip() + ("-dirty" if dirty.strip() else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def read_scalar(run_dir: Path, name: str) -> list[tuple[int, float]]:
+    path = run_dir / "logs" / "train" / "scalars" / f"{name}.csv"
+    if not path.exists():
+        return []
+    with path.open() as f:
+        return [(int(float(row[0])), float(row[1])) for row in csv.reader(f) if len(row) >= 2]
+
+
+def run_command(algo: str, seed: int, run_dir: Path, args: argparse.Namespace) -> list[str]:
+    overrides = [
+        f"algo={algo}",
+        f"env={args.env}",
+        f"size={args.size}",
+        f"train.seed={seed}",
+        f"train.total_steps={args.env_steps}",
+        "train.threads=1",
+        f"logging.eval_every={args.eval_every}",
+        f"logging.eval_episodes={args.eval_episodes}",
+        f"logging.final_eval_episodes={args.eval_episodes}",
+        "logging.progress_bar=false",
+        f"run_dir={run_dir}",
+        *args.override,
+    ]
+    if (run_dir / "checkpoints").is_dir() and any((run_dir / "checkpoints").iterdir()):
+        overrides.append("resume=true")
+    return [sys.executable, "-m", "isodream_rl.cli", *overrides]
+
+
+def train_all(args: argparse.Namespace) -> None:
+    """Run every (algo, seed) without a summary.json, ``--parallel`` at a time."""
+    pending = [
+        (algo, seed)
+        for algo in args.algos
+        for seed in args.seeds
+        if not (args.runs / f"{algo}_s{seed}" / "summary.json").exists()
+    ]
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    running: list[tuple[str, int, subprocess.Popen]] = []
+    while pending or running:
+        while pending and len(running) < args.parallel:
+            algo, seed = pending.pop(0)
+            run_dir = args.runs / f"{algo}_s{seed}"
+            run_dir.mkdir(parents=True, exist_ok=True)
+            cmd = run_command(algo, seed, run_dir, args)
+            log = (run_dir / "bench.log").open("a")
+            print(f"[bench] start {algo} seed {seed}: {' '.join(cmd[2:])}", flush=True)
+            running.append((algo, seed, subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=log, stderr=log)))
+        time.sleep(5)
+        for item in list(running):
+            algo, seed, proc = item
+            if proc.poll() is not None:
+                running.remove(item)
+                status = "done" if proc.returncode == 0 else f"FAILED (rc {proc.returncode})"
+                print(f"[bench] {algo} seed {seed}: {status}", flush=True)
+
+
+def collect(args: argparse.Namespace) -> dict:
+    """Read the runs' logs and summaries into the JSON schema of the module docstring."""
+    results: dict = {"algos": {}}
+    references = None
+    success_key = SUCCESS_KEY.get(args.env)
+    for algo in args.algos:
+        entry = {
+            "final_per_seed": [],
+            "final_successes_per_seed": [],
+            "normalised_per_seed": [],
+            "wall_s_per_seed": [],
+            "updates_per_seed": [],
+            "seeds": [],
+            "curves": {},
+        }
+        for seed in args.seeds:
+            run_dir = args.runs / f"{algo}_s{seed}"
+            summary_path = run_dir / "summary.json"
+            if not summary_path.exists():
+                print(f"[bench] {algo} seed {seed}: no summary.json, left out", flush=True)
+                continue
+            summary = json.loads(summary_path.read_text())
+            references = references or summary.get("references")
+            entry["seeds"].append(seed)
+            entry["final_per_seed"].append(summary["eval_return"])
+            entry["final_successes_per_seed"].append(summary.get(f"eval_{success_key}"))
+            entry["normalised_per_seed"].append(summary.get("normalised_score"))
+            entry["wall_s_per_seed"].append(summary["wall_s"])
+            entry["updates_per_seed"].append(
+                read_scalar(run_dir, "updates")[-1][1] if read_scalar(run_dir, "updates") else None
+            )
+            returns = read_scalar(run_dir, "eval_return")
+            walls = dict(read_scalar(run_dir, "eval_wall_s"))
+            steps = [s for s, _ in returns] + [summary["env_steps"]]
+            entry["curves"][str(seed)] = {
+                "env_steps": steps,
+                "eval_return": [v for _, v in returns] + [summary["eval_return"]],
+                "wall_s": [walls.get(s) for s, _ in returns] + [summary["wall_s"]],
+            }
+        results["algos"][algo] = entry
+    for name in ("random", "constant", "scripted"):
+        results[f"{name}_return"] = None if references is None else references[name]["return"]
+    results["references"] = references
+    return results
+
+
+def plot(results: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.2), dpi=120)
+    colours = {"isodream": "tab:blue", "dreamerv2": "tab:orange", "torchrl_dreamer": "tab:green"}
+    for algo, entry in results["algos"].items():
+        curves = list(entry["curves"].values())
+        if not curves:
+            continue
+        grid = sorted(set().union(*(c["env_steps"] for c in curves)))
+        values = np.array([np.interp(grid, c["env_steps"], c["eval_return"]) for c in curves])
+        colour = colours.get(algo)
+        ax.plot(grid, values.mean(0), color=colour, label=f"{algo} ({len(curves)} seeds)")
+        ax.fill_between(grid, values.min(0), values.max(0), color=colour, alpha=0.2)
+    for name, style in (("random", ":"), ("constant", "-."), ("scripted", "--")):
+        value = results.get(f"{name}_return")
+        if value is not None:
+            ax.axhline(value, color="grey", linestyle=style, linewidth=1, label=f"{name} policy")
+    ax.set_xlabel("env steps")
+    ax.set_ylabel("evaluation return (mode actions)")
+    ax.set_title(f"{results['env']}: mean and range over seeds")
+    ax.legend(fontsize=8, loc="best")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _fmt(values, digits=1) -> str:
+    values = [v for v in values if v is not None]
+    if not values:
+        return "n/a"
+    return f"{np.mean(values):.{digits}f} ({min(values):.{digits}f} to {max(values):.{digits}f})"
+
+
+def table(results: dict) -> str:
+    success = SUCCESS_KEY.get(results["env"], "successes")
+    lines = [
+        f"| algo | seeds | final return | normalised score | {success} per episode | wall-clock per run (min) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for algo, entry in results["algos"].items():
+        lines.append(
+            f"| {algo} | {len(entry['seeds'])} | {_fmt(entry['final_per_seed'])} | "
+            f"{_fmt(entry['normalised_per_seed'], 2)} | {_fmt(entry['final_successes_per_seed'])} | "
+            f"{_fmt([w / 60 for w in entry['wall_s_per_seed']])} |"
+        )
+    refs = results.get("references") or {}
+    for name in ("random", "constant", "scripted"):
+        if name in refs:
+            ref = refs[name]
+            lines.append(
+                f"| {name} policy | - | {ref['return']:.1f} | {'0' if name == 'constant' else ('1' if name == 'scripted' else '-')} "
+                f"| {ref.get(success, float('nan')):.1f} | - |"
+            )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--algos", type=lambda s: s.split(","), default=list(ALGOS))
+    parser.add_argument("--seeds", type=lambda s: [int(x) for x in s.split(",")], default=[0, 1, 2])
+    parser.add_argument("--env", default="sprites", help="the env group of isodream-train")
+    parser.add_argument("--size", default="bench", help="the size group of isodream-train")
+    parser.add_argument("--env-steps", type=int, default=20_000)
+    parser.add_argument("--eval-every", type=int, default=2_500)
+    parser.add_argument("--eval-episodes", type=int, default=10)
+    parser.add_argument("--parallel", type=int, default=2, help="runs at a time (one torch thread each)")
+    parser.add_argument("--runs", type=Path, default=ROOT / "runs" / "bench_learning")
+    parser.add_argument("--json", type=Path, default=ROOT / "docs" / "results" / "learning.json")
+    parser.add_argument("--png", type=Path, default=None, help="default: the JSON's path with .png")
+    parser.add_argument("--md", type=Path, default=None, help="default: the JSON's path with .md")
+    parser.add_argument("--override", action="append", default=[], help="extra isodream-train override")
+    parser.add_argument("--collect-only", action="store_true", help="only read finished runs")
+    args = parser.parse_args(argv)
+    unknown = set(args.algos) - set(ALGOS)
+    if unknown:
+        parser.error(f"unknown algos {sorted(unknown)}; valid: {list(ALGOS)}")
+    if not args.collect_only:
+        train_all(args)
+    results = {
+        "env": args.env,
+        "env_steps": args.env_steps,
+        **collect(args),
+        "size": args.size,
+        "overrides": args.override,
+        "commit": git_commit(),
+        "cpu": cpu_name(),
+        "threads_per_run": 1,
+        "parallel_runs": args.parallel,
+        "command": "python bench/learning.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+    }
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(results, indent=2))
+    plot(results, args.png or args.json.with_suffix(".png"))
+    md = args.md or args.json.with_suffix(".md")
+    md.write_text(
+        f"# Learning on {args.env}: final evaluation at {args.env_steps} env steps\n\n"
+        f"Made by `{results['command']}` at commit `{results['commit']}` on `{results['cpu']}`.\n\n"
+        + table(results)
+        + "\n"
+    )
+    print(table(results))
+    return results
+
+
+if __name__ == "__main__":
+    main()
