@@ -172,5 +172,5 @@ def make_behavior(cfg: RunConfig, world_model: IsoDreamWorldModel) -> Behavior:
         actor_loss=actor_loss,
         value_loss=value_loss,
         target_updater=make_target_updater(value_loss, period=algo.slow_target_every),
-        policy=IsoDreamPolicy(world_model, actor, policy_input),
+        policy=IsoDreamPolicy(world_model, actor, policy_input, exploration_noise=algo.exploration_noise),
     )

@@ -94,6 +94,9 @@ class AlgoConfig:
     """lambda of the lambda-returns."""
     actor_entropy: float = 1e-4
     """Entropy bonus of the actor loss."""
+    exploration_noise: float = 0.0
+    """Std of the Gaussian noise added to the acting policy's sampled actions during collection (clamped to
+    [-1, 1]; 0 as the authors; DreamerV1 and TorchRL's Dreamer example use 0.3)."""
     lambda_reward: float = 1.0
     """Weight of the reward log-loss (``reward_scale``: 2 in the authors' DMC and CARLA configs)."""
     lambda_inverse: float = 1.0
@@ -294,6 +297,8 @@ def validate_config(cfg: RunConfig) -> None:
             "algo.free_branch_loss=recon_only configures the noncontrollable branch, which is off "
             "(algo.free_branch=false): set algo.free_branch_loss=kl or algo.free_branch=true"
         )
+    if algo.exploration_noise < 0:
+        errors.append(f"algo.exploration_noise={algo.exploration_noise} must be >= 0")
     if not 0.0 < algo.gamma <= 1.0 or not 0.0 <= algo.lmbda <= 1.0:
         errors.append(f"algo.gamma={algo.gamma} must be in (0, 1] and algo.lmbda={algo.lmbda} in [0, 1]")
     if train.frames_per_batch >= 1 and train.frames_per_batch % (train.train_every * env.num_envs):
