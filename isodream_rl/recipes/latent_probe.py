@@ -120,7 +120,7 @@ def ridge_cv(
 def encoder_features(model: IsoDreamWorldModel, data, *, window: int) -> dict[str, torch.Tensor]:
     """Encoder features ``[N, D]`` of the same frames as :func:`branch_features` (the same steps dropped):
     ``trunk`` (2x2-pooled shared trunk map), ``embed_control`` and, with the noncontrollable branch,
-    ``embed_free`` (from its own trunk with ``WorldModelConfig.free_trunk``)."""
+    ``embed_free``."""
     pixels = episode_windows(data, window=window).get(("next", "pixels"))[:, window // 4 :]
     device = next(model.parameters()).device
     pixels = pixels.reshape(-1, *pixels.shape[-3:]).to(device)
@@ -128,7 +128,7 @@ def encoder_features(model: IsoDreamWorldModel, data, *, window: int) -> dict[st
     feats = {"trunk": torch.nn.functional.avg_pool2d(trunk, 2).flatten(1)}
     feats["embed_control"] = model.encoder.head("control", trunk)
     if "free" in model.encoder.heads:
-        feats["embed_free"] = model.encoder.head("free", model.encoder.free_features(pixels, trunk))
+        feats["embed_free"] = model.encoder.head("free", trunk)
     return {name: f.float() for name, f in feats.items()}
 
 

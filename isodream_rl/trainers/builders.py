@@ -94,7 +94,7 @@ def make_world_model_loss(cfg: RunConfig, *, action_dim: int) -> IsoDreamModelLo
         lambda_inverse=algo.lambda_inverse,
         free_nats=algo.free_nats,
         kl_balance=algo.kl_balance,
-        free_branch=algo.free_branch_loss,
+        free_branch_loss=algo.free_branch_loss,
     )
 
 

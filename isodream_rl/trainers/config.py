@@ -11,8 +11,8 @@ import importlib.util
 from dataclasses import dataclass, field
 from typing import Any
 
-from isodream_rl.modules.config import SIZE_PRESETS
-from isodream_rl.objectives.world_model import FREE_BRANCH_MODES
+from isodream_rl.modules.config import PAPER_EXACT, SIZE_PRESETS
+from isodream_rl.objectives.world_model import FREE_BRANCH_MODES, LAMBDA_INVERSE
 
 POLICY_INPUTS = ("controllable", "attention", "concat")
 COLLECTOR_BACKENDS = ("sync", "multiprocess", "ray", "distributed")
@@ -20,7 +20,14 @@ REMOTE_BACKENDS = ("ray", "distributed")
 DISTRIBUTED_LAUNCHERS = ("mp", "submitit", "submitit_delayed")
 DISTRIBUTED_BACKENDS = ("gloo", "nccl", "mpi", "ucc")
 LOGGER_BACKENDS = ("csv", "tensorboard", "wandb")
-ALGO_NAMES = ("isodream", "dreamerv2", "isodream_no_inverse", "isodream_no_attention", "isodream_no_static")
+ALGO_NAMES = (
+    "isodream",
+    "isodream_paper",
+    "dreamerv2",
+    "isodream_no_inverse",
+    "isodream_no_attention",
+    "isodream_no_static",
+)
 
 
 class ConfigError(ValueError):
@@ -69,6 +76,9 @@ class AlgoConfig:
     """The static background branch."""
     inverse_dynamics: bool = True
     """The inverse-dynamics cell and its loss."""
+    paper_exact: bool = False
+    """The paper's settings where the library's defaults depart from them (``WorldModelConfig.paper_exact``;
+    pair it with ``lambda_inverse=1``, as ``algo=isodream_paper`` does)."""
     free_branch_loss: str = "kl"
     """``"kl"`` (CARLA: the free branch has its KL term) or ``"recon_only"`` (DMC, paper §3.2)."""
     reward_uses_free: bool = False
@@ -89,8 +99,9 @@ class AlgoConfig:
     """Entropy bonus of the actor loss."""
     lambda_reward: float = 1.0
     """Weight of the reward log-loss (``reward_scale``: 2 in the authors' DMC and CARLA configs)."""
-    lambda_inverse: float = 1.0
-    """alpha, the weight of the inverse-dynamics loss."""
+    lambda_inverse: float = LAMBDA_INVERSE
+    """alpha, the weight of the inverse-dynamics loss (``IsoDreamModelLoss``'s default; the paper's 1 goes
+    with the paper's inverse input, ``algo=isodream_paper``)."""
     free_nats: float = 1.0
     """Free nats of each branch's KL."""
     kl_balance: float = 0.8
@@ -350,13 +361,12 @@ def world_model_overrides(cfg: RunConfig) -> dict[str, Any]:
     """The ``WorldModelConfig`` fields set by the algorithm preset, merged with ``model.overrides``."""
     algo = cfg.algo
     fields_from_algo = {
+        **(PAPER_EXACT if algo.paper_exact else {}),
         "free_branch": algo.free_branch,
         "static_branch": algo.static_branch,
         "inverse_dynamics": algo.inverse_dynamics,
         "reward_uses_free": algo.reward_uses_free,
     }
-    if not (algo.free_branch or algo.static_branch):
-        fields_from_algo["decoder_input"] = "posterior"
     if not algo.static_branch:
         fields_from_algo["mask_mode"] = "softmax"
     if cfg.train.collector_backend in REMOTE_BACKENDS:
