@@ -126,7 +126,7 @@ def main() -> None:
     world_model = IsoDreamWorldModel(
         WorldModelConfig.from_preset(args.size, action_dim=action_dim, reward_uses_free=True)
     )
-    model_loss = IsoDreamModelLoss(world_model, lambda_reward=2.0, free_branch="kl")
+    model_loss = IsoDreamModelLoss(world_model, lambda_reward=2.0, free_branch_loss="kl")
 
     # 3. Behaviour (eq. 6-7): future-state attention -> actor and value, trained in imagination.
     policy_input = PolicyInput.for_world_model(

@@ -125,7 +125,7 @@ def main() -> None:
     world_model = IsoDreamWorldModel(
         WorldModelConfig.from_preset(args.size, action_dim=action_dim, reward_uses_free=False)
     )
-    model_loss = IsoDreamModelLoss(world_model, lambda_reward=2.0, free_branch="recon_only")
+    model_loss = IsoDreamModelLoss(world_model, lambda_reward=2.0, free_branch_loss="recon_only")
 
     # 3. Behaviour (eq. 7): actor and value on the controllable state [s, h], trained in imagination.
     policy_input = PolicyInput.for_world_model(world_model, mode="controllable")
