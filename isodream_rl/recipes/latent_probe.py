@@ -26,6 +26,7 @@ probe at the end of training and reports it as ``probe_r2_*`` in its ``summary.j
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 
 import torch
@@ -202,7 +203,10 @@ def load_checkpoint(path, device="cpu") -> tuple[IsoDreamWorldModel, dict]:
     """The world model of a demo checkpoint and the scene it was trained on, as :func:`probe` keywords
     (empty for checkpoints that predate storing it: :func:`probe`'s defaults are the demo's)."""
     state = torch.load(path, map_location="cpu", weights_only=False)
-    config = WorldModelConfig(**{**state["config"], "precision": "fp32"})
+    # fields of options since removed are dropped; a model that used one fails in load_state_dict below
+    known = {f.name for f in dataclasses.fields(WorldModelConfig)}
+    saved = {k: v for k, v in state["config"].items() if k in known}
+    config = WorldModelConfig(**{**saved, "precision": "fp32"})
     model = IsoDreamWorldModel(config, device=device)
     model.load_state_dict(state["model"])
     return model, dict(state.get("scene", {}))
