@@ -10,7 +10,7 @@
 - ``("next", "reward")``: float32 ``[1]``; ``done``/``terminated``/``truncated``;
 - ``"sim_error"``: bool ``[]``, ``True`` on the step where the simulator raised (see ``SimulatorFaultGuard``);
 - with ``return_masks=True``, the env's ground-truth masks, bool ``[H, W]``: ``"mask_agent"``,
-  ``"mask_distractors"`` and ``"mask_target"`` for sprites, ``"background_mask"`` (the pixels showing the
+  ``"mask_distractors"`` and ``"mask_target"`` for sprites, ``"mask_background"`` (the pixels showing the
   video) for DMC.
 
 ``GymPixelsEnv`` is a small ``EnvBase`` rather than TorchRL's ``GymWrapper``: it writes CHW pixels and the
@@ -36,7 +36,7 @@ from torchrl.envs import Compose, EnvBase, EnvCreator, InitTracker, ParallelEnv,
 logger = logging.getLogger(__name__)
 
 SPRITES_MASK_KEYS = ("mask_agent", "mask_distractors", "mask_target")
-DMC_MASK_KEYS = ("background_mask",)
+DMC_MASK_KEYS = ("mask_background",)
 _DONE_KEYS = ("done", "terminated", "truncated")
 
 
@@ -284,7 +284,7 @@ def make_env(
         seed (int, optional): seeds the env; the same seed gives the same episodes under the same actions.
         device (torch.device or str, optional): device of the output tensors. Defaults to ``"cpu"``.
         return_masks (bool, optional): add the ground-truth masks (bool ``[H, W]``) to every step:
-            ``"mask_agent"``, ``"mask_distractors"``, ``"mask_target"`` (sprites) or ``"background_mask"``
+            ``"mask_agent"``, ``"mask_distractors"``, ``"mask_target"`` (sprites) or ``"mask_background"``
             (DMC). Highway has none. Defaults to ``False``.
         **cfg: passed to the env class, e.g. ``task="reach"`` (sprites), ``view="top_down"``,
             ``vehicles_count=20`` (highway), ``background="video_hard"`` (dmc).

@@ -96,13 +96,13 @@ class DMCBackgroundEnv(gymnasium.Env):
             a third to a half on llvmpipe (the shadow pass is about half of a render), but changes the picture.
 
     Observations are uint8 [image_size, image_size, 3] (HWC, RGB); actions are float32 in [-1, 1]^A,
-    rescaled to the task's bounds (values outside are clipped). ``info["background_mask"]`` is a bool
+    rescaled to the task's bounds (values outside are clipped). ``info["mask_background"]`` is a bool
     [image_size, image_size] array marking the pixels that show the video.
 
     Examples:
         >>> env = DMCBackgroundEnv(domain="walker", task="walk", video_source="procedural")
         >>> obs, info = env.reset(seed=0)
-        >>> obs.shape, info["background_mask"].shape
+        >>> obs.shape, info["mask_background"].shape
         ((64, 64, 3), (64, 64))
         >>> obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
         >>> env.close()
@@ -212,7 +212,7 @@ class DMCBackgroundEnv(gymnasium.Env):
             mask = (obs == _KEY).all(axis=-1)
             obs[mask] = self._video.frame(self._agent_steps)[mask]
         self._last_obs = obs
-        return obs, {"background_mask": mask}
+        return obs, {"mask_background": mask}
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -225,7 +225,7 @@ class DMCBackgroundEnv(gymnasium.Env):
             options (dict, optional): unused, accepted for the gymnasium API.
 
         Returns:
-            ``(obs, info)``: uint8 [H, W, 3] and ``{"background_mask": bool [H, W]}``.
+            ``(obs, info)``: uint8 [H, W, 3] and ``{"mask_background": bool [H, W]}``.
         """
         super().reset(seed=seed)
         if seed is not None or not self._seeded:
