@@ -128,7 +128,7 @@ def main() -> None:
     )
     model_loss = IsoDreamModelLoss(world_model, lambda_reward=2.0, free_branch_loss="kl")
 
-    # 3. Behaviour (eq. 6-7): future-state attention -> actor and value, trained in imagination.
+    # 3. Behavior (eq. 6-7): future-state attention -> actor and value, trained in imagination.
     policy_input = PolicyInput.for_world_model(
         world_model, mode="attention", window=args.window, width=args.units
     )

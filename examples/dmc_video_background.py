@@ -127,7 +127,7 @@ def main() -> None:
     )
     model_loss = IsoDreamModelLoss(world_model, lambda_reward=2.0, free_branch_loss="recon_only")
 
-    # 3. Behaviour (eq. 7): actor and value on the controllable state [s, h], trained in imagination.
+    # 3. Behavior (eq. 7): actor and value on the controllable state [s, h], trained in imagination.
     policy_input = PolicyInput.for_world_model(world_model, mode="controllable")
     imagination = IsoDreamImagination(world_model, policy_input, horizon=args.horizon)
     value_loss = IsoDreamValueLoss(

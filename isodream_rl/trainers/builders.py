@@ -132,7 +132,7 @@ def count_parameters(module: nn.Module) -> int:
 
 @dataclass
 class Behavior:
-    """The behaviour side of a run (paper §3.3-3.4): policy input, actor, value, their losses and the policy."""
+    """The behavior side of a run (paper §3.3-3.4): policy input, actor, value, their losses and the policy."""
 
     policy_input: PolicyInput
     actor_loss: IsoDreamActorLoss

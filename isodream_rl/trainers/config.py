@@ -50,7 +50,7 @@ class EnvConfig:
 
 @dataclass
 class ModelConfig:
-    """World-model and behaviour sizes; ``size`` picks a preset of ``WorldModelConfig``."""
+    """World-model and behavior sizes; ``size`` picks a preset of ``WorldModelConfig``."""
 
     size: str = "small"
     """``"paper"``, ``"small"`` or ``"tiny"`` (``isodream_rl.modules.SIZE_PRESETS``)."""

@@ -141,7 +141,7 @@ class RunComponents:
 def train(cfg: RunConfig) -> RunResult:
     """Train (or resume) a run described by ``cfg``; see ``docs/recipes`` for the recipes.
 
-    Steps: check the config; build env probe, world model + loss, behaviour (actor, value, attention,
+    Steps: check the config; build env probe, world model + loss, behavior (actor, value, attention,
     acting policy), three Adam optimisers in an :class:`IsoDreamOptimizationStepper`, a
     ``TensorDictReplayBuffer(LazyMemmapStorage, SliceSampler)``, a TorchRL ``Collector`` (random prefill, then
     the policy) and a TorchRL ``Trainer`` with hooks for replay, logging, evaluation and checkpoints; with
