@@ -7,7 +7,7 @@ Two ways to produce the masks:
 * ``"softmax"`` (default): one logit map per branch (the static branch has its own), softmax over the
   branches, so every mask is non-negative and the three sum to one at every pixel.
 * ``"sigmoid"``: the authors' code: independent sigmoids ``M^s = sigmoid(l^s)``, ``M^z = sigmoid(l^z)`` and
-  ``M^b = 1 - M^s - M^z``, which is unclamped and can be negative (isodream_reference.md §14.2).
+  ``M^b = 1 - M^s - M^z``, which is unclamped and can be negative.
 
 Components are clamped to the pixel range ``[-0.5, 0.5]`` before they are mixed (``clamp_components``, as
 in the authors' code; the gradient is zero outside the range). Unbounded components let a faint mask

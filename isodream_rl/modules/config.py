@@ -7,7 +7,7 @@ from dataclasses import asdict, dataclass, fields
 from isodream_rl.modules.composition import CLAMP_GRADIENTS, MASK_MODES
 from isodream_rl.modules.inverse_dynamics import INVERSE_INPUTS
 
-#: Size presets. ``paper``: Table 5 and isodream_reference.md §8 (cnn depth 32, deter 200, stoch 50,
+#: Size presets. ``paper``: Table 5 and the authors' configs (cnn depth 32, deter 200, stoch 50,
 #: MLP units 400); ``small``: quick CPU runs; ``tiny``: unit tests.
 SIZE_PRESETS: dict[str, dict[str, int]] = {
     "paper": {"depth": 32, "state_dim": 50, "belief_dim": 200, "hidden_dim": 200, "units": 400},
