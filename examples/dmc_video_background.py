@@ -17,7 +17,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import isodream_rl.envs  # noqa: F401  isort: skip  (headless rendering defaults, before torchrl/mujoco)
 import torch
 from torchrl.collectors import Collector
 from torchrl.data import LazyMemmapStorage, SliceSampler, TensorDictReplayBuffer

@@ -56,6 +56,10 @@ def test_spaces_match_observations_and_task(walker_envs):
     assert env.observation_space.contains(obs)
     assert isinstance(reward, float) and not terminated and not truncated
     assert "walker-walk" in dmc_tasks() and "cheetah-run" in dmc_tasks()
+    # the ids are registered from a written-out copy of the suite's task list (no dm_control at import)
+    from dm_control import suite
+
+    assert sorted(dmc_tasks()) == sorted(f"{domain}-{task}" for domain, task in suite.ALL_TASKS)
 
 
 def test_same_seed_gives_same_episode_and_other_seed_differs(walker_envs):

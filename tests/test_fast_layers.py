@@ -233,24 +233,6 @@ def test_fused_composition_reads_bf16_decoder_outputs_and_composes_in_float32(ch
         torch.testing.assert_close(g, w.to(x.dtype))
 
 
-@pytest.mark.parametrize("preset", [None, "0"])
-def test_importing_the_package_first_turns_on_huge_pages_unless_the_user_chose(preset):
-    import os
-    import subprocess
-    import sys
-
-    env = {k: v for k, v in os.environ.items() if k != "THP_MEM_ALLOC_ENABLE"}
-    if preset is not None:
-        env["THP_MEM_ALLOC_ENABLE"] = preset
-    code = "import isodream_rl, os; print(os.environ.get('THP_MEM_ALLOC_ENABLE'))"
-    first = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    assert first.stdout.strip() == (preset or "1")
-    # torch imported before: its allocator has read the variable already, so the package leaves it alone
-    code = "import torch, isodream_rl, os; print(os.environ.get('THP_MEM_ALLOC_ENABLE'))"
-    after = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    assert after.stdout.strip() == str(preset)
-
-
 def test_inward_clamp_passes_only_the_gradients_that_point_back_into_the_range():
     from isodream_rl.modules.composition import inward_pass
 

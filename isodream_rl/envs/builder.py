@@ -33,6 +33,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import Compose, EnvBase, EnvCreator, InitTracker, ParallelEnv, StepCounter, TransformedEnv
 
+from isodream_rl.process_settings import single_threaded_llvmpipe
+
 logger = logging.getLogger(__name__)
 
 SPRITES_MASK_KEYS = ("mask_agent", "mask_distractors", "mask_target")
@@ -225,9 +227,9 @@ def wrap_gym_env(
 @functools.cache
 def dmc_env_names() -> dict[str, tuple[str, str]]:
     """Maps every ``"dmc_<domain>_<task>"`` name to its ``(domain, task)``, for all dm_control suite tasks."""
-    from isodream_rl.envs.dmc import dmc_tasks
+    from isodream_rl.envs.registration import DMC_SUITE_TASKS
 
-    pairs = (name.split("-") for name in dmc_tasks())
+    pairs = (name.split("-") for name in DMC_SUITE_TASKS)
     return {f"dmc_{domain}_{task}": (domain, task) for domain, task in pairs}
 
 
@@ -348,13 +350,15 @@ def make_parallel_env(
     uses_gl = name.startswith("dmc_") or (
         name == "highway" and cfg.get("view", "first_person") == "first_person"
     )
+    if mp_start_method == "fork" and uses_gl:
+        single_threaded_llvmpipe()
     llvmpipe_threads = os.environ.get("LP_NUM_THREADS", "")
     if mp_start_method == "fork" and uses_gl and llvmpipe_threads != "0":
         raise ValueError(
             f"mp_start_method='fork' with {name!r}, which renders with OpenGL, needs LP_NUM_THREADS=0 (got "
             f"{llvmpipe_threads or 'unset'}): Mesa's llvmpipe worker threads do not survive fork and a forked "
-            "worker hangs at its first render. Set LP_NUM_THREADS=0 before importing isodream_rl.envs, or use "
-            "mp_start_method='spawn'."
+            "worker hangs at its first render. Set LP_NUM_THREADS=0 (or leave it unset) before the process makes "
+            "its first GL context, or use mp_start_method='spawn'."
         )
     env = ParallelEnv(
         num_workers,

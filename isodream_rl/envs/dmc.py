@@ -18,13 +18,20 @@ One render per agent step, no segmentation pass.
 from __future__ import annotations
 
 import os
+import sys
+import warnings
 from typing import Any
 
-# llvmpipe rasterising in the calling thread renders 64x64 frames as fast as with worker threads, leaves the
-# second core to torch and survives fork (see isodream_rl/envs/__init__.py). Mesa reads this when dm_control
-# initialises EGL, at import.
-os.environ.setdefault("LP_NUM_THREADS", "0")
-os.environ.setdefault("MUJOCO_GL", "egl")
+from isodream_rl.process_settings import dm_control_gl
+
+if "dm_control" in sys.modules and "MUJOCO_GL" not in os.environ:
+    warnings.warn(
+        "dm_control was imported before isodream_rl.envs.dmc with MUJOCO_GL unset, so it renders with GLFW, "
+        "which fails without a display. Run with MUJOCO_GL=egl in the environment.",
+        stacklevel=2,
+    )
+# dm_control fixes (and initialises) its GL backend at import
+dm_control_gl()
 
 import gymnasium  # noqa: E402
 import mujoco  # noqa: E402
@@ -33,18 +40,18 @@ from dm_control import suite  # noqa: E402
 from dm_control.mujoco.engine import Camera  # noqa: E402
 
 from isodream_rl.envs.backgrounds import SPLITS, VIDEO_SOURCES, BackgroundVideos  # noqa: E402
+from isodream_rl.envs.registration import BACKGROUNDS, DMC_SUITE_TASKS  # noqa: E402
 
 __all__ = ["BACKGROUNDS", "DMCBackgroundEnv", "dmc_tasks"]
 
-BACKGROUNDS = ("video_easy", "video_hard", "none")
 
 _KEY = np.array([0, 255, 0], dtype=np.uint8)
 _FLOOR_MATERIAL = "grid"
 
 
 def dmc_tasks() -> list[str]:
-    """Valid ``"domain-task"`` names, from ``dm_control.suite.ALL_TASKS``."""
-    return [f"{domain}-{task}" for domain, task in suite.ALL_TASKS]
+    """Valid ``"domain-task"`` names: ``dm_control.suite.ALL_TASKS``."""
+    return list(DMC_SUITE_TASKS)
 
 
 def _paint_key(model: Any, background: str) -> None:

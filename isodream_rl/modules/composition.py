@@ -170,7 +170,9 @@ class MaskComposition(nn.Module):
             self.mask_mode == "softmax" and len(names) >= 2 and all(outputs[n].shape[-3] == 4 for n in names)
         )
         if fused and not can_fuse:
-            raise ValueError("fused=True needs softmax masks and a mask logit for each of two or more branches")
+            raise ValueError(
+                "fused=True needs softmax masks and a mask logit for each of two or more branches"
+            )
         if not can_fuse or fused is False:
             outputs = {n: outputs[n].to(_compute_dtype(outputs[n].dtype)) for n in names}
             colors = {n: outputs[n][..., :3, :, :] for n in names}

@@ -23,13 +23,18 @@ import os
 import time
 from pathlib import Path
 
-import torch
-from torchrl.record.loggers.csv import CSVLogger
-from tqdm import tqdm
+from isodream_rl.process_settings import use_huge_pages
 
-from isodream_rl.envs.sprites import AGENT_COLOURS, DISTRACTOR_COLOURS, SPRITE_SIZE
-from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
-from isodream_rl.modules.config import (
+# before torch is imported: PyTorch reads it at its first allocation
+use_huge_pages()
+
+import torch  # noqa: E402
+from torchrl.record.loggers.csv import CSVLogger  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from isodream_rl.envs.sprites import AGENT_COLOURS, DISTRACTOR_COLOURS, SPRITE_SIZE  # noqa: E402
+from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig  # noqa: E402
+from isodream_rl.modules.config import (  # noqa: E402
     CLAMP_GRADIENTS,
     DECODER_INPUTS,
     FREE_DECODER_INPUTS,
@@ -37,18 +42,18 @@ from isodream_rl.modules.config import (
     MASK_MODES,
     PRECISIONS,
 )
-from isodream_rl.modules.encoder import preprocess_pixels
-from isodream_rl.objectives import IsoDreamModelLoss
-from isodream_rl.objectives.pyramid import PyramidImageTerm
-from isodream_rl.objectives.world_model import FREE_BRANCH_MODES, LAMBDA_INVERSE
-from isodream_rl.recipes.latent_probe import probe
-from isodream_rl.recipes.sprites_data import (
+from isodream_rl.modules.encoder import preprocess_pixels  # noqa: E402
+from isodream_rl.objectives import IsoDreamModelLoss  # noqa: E402
+from isodream_rl.objectives.pyramid import PyramidImageTerm  # noqa: E402
+from isodream_rl.objectives.world_model import FREE_BRANCH_MODES, LAMBDA_INVERSE  # noqa: E402
+from isodream_rl.recipes.latent_probe import probe  # noqa: E402
+from isodream_rl.recipes.sprites_data import (  # noqa: E402
     collect_sprites_episodes,
     episode_windows,
     make_window_buffer,
     model_input,
 )
-from isodream_rl.recipes.visualize import branch_grid, mask_iou, save_png
+from isodream_rl.recipes.visualize import branch_grid, mask_iou, save_png  # noqa: E402
 
 #: the library's defaults, which the flags below start from
 DEFAULTS = WorldModelConfig(action_dim=1)
