@@ -5,26 +5,19 @@ dm_control: ``make_env`` and the other builders load on first use, and the DMC a
 when such an env is made, set their rendering defaults then (docs/environment.md).
 """
 
+import importlib
+
 from isodream_rl.envs.registration import register_envs
 from isodream_rl.envs.sprites import SPRITES_TASKS, SpritesEnv
 
-#: names served from :mod:`isodream_rl.envs.builder` at first use: it imports torchrl, which imports mujoco,
-#: which initialises the GL backend that ``MUJOCO_GL`` names (and fails if that backend is not installed)
-_BUILDER_NAMES = (
-    "SimulatorFaultGuard",
-    "env_names",
-    "make_env",
-    "make_gym_env",
-    "make_parallel_env",
-    "wrap_gym_env",
-)
-
 
 def __getattr__(name: str):
-    if name in _BUILDER_NAMES:
-        from isodream_rl.envs import builder
-
-        return getattr(builder, name)
+    # make_env and the other builders load at first use: the builder imports torchrl, which imports mujoco,
+    # which initialises the GL backend MUJOCO_GL names (and fails where that backend is not installed)
+    if not name.startswith("_") and name != "builder":
+        builder = importlib.import_module(f"{__name__}.builder")
+        if name in getattr(builder, "__all__", ()):
+            return getattr(builder, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 

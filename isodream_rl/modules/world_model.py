@@ -23,7 +23,6 @@ from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
 from isodream_rl.modules.rssm import (
     ActionConditionedRSSM,
     ActionFreeRSSM,
-    filter_step,
     filter_window,
     single_threaded,
 )
@@ -199,20 +198,6 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         if self.config.reward_uses_free:
             parts += [free_state, free_belief]
         return torch.cat(parts, dim=-1)
-
-    def filter_step(
-        self,
-        previous: dict[str, torch.Tensor],
-        action: torch.Tensor,
-        control_embedding: torch.Tensor,
-        free_embedding: torch.Tensor | None,
-        reset: torch.Tensor | None = None,
-    ) -> dict[str, torch.Tensor]:
-        """One filtering step of both branches (eq. 3): :func:`~isodream_rl.modules.rssm.filter_step` with
-        this model's cells."""
-        return filter_step(
-            self.control_rssm, self.free_rssm, previous, action, control_embedding, free_embedding, reset
-        )
 
     def initial_state(self, batch_shape, *, device=None) -> dict[str, torch.Tensor]:
         """Zero ``state``, ``belief`` (and ``free_state``, ``free_belief``) of batch shape ``batch_shape``."""
