@@ -13,6 +13,9 @@
   ``"mask_distractors"`` and ``"mask_target"`` for sprites, ``"mask_background"`` (the pixels showing the
   video) for DMC.
 
+Any other registered gymnasium id with a ``Box`` action space works too: its ``rgb_array`` render, resized to
+64x64, is the observation (``RenderedPixels``), so ``make_env("Pendulum-v1")`` trains like the built-in envs.
+
 ``GymPixelsEnv`` is a small ``EnvBase`` rather than TorchRL's ``GymWrapper``: it writes CHW pixels and the
 info masks directly (the wrapper needs a ``PermuteTransform`` and an info-dict reader, 0.4-0.6 ms more CPU
 per step, about 20 %, measured on sprites), and ``set_seed`` seeds the next reset exactly as
@@ -29,6 +32,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch
+from PIL import Image
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import Compose, EnvBase, EnvCreator, InitTracker, ParallelEnv, StepCounter, TransformedEnv
@@ -105,6 +109,28 @@ class SimulatorFaultGuard(gym.Wrapper):
         info = dict(info, sim_error=False)
         self._last_obs, self._last_info = obs, info
         return obs, reward, terminated, truncated, info
+
+
+class RenderedPixels(gym.ObservationWrapper):
+    """A gymnasium env observed through its ``rgb_array`` render, resized to ``size`` x ``size`` (bilinear).
+
+    Args:
+        env (gymnasium.Env): made with ``render_mode="rgb_array"``; its own observation is dropped.
+        size (int, optional): side of the square frame. Defaults to 64, the world model's input.
+    """
+
+    def __init__(self, env: gym.Env, *, size: int = 64) -> None:
+        if env.render_mode != "rgb_array":
+            raise ValueError(
+                f"RenderedPixels needs an env made with render_mode='rgb_array', got {env.render_mode!r}."
+            )
+        super().__init__(gym.wrappers.AddRenderObservation(env, render_only=True))
+        self.size = size
+        self.observation_space = gym.spaces.Box(0, 255, (size, size, 3), dtype=np.uint8)
+
+    def observation(self, observation: np.ndarray) -> np.ndarray:
+        frame = Image.fromarray(np.asarray(observation, dtype=np.uint8)[..., :3])
+        return np.array(frame.resize((self.size, self.size), Image.BILINEAR))
 
 
 class GymPixelsEnv(EnvBase):
@@ -234,15 +260,16 @@ def dmc_env_names() -> dict[str, tuple[str, str]]:
 
 
 def env_names() -> list[str]:
-    """The names ``make_env`` accepts: ``"sprites"``, ``"highway"`` and ``"dmc_<domain>_<task>"``."""
+    """The built-in names ``make_env`` accepts: ``"sprites"``, ``"highway"`` and ``"dmc_<domain>_<task>"`` (any
+    registered gymnasium id works as well)."""
     return ["sprites", "highway", *dmc_env_names()]
 
 
 def _check_name(name: str) -> None:
-    if name not in ("sprites", "highway") and name not in dmc_env_names():
+    if name not in ("sprites", "highway") and name not in dmc_env_names() and name not in gym.registry:
         raise ValueError(
-            f"Unknown env name {name!r}. Valid names: 'sprites', 'highway', or 'dmc_<domain>_<task>', one "
-            f"of: {', '.join(dmc_env_names())}."
+            f"Unknown env name {name!r}. Valid names: 'sprites', 'highway', 'dmc_<domain>_<task>' (one of: "
+            f"{', '.join(dmc_env_names())}) or a registered gymnasium id."
         )
 
 
@@ -250,8 +277,9 @@ def make_gym_env(name: str, **cfg: Any) -> gym.Env:
     """Builds the raw gymnasium env behind ``make_env(name, **cfg)`` (HWC uint8 frames, no guard).
 
     Args:
-        name (str): see ``env_names()``.
-        **cfg: constructor arguments of ``SpritesEnv``, ``HighwayIsoEnv`` or ``DMCBackgroundEnv``.
+        name (str): see ``env_names()``, or a registered gymnasium id (seen through ``RenderedPixels``).
+        **cfg: constructor arguments of ``SpritesEnv``, ``HighwayIsoEnv`` or ``DMCBackgroundEnv``, or
+            ``gymnasium.make`` keywords.
 
     Raises:
         ValueError: for an unknown name, listing the valid ones.
@@ -265,6 +293,8 @@ def make_gym_env(name: str, **cfg: Any) -> gym.Env:
         from isodream_rl.envs.highway import HighwayIsoEnv
 
         return HighwayIsoEnv(**cfg)
+    if name not in dmc_env_names():
+        return RenderedPixels(gym.make(name, render_mode="rgb_array", **cfg))
     from isodream_rl.envs.dmc import DMCBackgroundEnv
 
     domain, task = dmc_env_names()[name]
@@ -282,7 +312,8 @@ def make_env(
     """Builds a TorchRL env by name, with uint8 ``"pixels"`` ``[3, H, W]`` and float32 actions in [-1, 1].
 
     Args:
-        name (str): ``"sprites"``, ``"highway"`` or ``"dmc_<domain>_<task>"`` (e.g. ``"dmc_walker_walk"``).
+        name (str): ``"sprites"``, ``"highway"``, ``"dmc_<domain>_<task>"`` (e.g. ``"dmc_walker_walk"``) or a
+            registered gymnasium id with a ``Box`` action space (observed through its render, 64x64).
         seed (int, optional): seeds the env; the same seed gives the same episodes under the same actions.
         device (torch.device or str, optional): device of the output tensors. Defaults to ``"cpu"``.
         return_masks (bool, optional): add the ground-truth masks (bool ``[H, W]``) to every step:
@@ -305,10 +336,10 @@ def make_env(
         (torch.Size([3, 3, 64, 64]), torch.Size([3, 64, 64]))
     """
     _check_name(name)
-    mask_keys = {"sprites": SPRITES_MASK_KEYS, "highway": ()}.get(name, DMC_MASK_KEYS)
+    mask_keys = {"sprites": SPRITES_MASK_KEYS}.get(name, DMC_MASK_KEYS if name in dmc_env_names() else ())
     if return_masks and not mask_keys:
         raise ValueError(
-            f"return_masks=True needs ground-truth masks: 'sprites' and 'dmc_*' have them, {name!r} not."
+            f"return_masks=True needs ground-truth masks: 'sprites' and 'dmc_*' have them, {name!r} has not."
         )
     env = make_gym_env(name, **cfg)
     return wrap_gym_env(env, seed=seed, device=device, mask_keys=mask_keys if return_masks else (), name=name)
@@ -373,6 +404,7 @@ def make_parallel_env(
 __all__ = [
     "DMC_MASK_KEYS",
     "GymPixelsEnv",
+    "RenderedPixels",
     "SPRITES_MASK_KEYS",
     "SimulatorFaultGuard",
     "env_names",

@@ -39,9 +39,16 @@ class EnvConfig:
     """Which environment to train on and how many copies to run."""
 
     name: str = "sprites"
-    """``"sprites"``, ``"highway"`` or ``"dmc_<domain>_<task>"`` (see ``isodream_rl.envs.env_names``)."""
+    """``"sprites"``, ``"highway"``, ``"dmc_<domain>_<task>"`` (see ``isodream_rl.envs.env_names``) or a registered
+    gymnasium id with a ``Box`` action space (observed through its render, resized to 64x64)."""
     kwargs: dict[str, Any] = field(default_factory=dict)
-    """Constructor arguments of the env class (e.g. ``task``, ``vehicles_count``, ``background``)."""
+    """Constructor arguments of the env class (e.g. ``task``, ``vehicles_count``, ``background``), or
+    ``gymnasium.make`` keywords; with ``factory``, that callable's keywords."""
+    factory: str = ""
+    """Your own TorchRL env instead of ``name``: ``"package.module:function"``, a callable that returns an
+    ``EnvBase`` from ``**kwargs`` with uint8 ``"pixels"`` ``[3, 64, 64]``, a float ``"action"`` in ``[-1, 1]``,
+    ``("next", "reward")`` ``[1]`` and ``"is_init"`` (``isodream_rl.envs.wrap_gym_env`` makes one of a
+    gymnasium env). ``name`` then only names the run."""
     num_envs: int = 1
     """Envs collecting in parallel; above 1 a multi-process TorchRL collector runs one env per process."""
     action_repeat: int = 1
@@ -348,6 +355,14 @@ def validate_config(cfg: RunConfig) -> None:
             f"model.overrides.channels_last=true cannot be used with train.collector_backend="
             f"{train.collector_backend}: its weight transfer sends dense tensors only; drop the override"
         )
+    if env.factory:
+        module, _, attribute = env.factory.partition(":")
+        found = importlib.util.find_spec(module) is not None if module and attribute else False
+        if not found or not callable(getattr(importlib.import_module(module), attribute, None)):
+            errors.append(
+                f"env.factory={env.factory!r} must name a callable as 'package.module:function' that returns a "
+                "TorchRL EnvBase"
+            )
     if (cfg.resume or cfg.checkpoint.resume) and not cfg.checkpoint.replay:
         errors.append(
             "resume=true restores the replay buffer from the checkpoint: set checkpoint.replay=true (a resumed "
