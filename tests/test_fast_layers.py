@@ -138,6 +138,9 @@ def test_paired_rollout_equals_the_branchwise_loop_in_values_and_gradients():
             torch.testing.assert_close(got, want)
     torch.manual_seed(3)
     assert wm._rollout_loop(control, free, action, is_init)["state"].equal(paired["state"])
+    # the switch asks for the fast path where it cannot run: an error, not a silent fallback
+    with pytest.raises(ValueError, match="paired=True"):
+        wm._rollout_loop(control, None, action, is_init, paired=True)
 
 
 @pytest.mark.parametrize("channels_last", [False, True])
@@ -179,6 +182,16 @@ def test_fused_composition_matches_the_plain_operations(channels_last, clamp, na
     masks = torch.cat(list(fused[1].values()), dim=-3)
     assert masks.min() >= 0
     torch.testing.assert_close(masks.sum(-3), torch.ones_like(masks[..., 0, :, :]))
+
+
+def test_fused_composition_is_refused_where_it_does_not_apply():
+    outputs = {n: torch.randn(2, 3, 4, 8, 8) for n in ("control", "free")}
+    outputs["static"] = torch.randn(2, 1, 3, 8, 8)  # sigmoid mode: the background has no logit
+    composition = MaskComposition(mask_mode="sigmoid")
+    with pytest.raises(ValueError, match="fused=True"):
+        composition.compose_decoded(outputs, fused=True)
+    composite, _, _ = composition.compose_decoded(outputs)  # the reference, chosen by default here
+    assert composite.shape == (2, 3, 3, 8, 8)
 
 
 def test_fused_composition_passes_only_the_gradients_asked_for():
