@@ -339,7 +339,7 @@ def make_env(
     mask_keys = {"sprites": SPRITES_MASK_KEYS}.get(name, DMC_MASK_KEYS if name in dmc_env_names() else ())
     if return_masks and not mask_keys:
         raise ValueError(
-            f"return_masks=True needs ground-truth masks: 'sprites' and 'dmc_*' have them, {name!r} has not."
+            f"return_masks=True needs ground-truth masks: 'sprites' and 'dmc_*' have them, {name!r} not."
         )
     env = make_gym_env(name, **cfg)
     return wrap_gym_env(env, seed=seed, device=device, mask_keys=mask_keys if return_masks else (), name=name)
