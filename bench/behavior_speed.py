@@ -13,7 +13,7 @@ Our rollout also runs the noncontrollable branch ``tau - 1`` steps beyond ``L`` 
 
 Each variant is timed in turn, round-robin, so that load from other processes hits all of them alike; the
 median over ``--steps`` updates after ``--warmup`` is reported. Variants: precision fp32/bf16 on both
-sides (ours: ``WorldModelConfig(precision=...)``, whose autocast covers every behaviour MLP; TorchRL: an
+sides (ours: ``WorldModelConfig(precision=...)``, whose autocast covers every behavior MLP; TorchRL: an
 outer CPU bf16 autocast around the losses).
 
 Acting: one env step of :class:`~isodream_rl.modules.IsoDreamPolicy` (encode a 64x64 frame, filter both
@@ -72,7 +72,7 @@ class _ConcatMLP(nn.Module):
         return self.mlp(torch.cat([state, belief], dim=-1))
 
 
-def torchrl_behaviour(size: dict, action_dim: int, horizon: int):
+def torchrl_behavior(size: dict, action_dim: int, horizon: int):
     """TorchRL's Dreamer actor and value losses at ``size``; returns ``(actor_loss, value_loss)``."""
     stoch, deter, hidden, units = (size[k] for k in ("state_dim", "belief_dim", "hidden_dim", "units"))
     action_spec = Bounded(-1, 1, (action_dim,))
@@ -175,7 +175,7 @@ def ours_variant(
 
 
 def torchrl_variant(args, size: dict, precision: str) -> Variant:
-    actor_loss, value_loss = torchrl_behaviour(size, args.action_dim, args.horizon)
+    actor_loss, value_loss = torchrl_behavior(size, args.action_dim, args.horizon)
     n = args.batch_size * args.time
     start = TensorDict(
         {"state": torch.randn(n, size["state_dim"]), "belief": torch.randn(n, size["belief_dim"])}, [n]

@@ -16,7 +16,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import isodream_rl.envs  # noqa: F401  isort: skip  (headless rendering defaults, before torchrl/mujoco)
 import torch
 from torchrl.collectors import Collector
 from torchrl.data import LazyMemmapStorage, SliceSampler, TensorDictReplayBuffer
@@ -126,9 +125,9 @@ def main() -> None:
     world_model = IsoDreamWorldModel(
         WorldModelConfig.from_preset(args.size, action_dim=action_dim, reward_uses_free=True)
     )
-    model_loss = IsoDreamModelLoss(world_model, lambda_reward=2.0, free_branch="kl")
+    model_loss = IsoDreamModelLoss(world_model, lambda_reward=2.0, free_branch_loss="kl")
 
-    # 3. Behaviour (eq. 6-7): future-state attention -> actor and value, trained in imagination.
+    # 3. Behavior (eq. 6-7): future-state attention -> actor and value, trained in imagination.
     policy_input = PolicyInput.for_world_model(
         world_model, mode="attention", window=args.window, width=args.units
     )

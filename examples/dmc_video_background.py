@@ -17,7 +17,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import isodream_rl.envs  # noqa: F401  isort: skip  (headless rendering defaults, before torchrl/mujoco)
 import torch
 from torchrl.collectors import Collector
 from torchrl.data import LazyMemmapStorage, SliceSampler, TensorDictReplayBuffer
@@ -125,9 +124,9 @@ def main() -> None:
     world_model = IsoDreamWorldModel(
         WorldModelConfig.from_preset(args.size, action_dim=action_dim, reward_uses_free=False)
     )
-    model_loss = IsoDreamModelLoss(world_model, lambda_reward=2.0, free_branch="recon_only")
+    model_loss = IsoDreamModelLoss(world_model, lambda_reward=2.0, free_branch_loss="recon_only")
 
-    # 3. Behaviour (eq. 7): actor and value on the controllable state [s, h], trained in imagination.
+    # 3. Behavior (eq. 7): actor and value on the controllable state [s, h], trained in imagination.
     policy_input = PolicyInput.for_world_model(world_model, mode="controllable")
     imagination = IsoDreamImagination(world_model, policy_input, horizon=args.horizon)
     value_loss = IsoDreamValueLoss(

@@ -18,16 +18,19 @@ import argparse
 import logging
 import sys
 
-# Before torchrl: sets the headless rendering defaults that mujoco reads at import time.
-import isodream_rl.envs  # noqa: F401  isort: skip
-import hydra
-from hydra.core.config_store import ConfigStore
-from omegaconf import DictConfig, OmegaConf
+from isodream_rl.process_settings import use_huge_pages
 
-from isodream_rl.trainers import run as run_module
-from isodream_rl.trainers.checkpoint import CheckpointError
-from isodream_rl.trainers.config import ConfigError, RunConfig
-from isodream_rl.trainers.stepper import NonFiniteLossError
+# before torch is imported: PyTorch reads it at its first allocation
+use_huge_pages()
+
+import hydra  # noqa: E402
+from hydra.core.config_store import ConfigStore  # noqa: E402
+from omegaconf import DictConfig, OmegaConf  # noqa: E402
+
+from isodream_rl.trainers import run as run_module  # noqa: E402
+from isodream_rl.trainers.checkpoint import CheckpointError  # noqa: E402
+from isodream_rl.trainers.config import ConfigError, RunConfig  # noqa: E402
+from isodream_rl.trainers.stepper import NonFiniteLossError  # noqa: E402
 
 ConfigStore.instance().store(name="run_schema", node=RunConfig)
 

@@ -13,6 +13,7 @@ from omegaconf import OmegaConf
 
 import isodream_rl.cli  # noqa: F401  (registers the config schema)
 from isodream_rl.trainers import ConfigError, RunConfig, validate_config
+from isodream_rl.trainers.config import ALGO_NAMES
 
 CONFIGS = Path(isodream_rl.cli.__file__).parent / "configs"
 ENVS = sorted(p.stem for p in (CONFIGS / "env").glob("*.yaml"))
@@ -39,14 +40,8 @@ def composed(*overrides) -> RunConfig:
 
 
 def test_groups_hold_the_presets_the_paper_needs():
-    assert set(ALGOS) == {
-        "isodream",
-        "dreamerv2",
-        "isodream_no_inverse",
-        "isodream_no_attention",
-        "isodream_no_static",
-        "torchrl_dreamer",
-    }
+    assert {"isodream", "isodream_paper", "dreamerv2", "isodream_no_inverse"} <= set(ALGOS)
+    assert set(ALGOS) == set(ALGO_NAMES)  # the names the schema declares are the preset files
     assert set(SIZES) == {"paper", "small", "quickstart", "tiny"}
     assert {"sprites", "highway", "dmc_walker_walk"} <= set(ENVS)
 
@@ -56,7 +51,8 @@ def test_groups_hold_the_presets_the_paper_needs():
 def test_every_env_algo_preset_composes_to_a_valid_config(env, algo):
     cfg = composed(f"env={env}", f"algo={algo}", "size=tiny")
     validate_config(cfg)
-    assert cfg.env.name == env and cfg.algo.name == algo
+    # every env preset names its env, but for gym's, an example id: the group is for any gymnasium id
+    assert cfg.env.name == {"gym": "Pendulum-v1"}.get(env, env) and cfg.algo.name == algo
 
 
 def test_domain_presets_follow_the_paper():
@@ -76,6 +72,32 @@ def test_domain_presets_follow_the_paper():
     paper = composed("size=paper")
     assert (paper.train.batch_size, paper.train.sequence_length, paper.train.prefill_steps) == (50, 50, 2500)
     assert paper.train.train_every == 5
+
+
+def test_sprites_trains_with_the_library_defaults_and_the_paper_preset_with_the_papers_settings():
+    from isodream_rl.modules import WorldModelConfig
+    from isodream_rl.modules.config import PAPER_EXACT
+    from isodream_rl.objectives.world_model import PAPER_WEIGHTS
+    from isodream_rl.trainers.builders import make_world_model_loss
+
+    defaults = make_world_model_loss(composed("env=sprites", "size=tiny"), action_dim=2)
+    library = WorldModelConfig(action_dim=2)
+    for name in PAPER_EXACT:
+        assert getattr(defaults.world_model.config, name) == getattr(library, name)
+    assert defaults.inverse_loss.lambda_inverse == 30.0
+    paper = make_world_model_loss(composed("env=sprites", "size=tiny", "algo=isodream_paper"), action_dim=2)
+    for name, value in PAPER_EXACT.items():
+        assert getattr(paper.world_model.config, name) == value
+    assert paper.inverse_loss.lambda_inverse == PAPER_WEIGHTS["lambda_inverse"]
+
+
+def test_dreamerv2_preset_is_the_libraries_baseline():
+    from isodream_rl.modules import WorldModelConfig
+    from isodream_rl.trainers.builders import make_world_model_config
+
+    trained = make_world_model_config(composed("algo=dreamerv2", "size=tiny"), action_dim=2)
+    baseline = WorldModelConfig.dreamerv2("tiny", action_dim=2)
+    assert trained.to_dict() == {**baseline.to_dict(), "channels_last": trained.channels_last}
 
 
 def test_wrong_type_fails_naming_the_key():

@@ -5,16 +5,9 @@ import json
 
 import pytest
 import torch
-from PIL import Image
 
 from isodream_rl.recipes.sprites_data import collect_sprites_episodes
-from isodream_rl.recipes.world_model_demo import (
-    free_component_weight,
-    main,
-    parse_schedule,
-    ramp_weight,
-    schedule_value,
-)
+from isodream_rl.recipes.world_model_demo import main, parse_schedule, ramp_weight, schedule_value
 
 # two updates on two short episodes: the arguments every tiny demo run here shares
 TINY_RUN = ("--steps", "2", "--episodes", "2", "--episode-length", "16", "--window", "8", "--batch-size", "2")
@@ -102,12 +95,7 @@ def test_held_random_actions_make_the_agent_travel():
         collect_sprites_episodes(episodes=1, steps=8, action_hold=0)
 
 
-def test_free_component_weight_is_held_then_annealed_to_zero():
-    weights = [free_component_weight(2.0, step, 100) for step in (0, 49, 50, 75, 100, 150)]
-    assert weights == pytest.approx([2.0, 2.0, 2.0, 1.0, 0.0, 0.0])
-
-
-def test_mask_assignment_weight_waits_then_ramps_up():
+def test_late_term_weight_waits_then_ramps_up():
     weights = [ramp_weight(2.0, step, 100) for step in (0, 99, 100, 150, 200, 300)]
     assert weights == pytest.approx([0.0, 0.0, 0.0, 1.0, 2.0, 2.0])
     assert ramp_weight(2.0, 0, 0) == 2.0
@@ -117,33 +105,26 @@ def test_mask_assignment_weight_waits_then_ramps_up():
     assert [ramp_weight(2.0, step, 10, 0) for step in (9, 10)] == [0.0, 2.0]
 
 
-def test_demo_logs_the_late_terms_once_they_start(tmp_path):
+def test_demo_logs_the_pyramid_term_once_it_starts(tmp_path):
     args = ["--steps", "41", "--episodes", "2", "--episode-length", "16", "--window", "8"]
     args += ["--batch-size", "2", "--size", "tiny", "--eval-every", "41", "--precision", "fp32"]
-    args += ["--mask-assignment", "1", "--mask-assignment-from", "15", "--out", str(tmp_path)]
-    args += ["--free-component-weight", "1", "--free-component-pixels", "residual"]
-    args += ["--reco-pyramid", "1", "--reco-pyramid-from", "30"]
-    main([*args, "--free-component-from", "25", "--ramp-updates", "5"])
+    args += ["--probe-episodes", "0", "--out", str(tmp_path)]
+    main([*args, "--lambda-reco-pyramid", "1", "--reco-pyramid-from", "30", "--ramp-updates", "5"])
 
-    def logged(name):
-        (csv,) = tmp_path.rglob(f"{name}.csv")
-        return [int(float(line.split(",")[0])) for line in csv.read_text().split()]
-
-    # logged every 20 updates while its weight is above zero: from update 16 on, so at 20 and 40
-    assert logged("loss_model_mask_assignment") == [20, 40]
-    # the residual term from update 26 on (--ramp-updates 5 after --free-component-from 25)
-    assert logged("loss_model_free_component") == [40]
-    # the pyramid term from update 31 on, so at 40 only
-    assert logged("loss_model_reco_pyramid") == [40]
-    with pytest.raises(SystemExit, match="two schedules"):
-        main([*args, "--free-component-from", "25", "--free-component-until", "30"])
+    (csv,) = tmp_path.rglob("loss_model_reco_pyramid.csv")
+    logged = {
+        int(float(step)): float(value)
+        for step, value in (line.split(",")[:2] for line in csv.read_text().split())
+    }
+    # logged every 20 updates; its weight is zero up to update 30, then ramps up over 5 updates
+    assert logged[0] == 0.0 and logged[20] == 0.0 and logged[40] > 0.0
 
 
 def test_demo_runs_the_single_branch_ablation_scored_by_disc_reconstruction(tmp_path):
     small = list(TINY_RUN)
     summary = main(
         [*small, "--size", "tiny", "--eval-every", "2", "--precision", "fp32", "--out", str(tmp_path)]
-        + ["--model", "dreamerv2", "--free-component-weight", "0"]
+        + ["--model", "dreamerv2"]
     )
     assert "iou_free_vs_distractors" not in summary and "free_covers_distractor_0" not in summary
     # probed like the full model, on its one state
@@ -163,7 +144,7 @@ def test_demo_composes_with_the_authors_sigmoid_masks(tmp_path):
     summary = main([*small, "--mask-mode", "sigmoid", "--out", str(tmp_path)])
     assert 0.0 <= summary["iou_free_vs_distractors"] <= 1.0
     saved = torch.load(tmp_path / "world_model.pt", map_location="cpu")
-    assert saved["config"]["mask_mode"] == "sigmoid" and saved["config"]["static_mask_bias"] == 0.0
+    assert saved["config"]["mask_mode"] == "sigmoid"
     # the background has no logit in sigmoid mode: a bias for it is an error, not silently dropped
     with pytest.raises(SystemExit, match="static-mask-bias"):
         main([*small, "--mask-mode", "sigmoid", "--static-mask-bias", "3", "--out", str(tmp_path / "b")])
@@ -197,20 +178,6 @@ def test_demo_resumes_from_its_checkpoint_and_rejects_other_settings(tmp_path):
         )
     with pytest.raises(SystemExit, match="already at update 2"):
         main([*small, "--steps", "2", "--resume", checkpoint, "--out", str(tmp_path / "d")])
-
-
-def test_demo_trains_object_slots_and_draws_a_row_per_slot(tmp_path):
-    plain = tmp_path / "plain"
-    slots = tmp_path / "slots"
-    for out, extra in ((plain, []), (slots, ["--free-slots", "2"])):
-        main(
-            [*TINY_RUN, "--size", "tiny", "--precision", "fp32", "--probe-episodes", "0", "--out", str(out)]
-            + extra
-        )
-    saved = torch.load(slots / "world_model.pt", map_location="cpu")
-    assert saved["config"]["free_slots"] == 2
-    heights = [Image.open(d / "branches.png").height for d in (plain, slots)]
-    assert heights[1] > heights[0]
 
 
 def test_demo_scene_with_two_distractors_is_scored_and_probed_on_two(tmp_path):

@@ -51,11 +51,15 @@ def test_spaces_match_observations_and_task(walker_envs):
     assert np.all(env.action_space.low == -1) and np.all(env.action_space.high == 1)
     obs, info = env.reset(seed=0)
     assert env.observation_space.contains(obs)
-    assert info["background_mask"].shape == (64, 64) and info["background_mask"].dtype == bool
+    assert info["mask_background"].shape == (64, 64) and info["mask_background"].dtype == bool
     obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
     assert env.observation_space.contains(obs)
     assert isinstance(reward, float) and not terminated and not truncated
     assert "walker-walk" in dmc_tasks() and "cheetah-run" in dmc_tasks()
+    # the ids are registered from a written-out copy of the suite's task list (no dm_control at import)
+    from dm_control import suite
+
+    assert sorted(dmc_tasks()) == sorted(f"{domain}-{task}" for domain, task in suite.ALL_TASKS)
 
 
 def test_same_seed_gives_same_episode_and_other_seed_differs(walker_envs):
@@ -86,7 +90,7 @@ def test_background_moves_while_agent_follows_plain_physics(walker_envs):
     for action in actions:
         obs_v, reward_v, *_, info = video.step(action)
         obs_p, reward_p, *_ = plain.step(action)
-        mask = info["background_mask"]
+        mask = info["mask_background"]
         assert reward_v == reward_p
         assert 0.1 < mask.mean() < 0.95
         np.testing.assert_array_equal(obs_v[~mask], obs_p[~mask])
@@ -104,8 +108,8 @@ def test_mask_is_exactly_sky_and_floor_of_segmentation(walker_envs, background):
         obs, *_, info = env.step(action)
         obs_plain, *_ = plain.step(action)
         seg = env._env.physics.render(64, 64, camera_id=env.camera_id, segmentation=True)
-        np.testing.assert_array_equal(info["background_mask"], _floor_and_sky(env, seg))
-        outside = ~info["background_mask"]
+        np.testing.assert_array_equal(info["mask_background"], _floor_and_sky(env, seg))
+        outside = ~info["mask_background"]
         np.testing.assert_array_equal(obs[outside], obs_plain[outside])
 
 
@@ -117,15 +121,15 @@ def test_mask_stays_exact_without_shadows():
         obs, *_, info = video.step(action)
         obs_plain, *_ = plain.step(action)
         seg = video._env.physics.render(64, 64, camera_id=video.camera_id, segmentation=True)
-        np.testing.assert_array_equal(info["background_mask"], _floor_and_sky(video, seg))
-        np.testing.assert_array_equal(obs[~info["background_mask"]], obs_plain[~info["background_mask"]])
+        np.testing.assert_array_equal(info["mask_background"], _floor_and_sky(video, seg))
+        np.testing.assert_array_equal(obs[~info["mask_background"]], obs_plain[~info["mask_background"]])
     video.close()
     plain.close()
 
 
 def test_plain_env_replaces_nothing(walker_envs):
     _, info = walker_envs["none"].reset(seed=0)
-    assert not info["background_mask"].any()
+    assert not info["mask_background"].any()
     assert walker_envs["none"].video_sources == ()
 
 
@@ -133,7 +137,7 @@ def test_hard_background_covers_floor_that_easy_keeps(walker_envs):
     masks = {}
     for background in ("video_easy", "video_hard"):
         _, info = walker_envs[background].reset(seed=4)
-        masks[background] = info["background_mask"]
+        masks[background] = info["mask_background"]
     assert np.all(masks["video_hard"][masks["video_easy"]])
     assert masks["video_hard"].sum() > masks["video_easy"].sum()
 

@@ -105,8 +105,9 @@ def test_single_threaded_rollout_has_the_loops_values_and_gradients_and_restores
 
 
 def test_paired_rollout_equals_the_branchwise_loop_in_values_and_gradients():
-    """RSSMPair (both branches in one batched step) against one observe_step per branch: same outputs,
-    same random draws, same gradients for every RSSM parameter and both embedding projections."""
+    """filter_window's two paths: RSSMPair (both branches in one batched step) against filter_step (one
+    observe_step per branch and step): same outputs, same random draws, same gradients for every RSSM
+    parameter and both embedding projections."""
     wm = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=3))
     params = [*wm.control_rssm.parameters(), *wm.free_rssm.parameters()]
     with torch.no_grad():  # non-trivial layer-norm affine parameters, different per branch
@@ -118,15 +119,15 @@ def test_paired_rollout_equals_the_branchwise_loop_in_values_and_gradients():
     is_init = torch.zeros(3, 7, 1, dtype=torch.bool)
     is_init[0, 4] = is_init[2, 1] = True
 
-    def run(loop):
+    def run(paired):
         torch.manual_seed(3)
-        out = loop(control, free, action, is_init)
+        out = wm._rollout_loop(control, free, action, is_init, paired=paired)
         loss = sum((v * torch.linspace(-1, 1, v.shape[-1])).sum() for v in out.values())
         # posterior_embed_in is applied outside the loop (project_embedding): no gradient here
         return out, torch.autograd.grad(loss, [control, free, *params], allow_unused=True)
 
-    paired, paired_grads = run(wm._paired_rollout_loop)
-    plain, plain_grads = run(wm._branchwise_rollout_loop)
+    paired, paired_grads = run(True)
+    plain, plain_grads = run(False)
     assert paired.keys() == plain.keys() and len(plain) == 14
     for key in plain:
         torch.testing.assert_close(paired[key], plain[key], msg=key)
@@ -137,15 +138,16 @@ def test_paired_rollout_equals_the_branchwise_loop_in_values_and_gradients():
             torch.testing.assert_close(got, want)
     torch.manual_seed(3)
     assert wm._rollout_loop(control, free, action, is_init)["state"].equal(paired["state"])
+    # the switch asks for the fast path where it cannot run: an error, not a silent fallback
+    with pytest.raises(ValueError, match="paired=True"):
+        wm._rollout_loop(control, None, action, is_init, paired=True)
 
 
 @pytest.mark.parametrize("channels_last", [False, True])
 @pytest.mark.parametrize("clamp", [True, False])
 @pytest.mark.parametrize("names", [("control", "free", "static"), ("control", "free"), ("control", "static")])
-@pytest.mark.parametrize(
-    "floors", [(0.0, 0.0), (0.1, 0.0), (0.0, 0.05), (0.1, 0.05)], ids=["none", "mask", "gradient", "both"]
-)
-def test_fused_composition_matches_the_plain_operations(channels_last, clamp, names, floors):
+@pytest.mark.parametrize("clamp_gradient", ["inward", "zero"])
+def test_fused_composition_matches_the_plain_operations(channels_last, clamp, names, clamp_gradient):
     """compose_decoded (one autograd node) against split + clamp + softmax + products, values and gradients
     from every output (composite, masks, components), in the decoders' memory format."""
     torch.manual_seed(0)
@@ -157,19 +159,13 @@ def test_fused_composition_matches_the_plain_operations(channels_last, clamp, na
         if channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
         raw[name] = x.requires_grad_()
-    composition = MaskComposition(clamp_components=clamp, mask_floor=floors[0], gradient_floor=floors[1])
+    composition = MaskComposition(clamp_components=clamp, clamp_gradient=clamp_gradient)
     weights = torch.randn(batch, time, 3, 8, 8, dtype=torch.float64)
     mask_weights = torch.randn(batch, time, 1, 8, 8, dtype=torch.float64)
 
     def run(fused):
         outputs = {n: raw[n].reshape(*leads[n], 4, 8, 8) for n in names}
-        if fused:
-            composite, masks, colors = composition.compose_decoded(outputs)
-        else:
-            colors = composition.bound({n: o[..., :3, :, :] for n, o in outputs.items()})
-            composite, masks = composition(
-                colors, {n: o[..., 3:, :, :] for n, o in outputs.items()}, bounded=True
-            )
+        composite, masks, colors = composition.compose_decoded(outputs, fused=fused)
         loss = (composite * weights).sum()
         loss = loss + sum((m * mask_weights * (k + 1)).sum() for k, m in enumerate(masks.values()))
         loss = loss + sum(c.pow(2).sum() for c in colors.values())
@@ -184,8 +180,18 @@ def test_fused_composition_matches_the_plain_operations(channels_last, clamp, na
         torch.testing.assert_close(got, want)
         assert got.stride() == raw[name].stride()
     masks = torch.cat(list(fused[1].values()), dim=-3)
-    assert masks.min() >= floors[0] / len(names)
+    assert masks.min() >= 0
     torch.testing.assert_close(masks.sum(-3), torch.ones_like(masks[..., 0, :, :]))
+
+
+def test_fused_composition_is_refused_where_it_does_not_apply():
+    outputs = {n: torch.randn(2, 3, 4, 8, 8) for n in ("control", "free")}
+    outputs["static"] = torch.randn(2, 1, 3, 8, 8)  # sigmoid mode: the background has no logit
+    composition = MaskComposition(mask_mode="sigmoid")
+    with pytest.raises(ValueError, match="fused=True"):
+        composition.compose_decoded(outputs, fused=True)
+    composite, _, _ = composition.compose_decoded(outputs)  # the reference, chosen by default here
+    assert composite.shape == (2, 3, 3, 8, 8)
 
 
 def test_fused_composition_passes_only_the_gradients_asked_for():
@@ -240,63 +246,6 @@ def test_fused_composition_reads_bf16_decoder_outputs_and_composes_in_float32(ch
         torch.testing.assert_close(g, w.to(x.dtype))
 
 
-def test_mask_floors_against_their_formulas():
-    """mask_floor: masks = floor / N + (1 - floor) softmax; gradient_floor: the composite is unchanged, a
-    colour's gradient is dL/dy * max(m, floor) and a logit's the exact m_i (q_i - sum_j m_j q_j) with
-    q_i = <dL/dy, c_i>."""
-    torch.manual_seed(2)
-    names = ("control", "free", "static")
-    colors = {n: (torch.rand(2, 3, 6, 6, dtype=torch.float64) - 0.5).requires_grad_() for n in names}
-    logits = {n: (4 * torch.randn(2, 1, 6, 6, dtype=torch.float64)).requires_grad_() for n in names}
-    upstream = torch.randn(2, 3, 6, 6, dtype=torch.float64)
-    softmax = torch.softmax(torch.cat([logits[n] for n in names], dim=1), dim=1).detach()
-
-    _, masks = MaskComposition(mask_floor=0.3)(colors, logits)
-    want = 0.1 + 0.7 * softmax
-    torch.testing.assert_close(torch.cat([masks[n] for n in names], dim=1), want)
-
-    plain_y, _ = MaskComposition()(colors, logits)
-    plain = torch.autograd.grad(plain_y, [*colors.values(), *logits.values()], upstream)
-    floored_y, floored_masks = MaskComposition(gradient_floor=0.2)(colors, logits)
-    torch.testing.assert_close(floored_y, plain_y)
-    got = torch.autograd.grad(floored_y, [*colors.values(), *logits.values()], upstream)
-    q = {n: (upstream * colors[n].detach()).sum(1, keepdim=True) for n in names}
-    mean = sum(q[n] * floored_masks[n].detach() for n in names)
-    for i, name in enumerate(names):
-        m = floored_masks[name].detach()
-        torch.testing.assert_close(got[i], upstream * m.clamp(min=0.2))
-        torch.testing.assert_close(got[3 + i], m * (q[name] - mean))
-        torch.testing.assert_close(plain[3 + i], got[3 + i])
-    # the floor matters: some mask is below it here, so some colour gradient differs from plain eq. 4
-    assert any(not torch.allclose(g, p) for g, p in zip(got[:3], plain[:3]))
-
-
-@pytest.mark.parametrize(
-    "kwargs", [{"mask_floor": 1.0}, {"gradient_floor": -0.1}, {"mask_floor": 0.1, "mask_mode": "sigmoid"}]
-)
-def test_mask_floors_reject_bad_values(kwargs):
-    with pytest.raises(ValueError, match="floor"):
-        MaskComposition(**kwargs)
-
-
-@pytest.mark.parametrize("preset", [None, "0"])
-def test_importing_the_package_first_turns_on_huge_pages_unless_the_user_chose(preset):
-    import os
-    import subprocess
-    import sys
-
-    env = {k: v for k, v in os.environ.items() if k != "THP_MEM_ALLOC_ENABLE"}
-    if preset is not None:
-        env["THP_MEM_ALLOC_ENABLE"] = preset
-    code = "import isodream_rl, os; print(os.environ.get('THP_MEM_ALLOC_ENABLE'))"
-    first = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    assert first.stdout.strip() == (preset or "1")
-    # torch imported before: its allocator has read the variable already, so the package leaves it alone
-    code = "import torch, isodream_rl, os; print(os.environ.get('THP_MEM_ALLOC_ENABLE'))"
-    after = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    assert after.stdout.strip() == str(preset)
-
-
 def test_inward_clamp_passes_only_the_gradients_that_point_back_into_the_range():
     from isodream_rl.modules.composition import inward_pass
 
@@ -316,9 +265,7 @@ def test_inward_clamp_passes_only_the_gradients_that_point_back_into_the_range()
     target = torch.rand(2, 3, 3, 8, 8, dtype=torch.float64) - 0.5
 
     def grads(mode, fused=True):
-        composition = MaskComposition(
-            clamp_gradient="zero" if mode == "straight_through" else mode, gradient_floor=0.05
-        )
+        composition = MaskComposition(clamp_gradient="zero" if mode == "straight_through" else mode)
         outputs = {n: raw[n].reshape(*leads[n], 4, 8, 8) for n in names}
         if fused:
             composite, _, _ = composition.compose_decoded(outputs)
@@ -345,5 +292,3 @@ def test_inward_clamp_passes_only_the_gradients_that_point_back_into_the_range()
         assert (got[:, :3][outside] != 0).any()  # the inward one passes some
     with pytest.raises(ValueError, match="clamp_gradient"):
         MaskComposition(clamp_gradient="straight")
-    with pytest.raises(ValueError, match="needs clamp_components=True"):
-        MaskComposition(clamp_gradient="inward", clamp_components=False)

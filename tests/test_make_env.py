@@ -75,8 +75,8 @@ def test_highway_and_dmc_specs_pass_and_seeds_reproduce_episodes(name, cfg):
 def test_dmc_background_mask_appears_in_the_step_output_when_requested():
     env = make_env("dmc_cheetah_run", seed=0, return_masks=True, video_source="procedural")
     td = env.rollout(2)
-    assert td["next", "background_mask"].shape == (2, 64, 64)
-    assert td["next", "background_mask"].any()
+    assert td["next", "mask_background"].shape == (2, 64, 64)
+    assert td["next", "mask_background"].any()
 
 
 def test_pixels_are_the_seeded_gymnasium_frame_in_chw():

@@ -5,7 +5,7 @@ import torch
 from torch.nn import functional as F
 
 from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
-from isodream_rl.objectives import IsoDreamModelLoss, pyramid_squared_error
+from isodream_rl.objectives import IsoDreamModelLoss, PyramidImageTerm, pyramid_squared_error
 from tests.test_world_model import make_batch
 
 
@@ -62,15 +62,17 @@ def test_bad_arguments_are_named():
         pyramid_squared_error(torch.zeros(1, 3, 12, 12), torch.zeros(1, 3, 12, 12), levels=3)
     with pytest.raises(ValueError, match="shape"):
         pyramid_squared_error(torch.zeros(1, 3, 8, 8), torch.zeros(1, 3, 8, 4), levels=1)
-    model = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
-    with pytest.raises(ValueError, match="pyramid_levels"):
-        IsoDreamModelLoss(model, lambda_reco_pyramid=1.0, pyramid_levels=7)
+    with pytest.raises(ValueError, match="levels"):
+        PyramidImageTerm(levels=7)
+    with pytest.raises(ValueError, match="lambda_reco_pyramid"):
+        PyramidImageTerm(lambda_reco_pyramid=-1.0)
 
 
 def test_model_loss_adds_the_term_on_the_composite():
     torch.manual_seed(0)
     loss = IsoDreamModelLoss(
-        IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2)), lambda_reco_pyramid=0.5
+        IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2)),
+        extra_terms=[PyramidImageTerm(lambda_reco_pyramid=0.5)],
     )
     td = make_batch()
     losses, out = loss(td)
@@ -80,3 +82,11 @@ def test_model_loss_adds_the_term_on_the_composite():
     torch.testing.assert_close(losses["loss_model_reco_pyramid"], expected)
     loss.total(losses).backward()
     assert all(p.grad is not None for p in loss.world_model.static_decoder.parameters())
+
+
+def test_extra_terms_must_add_new_loss_entries():
+    model = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
+    for bad in ({"pyramid": torch.zeros(())}, {"loss_model_reco": torch.zeros(())}):
+        loss = IsoDreamModelLoss(model, extra_terms=[lambda reco, target, bad=bad: bad])
+        with pytest.raises(ValueError, match="new loss_"):
+            loss(make_batch())

@@ -28,11 +28,17 @@ def test_static_mask_bias_gives_the_background_most_of_the_image_at_init():
     assert biased["control"] < 0.1 and biased["free"] < 0.1
 
 
-def test_static_mask_bias_needs_a_static_softmax_mask():
-    with pytest.raises(ValueError, match="static_mask_bias"):
-        WorldModelConfig.from_preset("tiny", action_dim=2, static_mask_bias=1.0, static_branch=False)
-    with pytest.raises(ValueError, match="static_mask_bias"):
-        WorldModelConfig.from_preset("tiny", action_dim=2, static_mask_bias=1.0, mask_mode="sigmoid")
+def test_static_mask_bias_is_the_default_prior_and_leaves_models_without_a_background_logit_alone():
+    assert WorldModelConfig(action_dim=2).static_mask_bias == 3.0
+    for options in ({"mask_mode": "sigmoid"}, {"static_branch": False}):
+        torch.manual_seed(0)
+        biased = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2, **options))
+        torch.manual_seed(0)
+        plain = IsoDreamWorldModel(
+            WorldModelConfig.from_preset("tiny", action_dim=2, static_mask_bias=0.0, **options)
+        )
+        for (name, a), b in zip(biased.state_dict().items(), plain.state_dict().values()):
+            assert torch.equal(a, b), name
 
 
 def test_shift_static_mask_bias_moves_the_background_logit_only_and_needs_it():

@@ -73,16 +73,16 @@ class TestPredictor:
         assert out["frames"].shape == (2, 5, 3, 16, 16)
         assert out["decouple"].shape == ()
         assert ("action_pred" in out) == variant_config(variant).inverse_dynamics
-        assert ("free_mask" in out) == variant_config(variant).action_free_branch
+        assert ("mask_free" in out) == variant_config(variant).action_free_branch
         if "action_pred" in out:
             assert out["action_pred"].shape == (2, 5, 4)
 
     @pytest.mark.parametrize("variant", ["isodream", "no_action_free"])
     def test_masks_sum_to_one(self, variant):
         out = _model(variant)(*_clip(), return_components=True)
-        total = out["control_mask"] + out["static_mask"] + out.get("free_mask", 0)
+        total = out["mask_control"] + out["mask_static"] + out.get("mask_free", 0)
         torch.testing.assert_close(total, torch.ones_like(total))
-        assert (out["static_mask"] >= 0).all()
+        assert (out["mask_static"] >= 0).all()
 
     def test_frames_after_context_do_not_leak_into_predictions(self):
         model = _model().eval()
@@ -109,7 +109,7 @@ class TestPredictor:
         out_a = model(frames, actions, return_components=True)
         out_b = model(frames, actions + 1, return_components=True)
         # The free branch reads its own masked output, never the action or the composite frame.
-        torch.testing.assert_close(out_a["free_rgb"], out_b["free_rgb"])
+        torch.testing.assert_close(out_a["reco_free"], out_b["reco_free"])
 
     def test_bad_inputs_are_rejected(self):
         model = _model()

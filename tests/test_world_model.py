@@ -14,6 +14,7 @@ from isodream_rl.modules import (
     MaskComposition,
     WorldModelConfig,
 )
+from isodream_rl.modules.config import DREAMERV2, PAPER_EXACT
 from isodream_rl.objectives import InverseDynamicsLoss, IsoDreamModelLoss, balanced_kl, gaussian_kl
 
 B, T, A = 2, 6, 2
@@ -42,18 +43,12 @@ def tiny(**kw):
 CONFIGS = {
     "isodream": {},
     "sigmoid_masks": {"mask_mode": "sigmoid"},
-    "embedding_inverse_reward_on_free": {
-        "inverse_input": "embedding",
-        "reward_uses_free": True,
-        "discount_head": True,
-    },
-    "posterior_decoding": {"decoder_input": "posterior"},
+    "paper_exact": dict(PAPER_EXACT),
+    "reward_on_free_discount": {"reward_uses_free": True, "discount_head": True},
     "free_from_prior": {"free_decoder_input": "prior"},
-    "free_slots": {"free_slots": 3},
-    "free_trunk": {"free_trunk": True},
     "no_static": {"static_branch": False},
     "no_inverse": {"inverse_dynamics": False},
-    "dreamerv2": {"free_branch": False, "static_branch": False, "inverse_dynamics": False},
+    "dreamerv2": dict(DREAMERV2),
     "nchw_gru": {"channels_last": False, "layer_norm_gru": False},
 }
 
@@ -113,8 +108,8 @@ class TestComposition:
         logits = {n: torch.zeros(1, 1, 1, 2) for n in ("control", "free", "static")}
         control = torch.tensor([[[[2.0, 0.25]]]]).expand(1, 3, 1, 2).clone().requires_grad_()
         colors = {"control": control, "free": torch.zeros(1, 3, 1, 2), "static": torch.zeros(1, 3, 1, 2)}
-        composite, _ = MaskComposition()(colors, logits)
-        # out of range: 2.0 counts as 0.5 and gets no gradient; in range: unchanged
+        composite, _ = MaskComposition(clamp_gradient="zero")(colors, logits)
+        # out of range: 2.0 counts as 0.5 and, under the plain clamp, gets no gradient; in range: unchanged
         torch.testing.assert_close(composite[0, 0, 0], torch.tensor([0.5, 0.25]) / 3)
         composite.sum().backward()
         assert control.grad[0, 0, 0, 0] == 0 and control.grad[0, 0, 0, 1] > 0
@@ -228,8 +223,6 @@ class TestWorldModel:
             WorldModelConfig.from_preset("huge", action_dim=2)
         with pytest.raises(ValueError, match="free_decoder_input 'state'"):
             tiny(free_decoder_input="state")
-        with pytest.raises(ValueError, match="needs clamp_components=True"):
-            tiny(clamp_gradient="inward", clamp_components=False)
 
     def test_short_windows_reuse_their_last_frame_for_the_background(self):
         wm = IsoDreamWorldModel(tiny(static_frames=10))
@@ -333,73 +326,13 @@ class TestModelLoss:
         torch.testing.assert_close(losses["loss_model_reco"], expected)
 
     def test_recon_only_free_branch_gets_no_kl_gradient(self):
-        loss = IsoDreamModelLoss(IsoDreamWorldModel(tiny()), free_branch="recon_only", free_nats=0.0)
+        loss = IsoDreamModelLoss(IsoDreamWorldModel(tiny()), free_branch_loss="recon_only", free_nats=0.0)
         losses, _ = loss(make_batch())
         assert "loss_model_kl_free" not in losses.keys() and "kl_free" in losses.keys()
         loss.total(losses).backward()
         # the free prior only ever learns through the KL; without it, no gradient reaches it
         assert _grad_norm(loss.world_model.free_rssm.prior_net.parameters()) == 0
         assert _grad_norm(loss.world_model.free_rssm.posterior_out.parameters()) > 0
-
-    def test_free_component_term_is_half_squared_error_of_the_unmasked_component(self):
-        loss = IsoDreamModelLoss(IsoDreamWorldModel(tiny()), lambda_free_component=0.5)
-        td = make_batch()
-        losses, out = loss(td)
-        target = td["next", "pixels"].float() / 255 - 0.5
-        error = 0.5 * (out["next", "reco_free"] - target).pow(2).sum((-3, -2, -1)).mean()
-        torch.testing.assert_close(losses["loss_model_free_component"], 0.5 * error)
-
-    def test_free_component_term_reaches_the_free_decoder_under_a_shut_mask(self):
-        # a static logit of +30 shuts both dynamic masks (~1e-13): the image term gives the free decoder
-        # ~nothing, the component term its full gradient
-        def free_decoder_grad(weight):
-            torch.manual_seed(0)
-            loss = IsoDreamModelLoss(
-                IsoDreamWorldModel(tiny(static_mask_bias=30.0)), lambda_free_component=weight
-            )
-            losses, _ = loss(make_batch())
-            loss.world_model.zero_grad()
-            (losses["loss_model_reco"] + losses.get("loss_model_free_component", 0.0)).backward()
-            return _grad_norm(loss.world_model.free_decoder.parameters())
-
-        assert free_decoder_grad(0.0) < 1e-6
-        assert free_decoder_grad(1.0) > 1.0
-
-    def test_free_component_residual_term_weighs_pixels_the_background_misses(self):
-        torch.manual_seed(0)
-        loss = IsoDreamModelLoss(
-            IsoDreamWorldModel(tiny()), lambda_free_component=0.5, free_component_pixels="residual"
-        )
-        td = make_batch()
-        losses, out = loss(td)
-        target = td["next", "pixels"].float() / 255 - 0.5
-        miss = (out["background"] - target).pow(2).sum(-3, keepdim=True)
-        weight = miss**2 / (miss**2 + 0.1**2) * (1 - out["next", "mask_control"])
-        error = 0.5 * ((out["next", "reco_free"] - target).pow(2) * weight).sum((-3, -2, -1)).mean()
-        torch.testing.assert_close(losses["loss_model_free_component"], 0.5 * error)
-        # the weights are detached: the background and the controllable mask get nothing from this term
-        loss.world_model.zero_grad()
-        losses["loss_model_free_component"].backward()
-        assert _grad_norm(loss.world_model.static_decoder.parameters()) == 0
-        assert _grad_norm(loss.world_model.control_decoder.parameters()) == 0
-        assert _grad_norm(loss.world_model.free_decoder.parameters()) > 0
-
-    def test_free_component_residual_term_needs_the_static_branch(self):
-        with pytest.raises(ValueError, match="static branch"):
-            IsoDreamModelLoss(
-                IsoDreamWorldModel(tiny(static_branch=False)),
-                lambda_free_component=1.0,
-                free_component_pixels="residual",
-            )
-        with pytest.raises(ValueError, match="free_component_pixels"):
-            IsoDreamModelLoss(IsoDreamWorldModel(tiny()), free_component_pixels="edges")
-
-    def test_free_component_term_needs_the_free_branch_and_a_non_negative_weight(self):
-        with pytest.raises(ValueError, match="lambda_free_component"):
-            IsoDreamModelLoss(IsoDreamWorldModel(tiny()), lambda_free_component=-1.0)
-        loss = IsoDreamModelLoss(IsoDreamWorldModel(tiny(**CONFIGS["dreamerv2"])), lambda_free_component=1.0)
-        with pytest.raises(ValueError, match="free_branch"):
-            loss(make_batch())
 
     def test_set_keys_remapping_gives_the_same_loss(self):
         td = make_batch()
@@ -420,6 +353,59 @@ class TestModelLoss:
         remapped, _ = loss(renamed)
         for key in reference.keys():
             torch.testing.assert_close(remapped[key], reference[key])
+
+    def test_set_keys_remaps_the_world_models_output_keys(self):
+        class RenamedOutputs(IsoDreamWorldModel):
+            """Writes every output under ``("next", "out_<key>")``: a world model with other key names."""
+
+            def forward(self, tensordict):
+                out = super().forward(tensordict)
+                for key in list(out["next"].keys()):
+                    if key not in ("pixels", "reward"):
+                        out.rename_key_(("next", key), ("next", f"out_{key}"))
+                return out
+
+        td = make_batch()
+        torch.manual_seed(0)
+        reference, _ = IsoDreamModelLoss(IsoDreamWorldModel(tiny()))(td.clone())
+        with pytest.raises(KeyError, match="reco_pixels"):
+            IsoDreamModelLoss(RenamedOutputs(tiny()))(td.clone())
+        output_keys = [
+            "reco_pixels",
+            "reward_pred",
+            "prior_mean",
+            "prior_std",
+            "posterior_mean",
+            "posterior_std",
+            "free_prior_mean",
+            "free_prior_std",
+            "free_posterior_mean",
+            "free_posterior_std",
+            "mask_control",
+            "mask_free",
+            "mask_static",
+            "action_pred",
+            "action_pred_valid",
+        ]
+        torch.manual_seed(0)
+        loss = IsoDreamModelLoss(RenamedOutputs(tiny()))
+        loss.set_keys(**{key: ("next", f"out_{key}") for key in output_keys})
+        remapped, _ = loss(td.clone())
+        assert set(remapped.keys()) == set(reference.keys())
+        for key in reference.keys():
+            torch.testing.assert_close(remapped[key], reference[key])
+
+    def test_paper_exact_loss_uses_eq5s_alpha(self):
+        model = IsoDreamWorldModel(WorldModelConfig.paper_exact("tiny", action_dim=A))
+        assert IsoDreamModelLoss(model).inverse_loss.lambda_inverse == 30.0
+        assert IsoDreamModelLoss.paper_exact(model).inverse_loss.lambda_inverse == 1.0
+        config = model.config
+        assert (config.inverse_input, config.decoder_input, config.clamp_gradient) == (
+            "state",
+            "paper",
+            "zero",
+        )
+        assert config.static_mask_bias == 0.0
 
     def test_missing_reward_key_is_named(self):
         td = make_batch()
@@ -489,26 +475,3 @@ def test_decoder_matmul_first_layer_equals_the_transposed_convolution():
     latent = torch.randn(3, 20)
     reference = decoder.deconv(decoder.linear(latent)[:, :, None, None])
     torch.testing.assert_close(decoder(latent), reference, rtol=1e-5, atol=1e-5)
-
-
-def test_free_trunk_separates_what_each_branch_trains():
-    """With ``free_trunk=True`` the noncontrollable KL trains the free trunk and not the shared one, and the
-    inverse-dynamics loss the shared trunk and not the free one."""
-    torch.manual_seed(0)
-    loss = IsoDreamModelLoss(
-        IsoDreamWorldModel(tiny(free_trunk=True, inverse_input="embedding")), free_nats=0.0
-    )
-    encoder = loss.world_model.encoder
-
-    def grads(term):
-        loss.zero_grad(set_to_none=True)
-        losses, _ = loss(make_batch())
-        losses[term].backward()
-        return _grad_norm(encoder.trunk.parameters()), _grad_norm(encoder.free_trunk.parameters())
-
-    shared, free = grads("loss_model_kl_free")
-    assert free > 0 and shared == 0
-    shared, free = grads("loss_model_inverse")
-    assert shared > 0 and free == 0
-    with pytest.raises(ValueError, match="free_trunk=True needs the action-free branch"):
-        WorldModelConfig.dreamerv2("tiny", action_dim=A, free_trunk=True)

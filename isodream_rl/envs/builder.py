@@ -13,8 +13,11 @@
   ``[]``: ``"reached"`` and ``"touching"`` for sprites, ``"distance"`` and ``"collision_impulse"`` for the
   highway;
 - with ``return_masks=True``, the env's ground-truth masks, bool ``[H, W]``: ``"mask_agent"``,
-  ``"mask_distractors"`` and ``"mask_target"`` for sprites, ``"background_mask"`` (the pixels showing the
+  ``"mask_distractors"`` and ``"mask_target"`` for sprites, ``"mask_background"`` (the pixels showing the
   video) for DMC.
+
+Any other registered gymnasium id with a ``Box`` action space works too: its ``rgb_array`` render, resized to
+64x64, is the observation (``RenderedPixels``), so ``make_env("Pendulum-v1")`` trains like the built-in envs.
 
 ``GymPixelsEnv`` is a small ``EnvBase`` rather than TorchRL's ``GymWrapper``: it writes CHW pixels and the
 info masks directly (the wrapper needs a ``PermuteTransform`` and an info-dict reader, 0.4-0.6 ms more CPU
@@ -32,14 +35,17 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch
+from PIL import Image
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import Compose, EnvBase, EnvCreator, InitTracker, ParallelEnv, StepCounter, TransformedEnv
 
+from isodream_rl.process_settings import single_threaded_llvmpipe
+
 logger = logging.getLogger(__name__)
 
 SPRITES_MASK_KEYS = ("mask_agent", "mask_distractors", "mask_target")
-DMC_MASK_KEYS = ("background_mask",)
+DMC_MASK_KEYS = ("mask_background",)
 _DONE_KEYS = ("done", "terminated", "truncated")
 
 
@@ -106,6 +112,28 @@ class SimulatorFaultGuard(gym.Wrapper):
         info = dict(info, sim_error=False)
         self._last_obs, self._last_info = obs, info
         return obs, reward, terminated, truncated, info
+
+
+class RenderedPixels(gym.ObservationWrapper):
+    """A gymnasium env observed through its ``rgb_array`` render, resized to ``size`` x ``size`` (bilinear).
+
+    Args:
+        env (gymnasium.Env): made with ``render_mode="rgb_array"``; its own observation is dropped.
+        size (int, optional): side of the square frame. Defaults to 64, the world model's input.
+    """
+
+    def __init__(self, env: gym.Env, *, size: int = 64) -> None:
+        if env.render_mode != "rgb_array":
+            raise ValueError(
+                f"RenderedPixels needs an env made with render_mode='rgb_array', got {env.render_mode!r}."
+            )
+        super().__init__(gym.wrappers.AddRenderObservation(env, render_only=True))
+        self.size = size
+        self.observation_space = gym.spaces.Box(0, 255, (size, size, 3), dtype=np.uint8)
+
+    def observation(self, observation: np.ndarray) -> np.ndarray:
+        frame = Image.fromarray(np.asarray(observation, dtype=np.uint8)[..., :3])
+        return np.array(frame.resize((self.size, self.size), Image.BILINEAR))
 
 
 class GymPixelsEnv(EnvBase):
@@ -246,22 +274,23 @@ def wrap_gym_env(
 @functools.cache
 def dmc_env_names() -> dict[str, tuple[str, str]]:
     """Maps every ``"dmc_<domain>_<task>"`` name to its ``(domain, task)``, for all dm_control suite tasks."""
-    from isodream_rl.envs.dmc import dmc_tasks
+    from isodream_rl.envs.registration import DMC_SUITE_TASKS
 
-    pairs = (name.split("-") for name in dmc_tasks())
+    pairs = (name.split("-") for name in DMC_SUITE_TASKS)
     return {f"dmc_{domain}_{task}": (domain, task) for domain, task in pairs}
 
 
 def env_names() -> list[str]:
-    """The names ``make_env`` accepts: ``"sprites"``, ``"highway"`` and ``"dmc_<domain>_<task>"``."""
+    """The built-in names ``make_env`` accepts: ``"sprites"``, ``"highway"`` and ``"dmc_<domain>_<task>"`` (any
+    registered gymnasium id works as well)."""
     return ["sprites", "highway", *dmc_env_names()]
 
 
 def _check_name(name: str) -> None:
-    if name not in ("sprites", "highway") and name not in dmc_env_names():
+    if name not in ("sprites", "highway") and name not in dmc_env_names() and name not in gym.registry:
         raise ValueError(
-            f"Unknown env name {name!r}. Valid names: 'sprites', 'highway', or 'dmc_<domain>_<task>', one "
-            f"of: {', '.join(dmc_env_names())}."
+            f"Unknown env name {name!r}. Valid names: 'sprites', 'highway', 'dmc_<domain>_<task>' (one of: "
+            f"{', '.join(dmc_env_names())}) or a registered gymnasium id."
         )
 
 
@@ -269,8 +298,9 @@ def make_gym_env(name: str, **cfg: Any) -> gym.Env:
     """Builds the raw gymnasium env behind ``make_env(name, **cfg)`` (HWC uint8 frames, no guard).
 
     Args:
-        name (str): see ``env_names()``.
-        **cfg: constructor arguments of ``SpritesEnv``, ``HighwayIsoEnv`` or ``DMCBackgroundEnv``.
+        name (str): see ``env_names()``, or a registered gymnasium id (seen through ``RenderedPixels``).
+        **cfg: constructor arguments of ``SpritesEnv``, ``HighwayIsoEnv`` or ``DMCBackgroundEnv``, or
+            ``gymnasium.make`` keywords.
 
     Raises:
         ValueError: for an unknown name, listing the valid ones.
@@ -284,6 +314,8 @@ def make_gym_env(name: str, **cfg: Any) -> gym.Env:
         from isodream_rl.envs.highway import HighwayIsoEnv
 
         return HighwayIsoEnv(**cfg)
+    if name not in dmc_env_names():
+        return RenderedPixels(gym.make(name, render_mode="rgb_array", **cfg))
     from isodream_rl.envs.dmc import DMCBackgroundEnv
 
     domain, task = dmc_env_names()[name]
@@ -301,11 +333,12 @@ def make_env(
     """Builds a TorchRL env by name, with uint8 ``"pixels"`` ``[3, H, W]`` and float32 actions in [-1, 1].
 
     Args:
-        name (str): ``"sprites"``, ``"highway"`` or ``"dmc_<domain>_<task>"`` (e.g. ``"dmc_walker_walk"``).
+        name (str): ``"sprites"``, ``"highway"``, ``"dmc_<domain>_<task>"`` (e.g. ``"dmc_walker_walk"``) or a
+            registered gymnasium id with a ``Box`` action space (observed through its render, 64x64).
         seed (int, optional): seeds the env; the same seed gives the same episodes under the same actions.
         device (torch.device or str, optional): device of the output tensors. Defaults to ``"cpu"``.
         return_masks (bool, optional): add the ground-truth masks (bool ``[H, W]``) to every step:
-            ``"mask_agent"``, ``"mask_distractors"``, ``"mask_target"`` (sprites) or ``"background_mask"``
+            ``"mask_agent"``, ``"mask_distractors"``, ``"mask_target"`` (sprites) or ``"mask_background"``
             (DMC). Highway has none. Defaults to ``False``.
         **cfg: passed to the env class, e.g. ``task="reach"`` (sprites), ``view="top_down"``,
             ``vehicles_count=20`` (highway), ``background="video_hard"`` (dmc).
@@ -324,7 +357,7 @@ def make_env(
         (torch.Size([3, 3, 64, 64]), torch.Size([3, 64, 64]))
     """
     _check_name(name)
-    mask_keys = {"sprites": SPRITES_MASK_KEYS, "highway": ()}.get(name, DMC_MASK_KEYS)
+    mask_keys = {"sprites": SPRITES_MASK_KEYS}.get(name, DMC_MASK_KEYS if name in dmc_env_names() else ())
     if return_masks and not mask_keys:
         raise ValueError(
             f"return_masks=True needs ground-truth masks: 'sprites' and 'dmc_*' have them, {name!r} not."
@@ -378,13 +411,15 @@ def make_parallel_env(
     uses_gl = name.startswith("dmc_") or (
         name == "highway" and cfg.get("view", "first_person") == "first_person"
     )
+    if mp_start_method == "fork" and uses_gl:
+        single_threaded_llvmpipe()
     llvmpipe_threads = os.environ.get("LP_NUM_THREADS", "")
     if mp_start_method == "fork" and uses_gl and llvmpipe_threads != "0":
         raise ValueError(
             f"mp_start_method='fork' with {name!r}, which renders with OpenGL, needs LP_NUM_THREADS=0 (got "
             f"{llvmpipe_threads or 'unset'}): Mesa's llvmpipe worker threads do not survive fork and a forked "
-            "worker hangs at its first render. Set LP_NUM_THREADS=0 before importing isodream_rl.envs, or use "
-            "mp_start_method='spawn'."
+            "worker hangs at its first render. Set LP_NUM_THREADS=0 (or leave it unset) before the process makes "
+            "its first GL context, or use mp_start_method='spawn'."
         )
     env = ParallelEnv(
         num_workers,
@@ -399,6 +434,7 @@ def make_parallel_env(
 __all__ = [
     "DMC_MASK_KEYS",
     "GymPixelsEnv",
+    "RenderedPixels",
     "SPRITES_MASK_KEYS",
     "SimulatorFaultGuard",
     "env_names",

@@ -18,13 +18,20 @@ One render per agent step, no segmentation pass.
 from __future__ import annotations
 
 import os
+import sys
+import warnings
 from typing import Any
 
-# llvmpipe rasterising in the calling thread renders 64x64 frames as fast as with worker threads, leaves the
-# second core to torch and survives fork (see isodream_rl/envs/__init__.py). Mesa reads this when dm_control
-# initialises EGL, at import.
-os.environ.setdefault("LP_NUM_THREADS", "0")
-os.environ.setdefault("MUJOCO_GL", "egl")
+from isodream_rl.process_settings import dm_control_gl
+
+if "dm_control" in sys.modules and "MUJOCO_GL" not in os.environ:
+    warnings.warn(
+        "dm_control was imported before isodream_rl.envs.dmc with MUJOCO_GL unset, so it renders with GLFW, "
+        "which fails without a display. Run with MUJOCO_GL=egl in the environment.",
+        stacklevel=2,
+    )
+# dm_control fixes (and initialises) its GL backend at import
+dm_control_gl()
 
 import gymnasium  # noqa: E402
 import mujoco  # noqa: E402
@@ -33,18 +40,18 @@ from dm_control import suite  # noqa: E402
 from dm_control.mujoco.engine import Camera  # noqa: E402
 
 from isodream_rl.envs.backgrounds import SPLITS, VIDEO_SOURCES, BackgroundVideos  # noqa: E402
+from isodream_rl.envs.registration import BACKGROUNDS, DMC_SUITE_TASKS  # noqa: E402
 
 __all__ = ["BACKGROUNDS", "DMCBackgroundEnv", "dmc_tasks"]
 
-BACKGROUNDS = ("video_easy", "video_hard", "none")
 
 _KEY = np.array([0, 255, 0], dtype=np.uint8)
 _FLOOR_MATERIAL = "grid"
 
 
 def dmc_tasks() -> list[str]:
-    """Valid ``"domain-task"`` names, from ``dm_control.suite.ALL_TASKS``."""
-    return [f"{domain}-{task}" for domain, task in suite.ALL_TASKS]
+    """Valid ``"domain-task"`` names: ``dm_control.suite.ALL_TASKS``."""
+    return list(DMC_SUITE_TASKS)
 
 
 def _paint_key(model: Any, background: str) -> None:
@@ -96,13 +103,13 @@ class DMCBackgroundEnv(gymnasium.Env):
             a third to a half on llvmpipe (the shadow pass is about half of a render), but changes the picture.
 
     Observations are uint8 [image_size, image_size, 3] (HWC, RGB); actions are float32 in [-1, 1]^A,
-    rescaled to the task's bounds (values outside are clipped). ``info["background_mask"]`` is a bool
+    rescaled to the task's bounds (values outside are clipped). ``info["mask_background"]`` is a bool
     [image_size, image_size] array marking the pixels that show the video.
 
     Examples:
         >>> env = DMCBackgroundEnv(domain="walker", task="walk", video_source="procedural")
         >>> obs, info = env.reset(seed=0)
-        >>> obs.shape, info["background_mask"].shape
+        >>> obs.shape, info["mask_background"].shape
         ((64, 64, 3), (64, 64))
         >>> obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
         >>> env.close()
@@ -212,7 +219,7 @@ class DMCBackgroundEnv(gymnasium.Env):
             mask = (obs == _KEY).all(axis=-1)
             obs[mask] = self._video.frame(self._agent_steps)[mask]
         self._last_obs = obs
-        return obs, {"background_mask": mask}
+        return obs, {"mask_background": mask}
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -225,7 +232,7 @@ class DMCBackgroundEnv(gymnasium.Env):
             options (dict, optional): unused, accepted for the gymnasium API.
 
         Returns:
-            ``(obs, info)``: uint8 [H, W, 3] and ``{"background_mask": bool [H, W]}``.
+            ``(obs, info)``: uint8 [H, W, 3] and ``{"mask_background": bool [H, W]}``.
         """
         super().reset(seed=seed)
         if seed is not None or not self._seeded:

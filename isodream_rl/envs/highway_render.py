@@ -12,15 +12,20 @@ from __future__ import annotations
 import io
 from collections.abc import Sequence
 
-import mujoco
-import numpy as np
-import pygame
-from highway_env.road.graphics import LaneGraphics, RoadGraphics, WorldSurface
-from highway_env.road.road import Road
-from highway_env.vehicle.kinematics import Vehicle
-from PIL import Image
+from isodream_rl.process_settings import pygame_offscreen
 
-from isodream_rl.envs.mujoco_render import OffscreenRenderer
+# before pygame initialises a display, which highway-env's viewer does
+pygame_offscreen()
+
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+import pygame  # noqa: E402
+from highway_env.road.graphics import LaneGraphics, RoadGraphics, WorldSurface  # noqa: E402
+from highway_env.road.road import Road  # noqa: E402
+from highway_env.vehicle.kinematics import Vehicle  # noqa: E402
+from PIL import Image  # noqa: E402
+
+from isodream_rl.envs.mujoco_render import OffscreenRenderer  # noqa: E402
 
 # Distinct car paints, cycled over the other vehicles (RGB in [0, 1]).
 _CAR_COLOURS = (

@@ -39,7 +39,7 @@ class FastIDMVehicle(IDMVehicle):
     On the fast road, ``act`` and ``step`` run for all vehicles at once (:func:`set_idm_actions`,
     :func:`step_kinematics`). IDM's ``acceleration`` and ``desired_gap``, which MOBIL calls six times per lane
     decision, are restated with Python scalar arithmetic where it gives the same bits as highway-env's numpy calls.
-    MOBIL, spawning and behaviour randomisation are inherited, so a seeded reset draws the same traffic.
+    MOBIL, spawning and behavior randomisation are inherited, so a seeded reset draws the same traffic.
     """
 
     def acceleration(

@@ -2,7 +2,7 @@
 
 ``mujoco.Renderer`` takes its OpenGL backend from ``mujoco.GLContext``, which mujoco fixes from ``MUJOCO_GL`` when
 it is first imported. ``import torchrl.envs`` imports mujoco, so a program that imports torchrl before setting
-``MUJOCO_GL`` (or before importing ``isodream_rl.envs``, which sets it) gets GLFW, which needs a display.
+``MUJOCO_GL`` gets GLFW, which needs a display.
 :class:`OffscreenRenderer` picks a headless backend itself when it renders: the one ``MUJOCO_GL`` names now if it is
 ``"egl"``, ``"osmesa"`` or ``"glfw"``, else EGL, then OSMesa if EGL cannot make a context.
 
@@ -22,6 +22,8 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from isodream_rl.process_settings import single_threaded_llvmpipe
+
 __all__ = ["OffscreenRenderer", "create_gl_context"]
 
 _HEADLESS_BACKENDS = ("egl", "osmesa")
@@ -40,6 +42,7 @@ def create_gl_context(width: int, height: int) -> tuple[str, Any]:
     Raises:
         RuntimeError: when no backend can make a context; the message lists each backend's error.
     """
+    single_threaded_llvmpipe()
     requested = os.environ.get("MUJOCO_GL", "").strip().lower()
     if requested in (*_HEADLESS_BACKENDS, "glfw"):
         order = [requested, *(b for b in _HEADLESS_BACKENDS if b != requested)]

@@ -13,6 +13,63 @@ from __future__ import annotations
 import gymnasium as gym
 
 NAMESPACE = "isodream"
+#: The backgrounds of :class:`~isodream_rl.envs.dmc.DMCBackgroundEnv`.
+BACKGROUNDS = ("video_easy", "video_hard", "none")
+#: ``dm_control.suite.ALL_TASKS`` as ``"domain-task"``, written out so that registering the ids does not import
+#: dm_control, which initialises its GL backend at import (tests/test_env_dmc.py checks it against the suite).
+DMC_SUITE_TASKS = (
+    "acrobot-swingup",
+    "acrobot-swingup_sparse",
+    "ball_in_cup-catch",
+    "cartpole-balance",
+    "cartpole-balance_sparse",
+    "cartpole-swingup",
+    "cartpole-swingup_sparse",
+    "cartpole-three_poles",
+    "cartpole-two_poles",
+    "cheetah-run",
+    "dog-fetch",
+    "dog-run",
+    "dog-stand",
+    "dog-trot",
+    "dog-walk",
+    "finger-spin",
+    "finger-turn_easy",
+    "finger-turn_hard",
+    "fish-swim",
+    "fish-upright",
+    "hopper-hop",
+    "hopper-stand",
+    "humanoid-run",
+    "humanoid-run_pure_state",
+    "humanoid-stand",
+    "humanoid-walk",
+    "humanoid_CMU-run",
+    "humanoid_CMU-stand",
+    "humanoid_CMU-walk",
+    "lqr-lqr_2_1",
+    "lqr-lqr_6_2",
+    "manipulator-bring_ball",
+    "manipulator-bring_peg",
+    "manipulator-insert_ball",
+    "manipulator-insert_peg",
+    "pendulum-swingup",
+    "point_mass-easy",
+    "point_mass-hard",
+    "quadruped-escape",
+    "quadruped-fetch",
+    "quadruped-run",
+    "quadruped-walk",
+    "reacher-easy",
+    "reacher-hard",
+    "stacker-stack_2",
+    "stacker-stack_4",
+    "swimmer-swimmer15",
+    "swimmer-swimmer6",
+    "walker-run",
+    "walker-stand",
+    "walker-walk",
+)
 
 
 def dmc_env_id(domain: str, task: str, background: str) -> str:
@@ -22,13 +79,11 @@ def dmc_env_id(domain: str, task: str, background: str) -> str:
 
 def register_envs() -> list[str]:
     """Registers every isodream-rl gymnasium id not registered yet; returns all of them."""
-    from isodream_rl.envs.dmc import BACKGROUNDS, dmc_tasks
-
     specs = {
         f"{NAMESPACE}/Sprites-v0": ("isodream_rl.envs.sprites:SpritesEnv", {}),
         f"{NAMESPACE}/Highway-v0": ("isodream_rl.envs.highway:HighwayIsoEnv", {}),
     }
-    for domain, task in (name.split("-") for name in dmc_tasks()):
+    for domain, task in (name.split("-") for name in DMC_SUITE_TASKS):
         for background in BACKGROUNDS:
             specs[dmc_env_id(domain, task, background)] = (
                 "isodream_rl.envs.dmc:DMCBackgroundEnv",

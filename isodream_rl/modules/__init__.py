@@ -10,7 +10,6 @@ from isodream_rl.modules.heads import make_discount_head, make_reward_head
 from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
 from isodream_rl.modules.policy import IsoDreamPolicy
 from isodream_rl.modules.rssm import ActionConditionedRSSM, ActionFreeRSSM, LayerNormGRUCell, RSSMCell
-from isodream_rl.modules.slots import SlotDecoder
 from isodream_rl.modules.value import IsoDreamValue
 from isodream_rl.modules.world_model import IsoDreamWorldModel
 
@@ -31,7 +30,6 @@ __all__ = [
     "PolicyInput",
     "RSSMCell",
     "SIZE_PRESETS",
-    "SlotDecoder",
     "WorldModelConfig",
     "make_discount_head",
     "make_reward_head",

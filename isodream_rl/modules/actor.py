@@ -1,7 +1,7 @@
 """The action model ``pi(a_t | e_t)`` of eq. 7: a tanh-squashed Gaussian (TorchRL ``TanhNormal``).
 
 The authors use a "truncated normal" whose samples are in fact unclipped Normal draws clipped at the
-environment (isodream_reference.md §5); a tanh-squashed Gaussian keeps actions in ``(-1, 1)`` with an exact
+environment; a tanh-squashed Gaussian keeps actions in ``(-1, 1)`` with an exact
 log-density, which the entropy bonus and the REINFORCE option need. The mean is ``5 tanh(mu / 5)``
 (TorchRL's ``tanh_loc``, as in DreamerV1/V2) and the std ``2 sigmoid(x / 2) + min_std`` (the authors'
 actor std).

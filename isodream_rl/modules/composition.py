@@ -7,7 +7,7 @@ Two ways to produce the masks:
 * ``"softmax"`` (default): one logit map per branch (the static branch has its own), softmax over the
   branches, so every mask is non-negative and the three sum to one at every pixel.
 * ``"sigmoid"``: the authors' code: independent sigmoids ``M^s = sigmoid(l^s)``, ``M^z = sigmoid(l^z)`` and
-  ``M^b = 1 - M^s - M^z``, which is unclamped and can be negative (isodream_reference.md §14.2).
+  ``M^b = 1 - M^s - M^z``, which is unclamped and can be negative.
 
 Components are clamped to the pixel range ``[-0.5, 0.5]`` before they are mixed (``clamp_components``, as
 in the authors' code; the gradient is zero outside the range). Unbounded components let a faint mask
@@ -15,18 +15,14 @@ times an out-of-range colour reproduce an object, and the masks then stay soft a
 scene: on the sprites scene every mask stayed below 0.5 for 4000 updates without the clamp.
 
 A softmax saturates: a branch whose mask went to ~0 on a region gets ~0 gradient there, for its colour and
-its logit, and cannot take the region back. Two options act on the colours' side of it (both off by
-default): ``mask_floor`` mixes the masks with the uniform one (forward changed), ``gradient_floor`` changes
-only the colours' backward. Neither let the noncontrollable branch take more sprites discs
-(docs/results/world_model_demo.md); flooring the logits' gradient as well made training diverge there,
-with the push lifted in both directions (within 200 updates) and in the claiming direction only (after
-~3800 updates), so the logits' gradients are always the exact ones. The logits' side has its own term in
-the loss instead: :mod:`isodream_rl.objectives.mask_assignment` pulls the masks towards each branch's
-responsibility for a pixel (``IsoDreamModelLoss(lambda_mask_assignment=...)``, off by default).
+its logit. The logits' gradients are always the exact ones: lifting them towards a shut-out branch made
+training diverge on the sprites scene (docs/results/world_model_demo.md).
 
-:meth:`MaskComposition.compose_decoded` composes straight from the decoders' ``RGB + logit`` outputs; in
-softmax mode it runs the whole composition as one autograd function with a hand-written backward (see
-:class:`_SoftmaxComposition`), 1.8x faster on CPU than the same operations one by one.
+:meth:`MaskComposition.compose_decoded` composes straight from the decoders' ``RGB + logit`` outputs, in one
+of two implementations selected by its ``fused`` switch: the reference, the operations one by one
+(:meth:`MaskComposition.bound` and :meth:`MaskComposition.forward`), and the CPU fast path for softmax mode,
+the whole composition as one autograd function with a hand-written backward (:class:`_SoftmaxComposition`),
+1.8x faster on CPU.
 """
 
 from __future__ import annotations
@@ -75,14 +71,10 @@ class MaskComposition(nn.Module):
         mask_mode: ``"softmax"`` or ``"sigmoid"`` (see the module docstring).
         clamp_components: clamp each component to ``PIXEL_RANGE`` when two or more branches are composed
             (:meth:`bound`); a single branch (the DreamerV2 ablation) is left as decoded, like TorchRL's.
-        mask_floor: softmax mode: masks ``mask_floor / N + (1 - mask_floor) * softmax`` (``N`` branches), in
-            ``[0, 1)``.
-        gradient_floor: softmax mode, backward only: colours' gradients see masks ``>= gradient_floor``
-            (the logits' gradients stay exact), in ``[0, 1)``.
-        clamp_gradient: backward of the clamp: ``"zero"`` (a plain clamp: no gradient to a colour outside the
-            range, in either direction) or ``"inward"`` (the forward unchanged; a colour outside the range gets
-            the gradients that move it back towards the range, so a branch whose colours all overshoot where
-            its mask is shut can come back).
+        clamp_gradient: backward of the clamp (no effect without it): ``"inward"`` (the forward unchanged; a
+            colour outside the range gets the gradients that move it back towards the range, so a branch whose
+            colours all overshoot where its mask is shut can come back) or ``"zero"`` (a plain clamp: no
+            gradient to a colour outside the range, in either direction).
 
     Forward:
         ``colors`` and ``logits`` map branch names (``"control"``, ``"free"``, ``"static"``; any subset
@@ -100,30 +92,16 @@ class MaskComposition(nn.Module):
         *,
         mask_mode: str = "softmax",
         clamp_components: bool = True,
-        mask_floor: float = 0.0,
-        gradient_floor: float = 0.0,
-        clamp_gradient: str = "zero",
+        clamp_gradient: str = "inward",
     ):
         super().__init__()
         if mask_mode not in MASK_MODES:
             raise ValueError(f"unknown mask_mode {mask_mode!r}; valid: {MASK_MODES}")
-        if not 0.0 <= mask_floor < 1.0 or not 0.0 <= gradient_floor < 1.0:
-            raise ValueError(
-                f"mask_floor and gradient_floor must be in [0, 1), got {mask_floor} and {gradient_floor}"
-            )
-        if (mask_floor or gradient_floor) and mask_mode != "softmax":
-            raise ValueError("mask_floor / gradient_floor need mask_mode='softmax'")
         if clamp_gradient not in CLAMP_GRADIENTS:
             raise ValueError(f"unknown clamp_gradient {clamp_gradient!r}; valid: {CLAMP_GRADIENTS}")
-        if clamp_gradient == "inward" and not clamp_components:
-            raise ValueError(
-                "clamp_gradient='inward' is the backward of the clamp; it needs clamp_components=True"
-            )
         self.mask_mode = mask_mode
         self.clamp_components = clamp_components
         self.clamp_gradient = clamp_gradient
-        self.mask_floor = mask_floor
-        self.gradient_floor = gradient_floor
 
     def bound(self, colors: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """The components as :meth:`forward` mixes them: clamped to ``PIXEL_RANGE`` (see ``clamp_components``)."""
@@ -151,8 +129,6 @@ class MaskComposition(nn.Module):
             # One [*N, branches, H, W] tensor and one softmax; the masks are channel views of it.
             stacked = torch.cat([logits[n].expand(*shape, *logits[n].shape[-3:]) for n in names], dim=-3)
             probs = torch.softmax(stacked, dim=-3)
-            if self.mask_floor:
-                probs = probs * (1.0 - self.mask_floor) + self.mask_floor / len(names)
             masks = dict(zip(names, probs.split(1, dim=-3)))
         else:
             if names[-1] != "static":
@@ -166,15 +142,10 @@ class MaskComposition(nn.Module):
         composite = colors[names[0]] * masks[names[0]]
         for name in names[1:]:
             composite = composite + colors[name] * masks[name]
-        if self.gradient_floor:
-            # adds zero; its gradient lifts each colour's mask factor to max(mask, floor)
-            for name in names:
-                lift = (masks[name].clamp(min=self.gradient_floor) - masks[name]).detach()
-                composite = composite + (colors[name] - colors[name].detach()) * lift
         return composite, masks
 
     def compose_decoded(
-        self, outputs: dict[str, torch.Tensor]
+        self, outputs: dict[str, torch.Tensor], *, fused: bool | None = None
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict[str, torch.Tensor]]:
         """Eq. 4 from the decoders' raw outputs.
 
@@ -184,6 +155,10 @@ class MaskComposition(nn.Module):
                 the ``lead`` shapes broadcast (``[B, T]`` dynamic branches, ``[B, 1]`` background). Any
                 floating dtype: a bf16/fp16 decoder output is read as it is and composed in float32 (its
                 gradient is returned in its own dtype and memory format).
+            fused: ``True``: :class:`_SoftmaxComposition` (the CPU fast path, softmax mode with a logit per
+                branch); ``False``: :meth:`bound` and :meth:`forward`, the operations one by one (the
+                reference); ``None`` (default): the fast path wherever it applies. Both give the same values
+                and gradients.
 
         Returns:
             ``(composite, masks, colors)``: the composite ``[*N, 3, H, W]``, the masks ``[*N, 1, H, W]`` and
@@ -191,10 +166,14 @@ class MaskComposition(nn.Module):
             Gradients flow from all three.
         """
         names = [name for name in BRANCHES if name in outputs]
-        fused = (
+        can_fuse = (
             self.mask_mode == "softmax" and len(names) >= 2 and all(outputs[n].shape[-3] == 4 for n in names)
         )
-        if not fused:
+        if fused and not can_fuse:
+            raise ValueError(
+                "fused=True needs softmax masks and a mask logit for each of two or more branches"
+            )
+        if not can_fuse or fused is False:
             outputs = {n: outputs[n].to(_compute_dtype(outputs[n].dtype)) for n in names}
             colors = {n: outputs[n][..., :3, :, :] for n in names}
             logits = {n: outputs[n][..., 3:, :, :] for n in names if outputs[n].shape[-3] == 4}
@@ -205,7 +184,7 @@ class MaskComposition(nn.Module):
         leads = [tuple(outputs[n].shape[:-3]) for n in names]
         flat = [outputs[n].reshape(-1, *outputs[n].shape[-3:]) for n in names]
         composite, stacked, *colors = _SoftmaxComposition.apply(
-            bounds, self.clamp_gradient == "inward", leads, (self.mask_floor, self.gradient_floor), *flat
+            bounds, self.clamp_gradient == "inward", leads, *flat
         )
         return composite, dict(zip(names, stacked.split(1, dim=-3))), dict(zip(names, colors))
 
@@ -243,7 +222,7 @@ class _SoftmaxComposition(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, bounds, inward, leads, floors, *raw):
+    def forward(ctx, bounds, inward, leads, *raw):
         shape = torch.broadcast_shapes(*leads)
         ctx.inward = inward
         size = raw[0].shape[-2:]
@@ -262,29 +241,22 @@ class _SoftmaxComposition(torch.autograd.Function):
         logits = raw[0].new_empty(*shape, len(raw), *size, dtype=dtype)
         for i, (r, lead) in enumerate(zip(raw, leads)):
             logits[..., i : i + 1, :, :].copy_(r[:, 3:].reshape(*lead, 1, *size).expand(*shape, 1, *size))
-        probs = torch.softmax(logits, dim=-3)
-        ctx.floors = floors
-        masks = probs * (1.0 - floors[0]) + floors[0] / len(raw) if floors[0] else probs
+        masks = torch.softmax(logits, dim=-3)
         composite = colors[0] * masks[..., 0:1, :, :]
         for i in range(1, len(colors)):
             composite.addcmul_(colors[i], masks[..., i : i + 1, :, :])
-        ctx.save_for_backward(probs, *colors)
+        ctx.save_for_backward(masks, *colors)
         ctx.set_materialize_grads(False)
         return (composite, masks, *colors)
 
     @staticmethod
     def backward(ctx, grad_composite, grad_masks, *grad_colors):
-        probs, *colors = ctx.saved_tensors
-        mix, floor = ctx.floors
-        masks = probs * (1.0 - mix) + mix / len(colors) if mix else probs
-        # gradient floor (forward unchanged): the colours get their gradients as if every mask were at least
-        # ``floor``, so a branch shut out of a region keeps learning to draw what is there
-        weights = masks.clamp(min=floor) if floor else masks
+        masks, *colors = ctx.saved_tensors
         size = masks.shape[-2:]
         grads = []
         q = []
         for i, color in enumerate(colors):
-            m_i = weights[..., i : i + 1, :, :]
+            m_i = masks[..., i : i + 1, :, :]
             g = None
             if grad_composite is not None:
                 g = (grad_composite * m_i).sum_to_size(color.shape)
@@ -309,13 +281,12 @@ class _SoftmaxComposition(torch.autograd.Function):
         logits = [None] * len(colors)
         if any(q_i is not None for q_i in q):
             q = [torch.zeros_like(masks[..., :1, :, :]) if q_i is None else q_i for q_i in q]
-            # dL/dl_i = (1 - mix) p_i (q_i - sum_j p_j q_j), p the softmax (the masks' mixture is affine in p)
-            mean = q[0] * probs[..., 0:1, :, :]
+            # dL/dl_i = m_i (q_i - sum_j m_j q_j), the softmax's Jacobian
+            mean = q[0] * masks[..., 0:1, :, :]
             for i in range(1, len(q)):
-                mean.addcmul_(q[i], probs[..., i : i + 1, :, :])
-            scale = probs * (1.0 - mix) if mix else probs
+                mean.addcmul_(q[i], masks[..., i : i + 1, :, :])
             logits = [
-                (q[i] - mean).mul_(scale[..., i : i + 1, :, :]).sum_to_size(*lead, 1, *size)
+                (q[i] - mean).mul_(masks[..., i : i + 1, :, :]).sum_to_size(*lead, 1, *size)
                 for i, lead in enumerate(ctx.leads)
             ]
         out = []
@@ -332,4 +303,4 @@ class _SoftmaxComposition(torch.autograd.Function):
                 else:
                     part.copy_(value.reshape(count, -1, *size))
             out.append(grad)
-        return (None, None, None, None, *out)
+        return (None, None, None, *out)

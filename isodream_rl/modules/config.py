@@ -7,7 +7,7 @@ from dataclasses import asdict, dataclass, fields
 from isodream_rl.modules.composition import CLAMP_GRADIENTS, MASK_MODES
 from isodream_rl.modules.inverse_dynamics import INVERSE_INPUTS
 
-#: Size presets. ``paper``: Table 5 and isodream_reference.md §8 (cnn depth 32, deter 200, stoch 50,
+#: Size presets. ``paper``: Table 5 and the authors' configs (cnn depth 32, deter 200, stoch 50,
 #: MLP units 400); ``small``: quick CPU runs; ``tiny``: unit tests.
 SIZE_PRESETS: dict[str, dict[str, int]] = {
     "paper": {"depth": 32, "state_dim": 50, "belief_dim": 200, "hidden_dim": 200, "units": 400},
@@ -15,6 +15,17 @@ SIZE_PRESETS: dict[str, dict[str, int]] = {
     "tiny": {"depth": 4, "state_dim": 8, "belief_dim": 16, "hidden_dim": 16, "units": 32},
 }
 DECODER_INPUTS = ("paper", "posterior")
+#: The paper's settings of the fields whose defaults depart from it (with ``lambda_inverse=1`` in the loss).
+PAPER_EXACT = {
+    "inverse_input": "state",
+    "decoder_input": "paper",
+    "clamp_gradient": "zero",
+    "static_mask_bias": 0.0,
+}
+#: The single-branch DreamerV2 baseline, defined here only: ``WorldModelConfig.dreamerv2`` and the demo's
+#: ``--model dreamerv2`` build it from this; ``algo=dreamerv2`` sets the same switches for the trainer's checks, and
+#: tests/test_cli.py holds the model it trains to ``WorldModelConfig.dreamerv2``.
+DREAMERV2 = {"free_branch": False, "static_branch": False, "inverse_dynamics": False}
 FREE_DECODER_INPUTS = ("posterior", "prior")
 PRECISIONS = ("fp32", "bf16")
 
@@ -45,53 +56,36 @@ class WorldModelConfig:
     """The static background branch (Dec_phi3 on the first ``static_frames`` frames)."""
     inverse_dynamics: bool = True
     """The inverse-dynamics cell."""
-    inverse_input: str = "state"
-    """``"state"``: MLP(s_{t-1}, s_t) on posterior states (paper); ``"embedding"``: e^s_t - e^s_{t-1} (authors).
-
-    The posterior sees ``h_t``, computed from ``a_{t-1}``, so ``"state"`` can be solved without the pixels;
-    ``"embedding"`` cannot, but needs a larger ``lambda_inverse`` (30 in the sprites demo) to learn against
-    the pixel-sum image loss (docs/results/world_model_demo.md)."""
+    inverse_input: str = "embedding"
+    """``"embedding"``: e^s_t - e^s_{t-1} (the authors' code); ``"state"``: MLP(s_{t-1}, s_t) on posterior states
+    (the paper). The posterior sees ``h_t``, computed from ``a_{t-1}``, so ``"state"`` can be solved without the
+    pixels; ``"embedding"`` cannot, but needs a larger ``lambda_inverse`` (30, the loss's default) to learn
+    against the pixel-sum image loss."""
     mask_mode: str = "softmax"
     """``"softmax"`` over three logits, or the authors' ``"sigmoid"`` masks with 1 - M^s - M^z background."""
     clamp_components: bool = True
     """Clamp each branch's RGB component to the pixel range before composing (the authors' code); without it
     faint masks times out-of-range colours reproduce objects and the masks never separate the scene."""
-    clamp_gradient: str = "zero"
-    """Backward of that clamp: ``"zero"`` (a plain clamp) or ``"inward"`` (forward unchanged; a colour beyond
-    the range gets the gradients that move it back, so a branch whose colours overshoot under a shut mask can
-    come back; see :class:`~isodream_rl.modules.composition.MaskComposition`)."""
-    decoder_input: str = "paper"
-    """``"paper"``: controllable component from the one-step prior s~_t, noncontrollable from the posterior z_t
-    (§3.2, against collapse); ``"posterior"``: both from posteriors."""
+    clamp_gradient: str = "inward"
+    """Backward of that clamp: ``"inward"`` (forward unchanged; a colour beyond the range gets the gradients
+    that move it back, so a branch whose colours overshoot under a shut mask can come back) or ``"zero"`` (the
+    authors' plain clamp); without ``clamp_components`` it has no effect. See
+    :class:`~isodream_rl.modules.composition.MaskComposition`."""
+    decoder_input: str = "posterior"
+    """``"posterior"``: both dynamic components from posteriors; ``"paper"``: the controllable component from
+    the one-step prior s~_t, the noncontrollable one from the posterior z_t (§3.2, against collapse)."""
     free_decoder_input: str = "posterior"
     """The noncontrollable component from the posterior z_t (paper, the default) or from the action-free prior
     z~_t (``"prior"``: §3.2's guard against collapse applied to this branch too). From its one-step prior the
     branch can draw only what it predicts without actions and without the current frame: the objects that
     move on their own, not the agent, whose moves the actions decide."""
-    free_trunk: bool = False
-    """The noncontrollable head ``Enc_phi2`` reads a trunk of its own instead of the shared ``Enc_theta`` (not in
-    the paper): what the controllable side trains the shared trunk to see (the agent) no longer shapes what the
-    noncontrollable branch can read."""
-    free_slots: int = 1
-    """Object slots of the noncontrollable decoder (not in the paper; 1: the paper's single component). With
-    ``K > 1`` the features are projected to ``K`` slot latents that one shared decoder turns into ``K``
-    RGB + logit maps, combined into the branch's component and logit (in softmax mode exactly a softmax over
-    ``2 + K`` logits; :mod:`isodream_rl.modules.slots`). Costs ``K`` decoder passes instead of one."""
     static_frames: int = 10
     """K, the number of first frames of a window that the static branch reads (clamped to the window)."""
-    static_mask_bias: float = 0.0
-    """Initial bias of the static branch's mask logit (softmax mode). A positive value starts training with
-    the background owning most of every pixel (3.0: 91 %), so the dynamic branches grow masks only where
-    the background cannot explain the frame, instead of all three blending at 1/3 each."""
-    mask_floor: float = 0.0
-    """Softmax mode: each of the N masks is ``mask_floor / N + (1 - mask_floor) * softmax``, a mixture with the
-    uniform mask, so every branch's colour keeps a share of every pixel's gradient. (On sprites it did not
-    let the noncontrollable branch take more discs: docs/results/world_model_demo.md.)"""
-    gradient_floor: float = 0.0
-    """Softmax mode, backward only (the composite is eq. 4 unchanged): each colour's gradient sees its mask as
-    at least ``gradient_floor`` (the logits' gradients stay exact), so a branch shut out of a region by a
-    saturated softmax still learns to draw what is there. (On sprites it did not let the noncontrollable
-    branch take more discs: docs/results/world_model_demo.md.)"""
+    static_mask_bias: float = 3.0
+    """Initial bias of the static branch's mask logit, where it has one (the static branch in softmax mode;
+    elsewhere the field has no effect). A positive value starts training with the background owning most of
+    every pixel (3.0: 91 %), so the dynamic branches grow masks only where the background cannot explain the
+    frame, instead of all three blending at 1/3 each."""
     reward_uses_free: bool = False
     """Reward head on [s, h, z, h'] (CARLA-style) instead of [s, h] (DMC-style)."""
     discount_head: bool = False
@@ -118,20 +112,6 @@ class WorldModelConfig:
             raise ValueError("reward_uses_free=True needs the action-free branch (free_branch=True)")
         if self.mask_mode == "sigmoid" and not self.static_branch:
             raise ValueError("mask_mode='sigmoid' needs the static branch (its mask is 1 - M^s - M^z)")
-        if self.static_mask_bias and not (self.static_branch and self.mask_mode == "softmax"):
-            raise ValueError("static_mask_bias needs the static branch with mask_mode='softmax'")
-        if (self.mask_floor or self.gradient_floor) and self.mask_mode != "softmax":
-            raise ValueError("mask_floor / gradient_floor need mask_mode='softmax'")
-        if self.clamp_gradient == "inward" and not self.clamp_components:
-            raise ValueError(
-                "clamp_gradient='inward' is the backward of the clamp; it needs clamp_components=True"
-            )
-        if self.free_trunk and not self.free_branch:
-            raise ValueError("free_trunk=True needs the action-free branch (free_branch=True)")
-        if self.free_slots < 1:
-            raise ValueError(f"free_slots must be >= 1, got {self.free_slots}")
-        if self.free_slots > 1 and not self.free_branch:
-            raise ValueError("free_slots > 1 needs the action-free branch (free_branch=True)")
         if self.static_frames < 1:
             raise ValueError(f"static_frames must be >= 1, got {self.static_frames}")
 
@@ -147,15 +127,16 @@ class WorldModelConfig:
         return cls(action_dim=action_dim, **{**SIZE_PRESETS[size], **overrides})
 
     @classmethod
+    def paper_exact(cls, size: str = "paper", *, action_dim: int, **overrides) -> WorldModelConfig:
+        """The paper's choices where the defaults depart from them (:data:`PAPER_EXACT`; docs/concepts.md,
+        "Where we depart from the paper"). Train it with ``IsoDreamModelLoss.paper_exact`` (``alpha = 1``)."""
+        return cls.from_preset(size, action_dim=action_dim, **{**PAPER_EXACT, **overrides})
+
+    @classmethod
     def dreamerv2(cls, size: str = "paper", *, action_dim: int, **overrides) -> WorldModelConfig:
-        """The single-branch DreamerV2 baseline: no action-free branch, no static branch, no inverse cell."""
-        base = {
-            "free_branch": False,
-            "static_branch": False,
-            "inverse_dynamics": False,
-            "decoder_input": "posterior",
-        }
-        return cls.from_preset(size, action_dim=action_dim, **{**base, **overrides})
+        """The single-branch DreamerV2 baseline (:data:`DREAMERV2`): no action-free branch, no static
+        branch, no inverse cell."""
+        return cls.from_preset(size, action_dim=action_dim, **{**DREAMERV2, **overrides})
 
     def to_dict(self) -> dict:
         return asdict(self)

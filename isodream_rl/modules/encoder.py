@@ -59,19 +59,14 @@ class BranchedEncoder(nn.Module):
         *,
         depth: int = 32,
         heads: tuple[str, ...] = ("control", "free", "static"),
-        free_trunk: bool = False,
         device=None,
     ):
         super().__init__()
         unknown = set(heads) - {"control", "free", "static"}
         if unknown:
             raise ValueError(f"unknown encoder heads {sorted(unknown)}; valid: control, free, static")
-        if free_trunk and "free" not in heads:
-            raise ValueError("free_trunk=True needs the 'free' head")
         self.depth = depth
         self.trunk = _conv_stack([3, depth, 2 * depth], device=device)
-        # Not in the paper: the noncontrollable head on a trunk of its own (WorldModelConfig.free_trunk).
-        self.free_trunk = _conv_stack([3, depth, 2 * depth], device=device) if free_trunk else None
         self.heads = nn.ModuleDict(
             {name: _conv_stack([2 * depth, 4 * depth, 8 * depth], device=device) for name in heads}
         )
@@ -83,24 +78,13 @@ class BranchedEncoder(nn.Module):
     def head(self, name: str, features: torch.Tensor) -> torch.Tensor:
         return self.heads[name](features).flatten(1)
 
-    def trunk_features(
-        self, pixels: torch.Tensor, *, channels_last: bool = False, trunk: nn.Module | None = None
-    ) -> torch.Tensor:
-        """Shared trunk ``Enc_theta`` (or ``trunk``): ``[N, 3, 64, 64]`` raw pixels -> ``[N, 2*depth, 14, 14]``."""
+    def trunk_features(self, pixels: torch.Tensor, *, channels_last: bool = False) -> torch.Tensor:
+        """Shared trunk ``Enc_theta``: ``[N, 3, 64, 64]`` raw pixels -> ``[N, 2*depth, 14, 14]``."""
         check_pixels(pixels)
         if channels_last:
             # Converting the uint8 input is 4x cheaper than converting the float copy.
             pixels = pixels.contiguous(memory_format=torch.channels_last)
-        return (trunk or self.trunk)(preprocess_pixels(pixels))
-
-    def free_features(
-        self, pixels: torch.Tensor, shared: torch.Tensor, *, channels_last: bool = False
-    ) -> torch.Tensor:
-        """What the noncontrollable head reads: ``shared`` (the shared trunk's features of ``pixels``), or,
-        with ``free_trunk=True``, its own trunk's features of ``pixels``."""
-        if self.free_trunk is None:
-            return shared
-        return self.trunk_features(pixels, channels_last=channels_last, trunk=self.free_trunk)
+        return self.trunk(preprocess_pixels(pixels))
 
     def forward(self, pixels: torch.Tensor, *, channels_last: bool = False) -> tuple[torch.Tensor, ...]:
         """Encode ``[*batch, 3, 64, 64]`` pixels into one embedding ``[*batch, 32*depth]`` per dynamic head.
@@ -115,6 +99,5 @@ class BranchedEncoder(nn.Module):
         if "control" in self.heads:
             embeddings.append(self.head("control", features).reshape(*lead, self.embed_dim))
         if "free" in self.heads:
-            features = self.free_features(pixels, features, channels_last=channels_last)
             embeddings.append(self.head("free", features).reshape(*lead, self.embed_dim))
         return tuple(embeddings)

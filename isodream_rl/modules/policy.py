@@ -12,6 +12,7 @@ from torchrl.envs.utils import ExplorationType, exploration_type
 from isodream_rl.modules.actor import IsoDreamActor
 from isodream_rl.modules.attention import PolicyInput
 from isodream_rl.modules.encoder import IMAGE_SHAPE, check_pixels
+from isodream_rl.modules.rssm import filter_step
 from isodream_rl.modules.world_model import IsoDreamWorldModel
 
 _RANDOM = (None, ExplorationType.RANDOM)
@@ -21,7 +22,7 @@ class IsoDreamPolicy(TensorDictModuleBase):
     """Acting policy: filter the new observation, roll ``z`` ``tau - 1`` steps ahead, attend, act.
 
     At each environment step ``t``: both branches' posteriors ``(s_t, h_t)``, ``(z_t, h'_t)`` from the
-    previous posteriors, the previous action and ``o_t`` (the world model's ``filter_step``, the same filter as
+    previous posteriors, the previous action and ``o_t`` (:func:`~isodream_rl.modules.rssm.filter_step`, the same filter as
     in training, zeroing the carried state where ``is_init``); the window ``[z_t, z~_{t+1..t+tau-1}]`` from the
     action-free prior; ``e_t`` from the policy input; ``a_t`` sampled from the actor (exploration type
     ``RANDOM`` or unset, plus optional Gaussian ``exploration_noise``, clamped to [-1, 1]) or its mode
@@ -134,7 +135,15 @@ class IsoDreamPolicy(TensorDictModuleBase):
             control_embed, free_embed = wm.encode(pixels.to(device).reshape(n, *IMAGE_SHAPE))
             control_proj = wm.control_rssm.project_embedding(control_embed).float()
             free_proj = None if free_embed is None else wm.free_rssm.project_embedding(free_embed).float()
-        post = wm.filter_step(previous, previous["previous_action"], control_proj, free_proj, reset)
+        post = filter_step(
+            wm.control_rssm,
+            wm.free_rssm,
+            previous,
+            previous["previous_action"],
+            control_proj,
+            free_proj,
+            reset,
+        )
 
         control = torch.cat([post["state"], post["belief"]], dim=-1)
         free = window = None

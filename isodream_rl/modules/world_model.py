@@ -14,15 +14,18 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from isodream_rl.modules.composition import PIXEL_RANGE, MaskComposition
+from isodream_rl.modules.composition import MaskComposition
 from isodream_rl.modules.config import WorldModelConfig
 from isodream_rl.modules.decoder import ConvDecoder
 from isodream_rl.modules.encoder import IMAGE_SHAPE, BranchedEncoder, check_pixels
 from isodream_rl.modules.heads import make_discount_head, make_reward_head
 from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
-from isodream_rl.modules.rssm import ActionConditionedRSSM, ActionFreeRSSM, single_threaded
-from isodream_rl.modules.rssm_pair import OUT_KEYS, RSSMPair, can_pair
-from isodream_rl.modules.slots import SlotDecoder
+from isodream_rl.modules.rssm import (
+    ActionConditionedRSSM,
+    ActionFreeRSSM,
+    filter_window,
+    single_threaded,
+)
 
 
 def _next(key: str) -> tuple[str, str]:
@@ -47,8 +50,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         ``prior_std``, ``posterior_mean``, ``posterior_std`` (each ``[..., S]`` or ``[..., D]``); the same
         with a ``free_`` prefix for the noncontrollable branch (z_t, h'_t); ``reco_pixels`` (eq. 4),
         ``reco_control``, ``reco_free`` ``[..., 3, 64, 64]``; ``mask_control``, ``mask_free``,
-        ``mask_static`` ``[..., 1, 64, 64]``; with ``free_slots = K > 1`` also ``mask_free_slots``
-        ``[..., K, 1, 64, 64]`` (each slot's mask, summing to ``mask_free``); ``reward_pred`` ``[..., 1]``;
+        ``mask_static`` ``[..., 1, 64, 64]``; ``reward_pred`` ``[..., 1]``;
         ``discount_logit`` ``[..., 1]`` (with the discount head); ``action_pred`` ``[..., A]`` with
         ``action_pred_valid`` ``[..., 1]`` (step 0 and reset steps have no previous state in the window). The
         root gets ``"background"`` o^b ``[B, T, 3, 64, 64]`` (one image per window, expanded over ``T``).
@@ -71,7 +73,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         heads = (
             ("control",) + (("free",) if cfg.free_branch else ()) + (("static",) if cfg.static_branch else ())
         )
-        self.encoder = BranchedEncoder(depth=cfg.depth, heads=heads, free_trunk=cfg.free_trunk, device=device)
+        self.encoder = BranchedEncoder(depth=cfg.depth, heads=heads, device=device)
         embed = self.encoder.embed_dim
         rssm_kwargs = {
             "state_dim": cfg.state_dim,
@@ -90,21 +92,11 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         self.control_decoder = ConvDecoder(
             in_features=feature_dim, out_channels=3 if single else 4, depth=cfg.depth, device=device
         )
-        if not cfg.free_branch:
-            self.free_decoder = None
-        elif cfg.free_slots > 1:
-            self.free_decoder = SlotDecoder(
-                in_features=feature_dim,
-                num_slots=cfg.free_slots,
-                depth=cfg.depth,
-                clamp=PIXEL_RANGE if cfg.clamp_components else None,
-                inward=cfg.clamp_gradient == "inward",
-                device=device,
-            )
-        else:
-            self.free_decoder = ConvDecoder(
-                in_features=feature_dim, out_channels=4, depth=cfg.depth, device=device
-            )
+        self.free_decoder = (
+            ConvDecoder(in_features=feature_dim, out_channels=4, depth=cfg.depth, device=device)
+            if cfg.free_branch
+            else None
+        )
         # The static branch has a mask logit of its own only in softmax mode.
         self.static_decoder = (
             ConvDecoder(
@@ -116,13 +108,11 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             if cfg.static_branch
             else None
         )
-        if cfg.static_mask_bias:
+        if cfg.static_mask_bias and cfg.static_branch and cfg.mask_mode == "softmax":
             self.shift_static_mask_bias(cfg.static_mask_bias)
         self.composition = MaskComposition(
             mask_mode=cfg.mask_mode,
             clamp_components=cfg.clamp_components,
-            mask_floor=cfg.mask_floor,
-            gradient_floor=cfg.gradient_floor,
             clamp_gradient=cfg.clamp_gradient,
         )
         self.inverse_cell = (
@@ -155,7 +145,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             out += [f"free_{k}" for k in out]
         out += ["reco_pixels", "reco_control", "mask_control", "reward_pred"]
         if cfg.free_branch:
-            out += ["reco_free", "mask_free"] + (["mask_free_slots"] if cfg.free_slots > 1 else [])
+            out += ["reco_free", "mask_free"]
         if cfg.static_branch:
             out += ["mask_static"]
         if cfg.discount_head:
@@ -209,39 +199,6 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             parts += [free_state, free_belief]
         return torch.cat(parts, dim=-1)
 
-    def filter_step(
-        self,
-        previous: dict[str, torch.Tensor],
-        action: torch.Tensor,
-        control_embedding: torch.Tensor,
-        free_embedding: torch.Tensor | None,
-        reset: torch.Tensor | None = None,
-    ) -> dict[str, torch.Tensor]:
-        """One filtering step of both branches (eq. 3), with embeddings already projected.
-
-        Args:
-            previous: ``state``, ``belief`` (and ``free_state``, ``free_belief``) at ``t``, ``[*N, .]``.
-            action: ``a_t`` ``[*N, A]``.
-            control_embedding: ``control_rssm.project_embedding(e^s_{t+1})``.
-            free_embedding: ``free_rssm.project_embedding(e^z_{t+1})`` or ``None``.
-            reset: ``[*N, 1]`` bool; where true, states, beliefs and the action are zeroed first.
-
-        Returns:
-            the controllable outputs of :meth:`RSSMCell.observe_step` and the ``free_``-prefixed ones.
-        """
-        keep = None if reset is None else (~reset).to(action.dtype)
-        state, belief = previous["state"], previous["belief"]
-        if keep is not None:
-            state, belief, action = state * keep, belief * keep, action * keep
-        out = self.control_rssm.observe_step(state, belief, action, control_embedding)
-        if self.free_rssm is not None:
-            free_state, free_belief = previous["free_state"], previous["free_belief"]
-            if keep is not None:
-                free_state, free_belief = free_state * keep, free_belief * keep
-            free = self.free_rssm.observe_step(free_state, free_belief, None, free_embedding)
-            out.update({f"free_{k}": v for k, v in free.items()})
-        return out
-
     def initial_state(self, batch_shape, *, device=None) -> dict[str, torch.Tensor]:
         """Zero ``state``, ``belief`` (and ``free_state``, ``free_belief``) of batch shape ``batch_shape``."""
         state, belief = self.control_rssm.initial(batch_shape, device=device)
@@ -290,49 +247,12 @@ class IsoDreamWorldModel(TensorDictModuleBase):
 
         return single_threaded(run, [given[k] for k in names], [p for m in rssms for p in m.parameters()])
 
-    def _rollout_loop(self, control_proj, free_proj, action, is_init) -> dict[str, torch.Tensor]:
-        if free_proj is not None and can_pair(self.control_rssm, self.free_rssm):
-            return self._paired_rollout_loop(control_proj, free_proj, action, is_init)
-        return self._branchwise_rollout_loop(control_proj, free_proj, action, is_init)
-
-    def _paired_rollout_loop(self, control_proj, free_proj, action, is_init) -> dict[str, torch.Tensor]:
-        """:meth:`_branchwise_rollout_loop` with both branches in one batched step (:class:`RSSMPair`)."""
-        batch, time = action.shape[:2]
-        pair = RSSMPair(self.control_rssm, self.free_rssm)
-        initial = self.initial_state((batch,), device=action.device)
-        state = torch.stack([initial["state"], initial["free_state"]])
-        belief = torch.stack([initial["belief"], initial["free_belief"]])
-        projections = torch.stack([control_proj, free_proj]).unbind(2)
-        actions = action.unbind(1)
-        resets = [None] * time if is_init is None else is_init.bool().unbind(1)
-        steps = []
-        for t in range(time):
-            act = actions[t]
-            if resets[t] is not None:
-                keep = (~resets[t]).to(action.dtype)
-                state, belief, act = state * keep, belief * keep, act * keep
-            out = pair.observe_step(state, belief, act, projections[t])
-            steps.append(out)
-            state, belief = out["state"], out["belief"]
-        result = {}
-        for key in OUT_KEYS:
-            control, free = torch.stack([s[key] for s in steps], dim=2).unbind(0)
-            result[key], result[f"free_{key}"] = control, free
-        return result
-
-    def _branchwise_rollout_loop(self, control_proj, free_proj, action, is_init) -> dict[str, torch.Tensor]:
-        batch, time = action.shape[:2]
-        previous = self.initial_state((batch,), device=action.device)
-        # unbind, not [:, t]: its backward is one stack, where indexing writes a zero-filled window per step
-        actions, control_steps = action.unbind(1), control_proj.unbind(1)
-        free_steps = [None] * time if free_proj is None else free_proj.unbind(1)
-        resets = [None] * time if is_init is None else is_init.bool().unbind(1)
-        steps = []
-        for t in range(time):
-            out = self.filter_step(previous, actions[t], control_steps[t], free_steps[t], resets[t])
-            steps.append(out)
-            previous = out
-        return {k: torch.stack([s[k] for s in steps], dim=1) for k in steps[0]}
+    def _rollout_loop(
+        self, control_proj, free_proj, action, is_init, *, paired: bool | None = None
+    ) -> dict[str, torch.Tensor]:
+        return filter_window(
+            self.control_rssm, self.free_rssm, control_proj, free_proj, action, is_init, paired=paired
+        )
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         cfg = self.config
@@ -346,8 +266,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             control_proj = self.control_rssm.project_embedding(control_embed)
             free_proj = None
             if self.free_rssm is not None:
-                free_features = self.encoder.free_features(frames, features, channels_last=cfg.channels_last)
-                free_embed = self.encoder.head("free", free_features).reshape(batch, time, -1)
+                free_embed = self.encoder.head("free", features).reshape(batch, time, -1)
                 free_proj = self.free_rssm.project_embedding(free_embed)
             static_out = None
             if self.static_decoder is not None:
@@ -360,16 +279,13 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         control_feat = torch.cat([control_input, latents["belief"]], dim=-1).reshape(batch * time, -1)
         with self.autocast(device_type):
             control_out = self.control_decoder(control_feat)
-            free_out = slot_weights = None
+            free_out = None
             if self.free_decoder is not None:
                 free_input = latents[
                     "free_prior_state" if cfg.free_decoder_input == "prior" else "free_state"
                 ]
                 free_feat = torch.cat([free_input, latents["free_belief"]], dim=-1).reshape(batch * time, -1)
-                if isinstance(self.free_decoder, SlotDecoder):
-                    free_out, slot_weights = self.free_decoder.decompose(free_feat)
-                else:
-                    free_out, slot_weights = self.free_decoder(free_feat), None
+                free_out = self.free_decoder(free_feat)
 
         # in the decoders' dtype: the composition reads bf16 outputs as they are and composes in float32
         decoded = {"control": control_out.reshape(batch, time, *control_out.shape[1:])}
@@ -386,10 +302,6 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             out["reco_free"] = colors["free"]
         for name, mask in masks.items():
             out[f"mask_{name}"] = mask
-        if slot_weights is not None:
-            # each slot's share of the image: its weight within the branch times the branch's mask
-            weights = slot_weights.float().reshape(batch, time, *slot_weights.shape[1:])
-            out["mask_free_slots"] = masks["free"].unsqueeze(2) * weights
         features_r = self.reward_features(
             latents["state"], latents["belief"], latents.get("free_state"), latents.get("free_belief")
         )

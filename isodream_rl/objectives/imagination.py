@@ -1,4 +1,4 @@
-"""Behaviour learning in decoupled imaginations (paper §3.3, Algorithm 1 lines 7-12).
+"""Behavior learning in decoupled imaginations (paper §3.3, Algorithm 1 lines 7-12).
 
 From every start state (the detached posteriors of a replay batch, ``N = B * T`` of them) the
 noncontrollable branch is rolled alone, then for ``j < L``: ``e_j = Attention(s~_j, z~_{j:j+tau})``,
@@ -48,7 +48,7 @@ class IsoDreamImagination(nn.Module):
 
     Args:
         world_model: the trained :class:`~isodream_rl.modules.IsoDreamWorldModel` (its parameters are not
-            trained by the behaviour losses).
+            trained by the behavior losses).
         policy_input: the :class:`~isodream_rl.modules.PolicyInput` giving ``e_j``; its ``window`` is ``tau``.
         horizon: ``L`` (15).
         attention_window: ``"start"`` (Iso-Dream): one noncontrollable rollout of ``L + tau`` states from the
@@ -106,7 +106,7 @@ class IsoDreamImagination(nn.Module):
         return self.policy_input.uses_free_branch or self.world_model.config.reward_uses_free
 
     def autocast(self, device_type: str):
-        """The world model's precision context, used for every MLP of behaviour learning."""
+        """The world model's precision context, used for every MLP of behavior learning."""
         return self.world_model.autocast(device_type)
 
     def roll_free(

@@ -14,6 +14,7 @@ different cells stay apart at every level.)
 from __future__ import annotations
 
 import torch
+from torch import nn
 from torch.nn import functional as F
 
 _BINOMIAL = (1.0, 4.0, 6.0, 4.0, 1.0)
@@ -55,3 +56,40 @@ def pyramid_squared_error(reco: torch.Tensor, target: torch.Tensor, *, levels: i
         reco, target = pyramid_down(reco), pyramid_down(target)
         total = total + 4**level * F.mse_loss(reco, target, reduction="sum")
     return total
+
+
+class PyramidImageTerm(nn.Module):
+    """The coarse-to-fine image term as an extra term of :class:`~isodream_rl.objectives.IsoDreamModelLoss`.
+
+    ``loss_model_reco_pyramid = lambda_reco_pyramid * 0.5 * pyramid_squared_error(o^, o) / frames``: the
+    frames' mean like the image log-loss. Used as
+    ``IsoDreamModelLoss(world_model, extra_terms=[PyramidImageTerm(levels=4)])``.
+
+    Args:
+        levels: pyramid levels (3: 32x32, 16x16 and 8x8 for 64x64 frames), in ``[1, 6]``.
+        lambda_reco_pyramid: the term's weight (1). A plain attribute, so a training loop can ramp it.
+
+    Examples:
+        >>> import torch
+        >>> term = PyramidImageTerm(levels=2)
+        >>> sorted(term(torch.zeros(2, 5, 3, 64, 64), torch.zeros(2, 5, 3, 64, 64)))
+        ['loss_model_reco_pyramid']
+    """
+
+    def __init__(self, *, levels: int = 3, lambda_reco_pyramid: float = 1.0):
+        super().__init__()
+        if lambda_reco_pyramid < 0 or not 1 <= levels <= 6:
+            raise ValueError(
+                f"lambda_reco_pyramid must be >= 0 and levels in [1, 6] (64x64 frames), got "
+                f"{lambda_reco_pyramid} and {levels}"
+            )
+        self.levels = levels
+        self.lambda_reco_pyramid = lambda_reco_pyramid
+
+    def forward(self, reco: torch.Tensor, target: torch.Tensor) -> dict[str, torch.Tensor]:
+        frames = reco.numel() // reco.shape[-3:].numel()
+        coarse = pyramid_squared_error(reco, target, levels=self.levels)
+        return {"loss_model_reco_pyramid": self.lambda_reco_pyramid * 0.5 * coarse / frames}
+
+    def extra_repr(self) -> str:
+        return f"levels={self.levels}, lambda_reco_pyramid={self.lambda_reco_pyramid}"

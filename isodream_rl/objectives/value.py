@@ -21,7 +21,7 @@ class IsoDreamValueLoss(LossModule):
     constant, with ``w_j`` the detached ``cumprod(gamma * continuation)`` weights. ``G^lambda_j`` and ``w_j``
     come from :class:`~isodream_rl.objectives.IsoDreamActorLoss`, which writes them into the imagined rollout,
     and are aligned with the state they value: ``G_j`` is the return from ``s~_j`` (TorchRL's convention; the
-    authors' code regresses on time-reversed targets, isodream_reference.md §5).
+    authors' code regresses on time-reversed targets).
 
     ``e_j`` is recomputed here from the detached ``[s, h]`` (and window), so the policy input's parameters
     (the future-state attention) learn from this loss, as in the authors' code: ``value_loss.parameters()``

@@ -26,6 +26,7 @@ probe at the end of training and reports it as ``probe_r2_*`` in its ``summary.j
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 
 import torch
@@ -120,7 +121,7 @@ def ridge_cv(
 def encoder_features(model: IsoDreamWorldModel, data, *, window: int) -> dict[str, torch.Tensor]:
     """Encoder features ``[N, D]`` of the same frames as :func:`branch_features` (the same steps dropped):
     ``trunk`` (2x2-pooled shared trunk map), ``embed_control`` and, with the noncontrollable branch,
-    ``embed_free`` (from its own trunk with ``WorldModelConfig.free_trunk``)."""
+    ``embed_free``."""
     pixels = episode_windows(data, window=window).get(("next", "pixels"))[:, window // 4 :]
     device = next(model.parameters()).device
     pixels = pixels.reshape(-1, *pixels.shape[-3:]).to(device)
@@ -128,7 +129,7 @@ def encoder_features(model: IsoDreamWorldModel, data, *, window: int) -> dict[st
     feats = {"trunk": torch.nn.functional.avg_pool2d(trunk, 2).flatten(1)}
     feats["embed_control"] = model.encoder.head("control", trunk)
     if "free" in model.encoder.heads:
-        feats["embed_free"] = model.encoder.head("free", model.encoder.free_features(pixels, trunk))
+        feats["embed_free"] = model.encoder.head("free", trunk)
     return {name: f.float() for name, f in feats.items()}
 
 
@@ -202,7 +203,10 @@ def load_checkpoint(path, device="cpu") -> tuple[IsoDreamWorldModel, dict]:
     """The world model of a demo checkpoint and the scene it was trained on, as :func:`probe` keywords
     (empty for checkpoints that predate storing it: :func:`probe`'s defaults are the demo's)."""
     state = torch.load(path, map_location="cpu", weights_only=False)
-    config = WorldModelConfig(**{**state["config"], "precision": "fp32"})
+    # fields of options since removed are dropped; a model that used one fails in load_state_dict below
+    known = {f.name for f in dataclasses.fields(WorldModelConfig)}
+    saved = {k: v for k, v in state["config"].items() if k in known}
+    config = WorldModelConfig(**{**saved, "precision": "fp32"})
     model = IsoDreamWorldModel(config, device=device)
     model.load_state_dict(state["model"])
     return model, dict(state.get("scene", {}))

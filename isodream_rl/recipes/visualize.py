@@ -36,9 +36,8 @@ def _to_uint8(x: torch.Tensor, kind: str) -> np.ndarray:
 
 
 def branch_grid(output: TensorDictBase, *, sample: int = 0, steps: int = 10, scale: int = 2) -> Image.Image:
-    """A grid image: one row per quantity (ground truth, composite, each component and its mask, and each
-    noncontrollable slot's mask when the model has slots), one column per time step of window ``sample`` of
-    a world-model output.
+    """A grid image: one row per quantity (ground truth, composite, each component and its mask), one column
+    per time step of window ``sample`` of a world-model output.
 
     Args:
         output: the ``[B, T]`` output tensordict of :class:`~isodream_rl.modules.IsoDreamWorldModel`.
@@ -49,22 +48,14 @@ def branch_grid(output: TensorDictBase, *, sample: int = 0, steps: int = 10, sca
     time = output.shape[1]
     columns = np.unique(np.linspace(0, time - 1, min(steps, time)).round().astype(int))
     keys = output.keys(True)
-    rows = []
-    for label, key, kind in _ROWS:
-        if key in keys:
-            rows.append((label, key, kind, None))
-        if label == "mask z" and ("next", "mask_free_slots") in keys:
-            # one row per object slot of the noncontrollable branch (WorldModelConfig.free_slots)
-            slots = output.get(("next", "mask_free_slots")).shape[2]
-            rows += [(f"mask z slot {k}", ("next", "mask_free_slots"), "mask", k) for k in range(slots)]
+    rows = [(label, key, kind) for label, key, kind in _ROWS if key in keys]
     tile, label_width = 64 * scale, 110
     grid = Image.new("RGB", (label_width + tile * len(columns), tile * len(rows)), "white")
     draw = ImageDraw.Draw(grid)
-    for r, (label, key, kind, index) in enumerate(rows):
+    for r, (label, key, kind) in enumerate(rows):
         draw.text((4, r * tile + tile // 2 - 6), label, fill="black")
         for c, t in enumerate(columns):
             value = output.get(key)[sample, t]
-            value = value if index is None else value[index]
             image = Image.fromarray(_to_uint8(value, kind)).resize((tile, tile), Image.NEAREST)
             grid.paste(image, (label_width + c * tile, r * tile))
     return grid

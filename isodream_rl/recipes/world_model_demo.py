@@ -9,17 +9,10 @@ held-out R^2 of a linear read-out of each sprite's position, from each branch's 
 encoder's trunk and branch embeddings), which scores the single-branch baseline (``--model dreamerv2``, no
 masks) and Iso-Dream alike. Everything it needs is generated locally.
 
-Defaults that differ from the library's (each measured in ``docs/results/world_model_demo.md``): random
-actions held for 8 steps (a new one each step only makes the agent jitter in place, and the background
-branch absorbs it), the background's mask logit starting at +3 (otherwise the three masks blend at 1/3),
-the controllable component decoded from the posterior (from the paper's one-step prior the agent had
-not appeared after 4000 updates), and the authors' inverse-dynamics input, embedding differences, at
-``alpha = 30``: the paper's input, posterior states, is solved through ``h_t`` without the pixels, and in
-6 of 23 runs with it the controllable KL spiked in the first 700 updates, after which the branch never
-found the agent; at ``alpha = 1`` the embedding differences are too small for the inverse cell to learn;
-and the components' clamp passing the gradients that point back into the pixel range
-(``clamp_gradient="inward"``): with the authors' plain clamp, seed 1's noncontrollable component drew no disc
-in 5000 updates and by then sat below the range on every pixel, where that clamp passes no gradient.
+The model and loss are the library's defaults (docs/concepts.md, "Where we depart from the paper", names the
+runs of docs/results/world_model_demo.md behind each); the one setting of the demo's own is the data's:
+random actions held for 8 steps (a new one each step only makes the agent jitter in place, and the
+background branch absorbs it).
 """
 
 from __future__ import annotations
@@ -30,13 +23,18 @@ import os
 import time
 from pathlib import Path
 
-import torch
-from torchrl.record.loggers.csv import CSVLogger
-from tqdm import tqdm
+from isodream_rl.process_settings import use_huge_pages
 
-from isodream_rl.envs.sprites import AGENT_COLOURS, DISTRACTOR_COLOURS, SPRITE_SIZE
-from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
-from isodream_rl.modules.config import (
+# before torch is imported: PyTorch reads it at its first allocation
+use_huge_pages()
+
+import torch  # noqa: E402
+from torchrl.record.loggers.csv import CSVLogger  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from isodream_rl.envs.sprites import AGENT_COLOURS, DISTRACTOR_COLOURS, SPRITE_SIZE  # noqa: E402
+from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig  # noqa: E402
+from isodream_rl.modules.config import (  # noqa: E402
     CLAMP_GRADIENTS,
     DECODER_INPUTS,
     FREE_DECODER_INPUTS,
@@ -44,28 +42,21 @@ from isodream_rl.modules.config import (
     MASK_MODES,
     PRECISIONS,
 )
-from isodream_rl.modules.encoder import preprocess_pixels
-from isodream_rl.objectives import IsoDreamModelLoss
-from isodream_rl.objectives.world_model import FREE_BRANCH_MODES
-from isodream_rl.recipes.latent_probe import probe
-from isodream_rl.recipes.sprites_data import (
+from isodream_rl.modules.encoder import preprocess_pixels  # noqa: E402
+from isodream_rl.objectives import IsoDreamModelLoss  # noqa: E402
+from isodream_rl.objectives.pyramid import PyramidImageTerm  # noqa: E402
+from isodream_rl.objectives.world_model import FREE_BRANCH_MODES, LAMBDA_INVERSE  # noqa: E402
+from isodream_rl.recipes.latent_probe import probe  # noqa: E402
+from isodream_rl.recipes.sprites_data import (  # noqa: E402
     collect_sprites_episodes,
     episode_windows,
     make_window_buffer,
     model_input,
 )
-from isodream_rl.recipes.visualize import branch_grid, mask_iou, save_png
+from isodream_rl.recipes.visualize import branch_grid, mask_iou, save_png  # noqa: E402
 
-#: ``WorldModelConfig`` overrides of each ``--model``.
-ABLATIONS = {
-    "isodream": {},
-    "dreamerv2": {
-        "free_branch": False,
-        "static_branch": False,
-        "inverse_dynamics": False,
-        "static_mask_bias": 0.0,
-    },
-}
+#: the library's defaults, which the flags below start from
+DEFAULTS = WorldModelConfig(action_dim=1)
 
 
 def default_precision(device: torch.device) -> str:
@@ -141,8 +132,8 @@ def parse_args(argv=None) -> argparse.Namespace:
         "--static-mask-bias",
         type=float,
         default=None,
-        help="initial bias of the background's mask logit (default 3; softmax mode only: in sigmoid mode the "
-        "background has no logit)",
+        help=f"initial bias of the background's mask logit (default {DEFAULTS.static_mask_bias:g}, "
+        "WorldModelConfig.static_mask_bias; softmax mode only: in sigmoid mode the background has no logit)",
     )
     p.add_argument(
         "--static-mask-bias-schedule",
@@ -157,151 +148,74 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument(
         "--inverse-input",
         choices=INVERSE_INPUTS,
-        default="embedding",
+        default=DEFAULTS.inverse_input,
         help="inverse-dynamics input: control-embedding differences (authors' code) or posterior states (paper, "
-        "which the posterior solves through h_t without the pixels: see docs/results/world_model_demo.md)",
+        "which the posterior solves through h_t without the pixels) (WorldModelConfig.inverse_input)",
     )
     p.add_argument(
         "--decoder-input",
         choices=DECODER_INPUTS,
-        default="posterior",
-        help="controllable component from the posterior (default here, as the authors' DMC setting) or from "
-        "the one-step prior (paper; the library's default, slower to pick up the agent: see docs/results/world_model_demo.md)",
+        default=DEFAULTS.decoder_input,
+        help="controllable component from the posterior (as the authors' DMC setting) or from the one-step "
+        "prior (paper) (WorldModelConfig.decoder_input)",
     )
     p.add_argument(
         "--free-decoder-input",
         choices=FREE_DECODER_INPUTS,
-        default="posterior",
+        default=DEFAULTS.free_decoder_input,
         help="noncontrollable component from the posterior z_t (paper) or the action-free prior z~_t, which "
         "can draw only what moves predictably without actions (WorldModelConfig.free_decoder_input)",
     )
     p.add_argument(
-        "--free-trunk",
-        action="store_true",
-        help="the noncontrollable head on a trunk of its own instead of the shared one "
-        "(WorldModelConfig.free_trunk; not in the paper)",
-    )
-    p.add_argument(
-        "--free-slots",
-        type=int,
-        default=1,
-        help="object slots of the noncontrollable decoder, decoded by one shared decoder (1: the paper's "
-        "single component; WorldModelConfig.free_slots)",
-    )
-    p.add_argument(
         "--clamp-gradient",
         choices=CLAMP_GRADIENTS,
-        default="inward",
-        help="backward of the components' clamp: the gradients pointing back into the pixel range (default "
-        "here), or none beyond it (the authors' clamp and the library's default, with which a branch whose "
-        "colours all overshoot stays dead: see docs/results/world_model_demo.md, session 13) "
+        default=DEFAULTS.clamp_gradient,
+        help="backward of the components' clamp: the gradients pointing back into the pixel range, or none "
+        "beyond it (the authors' clamp, with which a branch whose colours all overshoot stays dead) "
         "(WorldModelConfig.clamp_gradient)",
     )
     p.add_argument(
-        "--free-branch",
+        "--free-branch-loss",
         choices=FREE_BRANCH_MODES,
         default="kl",
         help="noncontrollable branch learns with its KL (CARLA-style) or from the reconstruction only (DMC-style)",
     )
-    p.add_argument(
-        "--mask-floor", type=float, default=0.0, help="masks mixed with the uniform one (WorldModelConfig)"
-    )
-    p.add_argument(
-        "--gradient-floor",
-        type=float,
-        default=0.0,
-        help="colours' gradients see masks >= this (WorldModelConfig)",
-    )
     p.add_argument("--lambda-kl-free", type=float, default=1.0, help="beta2, the weight of KL_z")
     p.add_argument(
-        "--free-component-weight",
-        type=float,
-        default=0.0,
-        help="weight of the noncontrollable component's own full-frame reconstruction (IsoDreamModelLoss"
-        ".lambda_free_component; 0: off)",
-    )
-    p.add_argument(
-        "--free-component-pixels",
-        choices=["all", "residual"],
-        default="all",
-        help="the whole frame, or the pixels the background misses and the controllable branch leaves",
-    )
-    p.add_argument(
-        "--residual-scale",
-        type=float,
-        default=0.1,
-        help="kappa of the residual weighting (IsoDreamModelLoss.residual_scale)",
-    )
-    p.add_argument(
-        "--free-component-until",
-        type=int,
-        default=0,
-        help="updates after which that weight is 0: held for the first half, then linearly to 0 "
-        "(0: constant)",
-    )
-    p.add_argument(
-        "--free-component-from",
-        type=int,
-        default=0,
-        help="update at which that term starts; its weight then rises linearly over --ramp-updates "
-        "(0: from the start). Starting it once the controllable branch holds the agent keeps the agent's "
-        "pixels, which 1 - M^s then excludes, out of the noncontrollable state",
-    )
-    p.add_argument(
-        "--reco-pyramid",
+        "--lambda-reco-pyramid",
         type=float,
         default=0.0,
         help="weight of the coarse-to-fine image term on levels 1..L of a Gaussian pyramid "
-        "(IsoDreamModelLoss.lambda_reco_pyramid; 0: off, the paper's loss)",
+        "(PyramidImageTerm, an extra term of IsoDreamModelLoss; 0: off, the paper's loss)",
     )
     p.add_argument(
         "--pyramid-levels",
         type=int,
         default=3,
-        help="pyramid levels L of --reco-pyramid (IsoDreamModelLoss.pyramid_levels)",
+        help="pyramid levels L of --lambda-reco-pyramid (PyramidImageTerm.levels)",
     )
     p.add_argument(
         "--reco-pyramid-from",
         type=int,
         default=0,
-        help="update at which --reco-pyramid starts; its weight then rises linearly over --ramp-updates (0: "
+        help="update at which --lambda-reco-pyramid starts; its weight then rises linearly over --ramp-updates (0: "
         "from the start). Started once the controllable branch holds the agent: with it from the start, seed "
         "1's controllable branch took a disc instead (docs/results/world_model_demo.md)",
-    )
-    p.add_argument(
-        "--mask-assignment",
-        type=float,
-        default=0.0,
-        help="weight of the mask-assignment term (IsoDreamModelLoss.lambda_mask_assignment; 0: off)",
-    )
-    p.add_argument(
-        "--mask-assignment-from",
-        type=int,
-        default=0,
-        help="update at which the mask-assignment term starts; its weight then rises linearly to "
-        "--mask-assignment over --ramp-updates (0: full weight from the start)",
     )
     p.add_argument(
         "--ramp-updates",
         type=int,
         default=None,
-        help="updates over which a late-starting term rises to its weight (default: as many as it waited)",
-    )
-    p.add_argument(
-        "--assignment-std", type=float, default=0.1, help="sigma of the mask-assignment responsibilities"
-    )
-    p.add_argument(
-        "--assignment-branches",
-        default="free,static",
-        help="comma-separated branches the mask-assignment term assigns pixels between ('all': every branch)",
+        help="updates over which --lambda-reco-pyramid rises to its weight once it starts (default: as many "
+        "as it waited)",
     )
     p.add_argument("--free-nats", type=float, default=1.0, help="free nats of each branch's batch-mean KL")
     p.add_argument(
         "--lambda-inverse",
         type=float,
-        default=30.0,
-        help="alpha, the inverse-dynamics loss scale (the library's default is the paper's 1, under which the "
-        "embedding-difference inverse does not learn here against the pixel-sum image loss)",
+        default=LAMBDA_INVERSE,
+        help="alpha, the inverse-dynamics loss scale (IsoDreamModelLoss's default; at the paper's 1 the "
+        "embedding-difference inverse does not learn against the pixel-sum image loss)",
     )
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument(
@@ -463,11 +377,6 @@ def schedule_value(points: tuple[tuple[int, float], ...], step: int) -> float:
     return points[-1][1]
 
 
-def free_component_weight(weight: float, step: int, until: int) -> float:
-    """``weight`` for the first ``until / 2`` updates, then linearly down to 0 at update ``until``."""
-    return weight * min(1.0, max(0.0, 2.0 * (1.0 - step / until)))
-
-
 def main(argv=None) -> dict:
     args = parse_args(argv)
     torch.manual_seed(args.seed)
@@ -479,9 +388,6 @@ def main(argv=None) -> dict:
         raise SystemExit(
             f"--episode-length ({args.episode_length}) must be a multiple of --window ({args.window})"
         )
-
-    if args.free_component_from and args.free_component_until:
-        raise SystemExit("--free-component-from and --free-component-until are two schedules; give one")
 
     colours = None
     if args.distractor_colours:
@@ -515,7 +421,7 @@ def main(argv=None) -> dict:
     buffer = make_window_buffer(train, batch_size=args.batch_size, window=args.window)
 
     if args.static_mask_bias is None:
-        args.static_mask_bias = 3.0 if args.mask_mode == "softmax" else 0.0
+        args.static_mask_bias = DEFAULTS.static_mask_bias
     elif args.static_mask_bias and args.mask_mode != "softmax":
         raise SystemExit(
             "--static-mask-bias needs --mask-mode softmax (in sigmoid mode the background has no logit)"
@@ -532,28 +438,23 @@ def main(argv=None) -> dict:
         "decoder_input": args.decoder_input,
         "free_decoder_input": args.free_decoder_input,
         "clamp_gradient": args.clamp_gradient,
-        "free_slots": args.free_slots,
-        "free_trunk": args.free_trunk,
-        "mask_floor": args.mask_floor,
-        "gradient_floor": args.gradient_floor,
     }
-    config = WorldModelConfig.from_preset(args.size, action_dim=2, **{**options, **ABLATIONS[args.model]})
+    if args.model == "dreamerv2":
+        config = WorldModelConfig.dreamerv2(args.size, action_dim=2, **options)
+    else:
+        config = WorldModelConfig.from_preset(args.size, action_dim=2, **options)
+    pyramid = (
+        [PyramidImageTerm(levels=args.pyramid_levels, lambda_reco_pyramid=args.lambda_reco_pyramid)]
+        if args.lambda_reco_pyramid
+        else []
+    )
     loss = IsoDreamModelLoss(
         IsoDreamWorldModel(config, device=device),
         lambda_inverse=args.lambda_inverse,
         lambda_kl_free=args.lambda_kl_free,
         free_nats=args.free_nats,
-        free_branch=args.free_branch,
-        lambda_free_component=args.free_component_weight,
-        free_component_pixels=args.free_component_pixels,
-        residual_scale=args.residual_scale,
-        lambda_mask_assignment=args.mask_assignment,
-        assignment_std=args.assignment_std,
-        assignment_branches=None
-        if args.assignment_branches == "all"
-        else tuple(args.assignment_branches.split(",")),
-        lambda_reco_pyramid=args.reco_pyramid,
-        pyramid_levels=args.pyramid_levels,
+        free_branch_loss=args.free_branch_loss,
+        extra_terms=pyramid,
     )
     optimizer = torch.optim.Adam(loss.parameters(), lr=args.lr, eps=args.adam_eps)
     logger = CSVLogger(exp_name="world_model_demo", log_dir=str(out_dir))
@@ -577,21 +478,9 @@ def main(argv=None) -> dict:
         )
         if change:
             loss.world_model.shift_static_mask_bias(change)
-        if args.mask_assignment_from:
-            loss.lambda_mask_assignment = ramp_weight(
-                args.mask_assignment, step, args.mask_assignment_from, args.ramp_updates
-            )
-        if args.free_component_from:
-            loss.lambda_free_component = ramp_weight(
-                args.free_component_weight, step, args.free_component_from, args.ramp_updates
-            )
-        if args.reco_pyramid_from:
-            loss.lambda_reco_pyramid = ramp_weight(
-                args.reco_pyramid, step, args.reco_pyramid_from, args.ramp_updates
-            )
-        if args.free_component_until:
-            loss.lambda_free_component = free_component_weight(
-                args.free_component_weight, step, args.free_component_until
+        if pyramid and args.reco_pyramid_from:
+            pyramid[0].lambda_reco_pyramid = ramp_weight(
+                args.lambda_reco_pyramid, step, args.reco_pyramid_from, args.ramp_updates
             )
         batch = buffer.sample().reshape(args.batch_size, args.window).to(device)
         losses, _ = loss(batch)

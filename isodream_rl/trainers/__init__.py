@@ -1,7 +1,5 @@
 """Training recipes: configuration, TorchRL Trainer assembly, optimisation stepper, hooks, checkpoints."""
 
-# Before torchrl: sets the headless rendering defaults that mujoco reads at import time.
-import isodream_rl.envs  # noqa: F401  isort: skip
 from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.config import (
     AlgoConfig,

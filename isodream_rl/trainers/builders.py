@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import importlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,8 +47,12 @@ STREAM_KEY = ("collector", "stream")
 
 
 def env_factory(cfg: RunConfig, *, eval_mode: bool = False) -> functools.partial:
-    """A picklable ``() -> EnvBase`` for ``cfg.env`` (evaluation envs use the held-out "eval" video split on DMC)."""
+    """A picklable ``() -> EnvBase`` for ``cfg.env``: ``env.factory`` if given, else ``make_env(env.name)``
+    (evaluation envs use the held-out "eval" video split on DMC)."""
     kwargs = dict(cfg.env.kwargs)
+    if cfg.env.factory:
+        module, _, attribute = cfg.env.factory.partition(":")
+        return functools.partial(getattr(importlib.import_module(module), attribute), **kwargs)
     if eval_mode and cfg.env.name.startswith("dmc_"):
         kwargs.setdefault("video_split", "eval")
     return functools.partial(make_env, cfg.env.name, **kwargs)
@@ -94,7 +99,7 @@ def make_world_model_loss(cfg: RunConfig, *, action_dim: int) -> IsoDreamModelLo
         lambda_inverse=algo.lambda_inverse,
         free_nats=algo.free_nats,
         kl_balance=algo.kl_balance,
-        free_branch=algo.free_branch_loss,
+        free_branch_loss=algo.free_branch_loss,
     )
 
 
@@ -132,7 +137,7 @@ def count_parameters(module: nn.Module) -> int:
 
 @dataclass
 class Behavior:
-    """The behaviour side of a run (paper §3.3-3.4): policy input, actor, value, their losses and the policy."""
+    """The behavior side of a run (paper §3.3-3.4): policy input, actor, value, their losses and the policy."""
 
     policy_input: PolicyInput
     actor_loss: IsoDreamActorLoss

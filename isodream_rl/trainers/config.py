@@ -11,8 +11,8 @@ import importlib.util
 from dataclasses import dataclass, field
 from typing import Any
 
-from isodream_rl.modules.config import SIZE_PRESETS
-from isodream_rl.objectives.world_model import FREE_BRANCH_MODES
+from isodream_rl.modules.config import PAPER_EXACT, SIZE_PRESETS
+from isodream_rl.objectives.world_model import FREE_BRANCH_MODES, LAMBDA_INVERSE
 
 POLICY_INPUTS = ("controllable", "attention", "concat")
 COLLECTOR_BACKENDS = ("sync", "multiprocess", "ray", "distributed")
@@ -22,6 +22,7 @@ DISTRIBUTED_BACKENDS = ("gloo", "nccl", "mpi", "ucc")
 LOGGER_BACKENDS = ("csv", "tensorboard", "wandb")
 ALGO_NAMES = (
     "isodream",
+    "isodream_paper",
     "dreamerv2",
     "isodream_no_inverse",
     "isodream_no_attention",
@@ -39,9 +40,16 @@ class EnvConfig:
     """Which environment to train on and how many copies to run."""
 
     name: str = "sprites"
-    """``"sprites"``, ``"highway"`` or ``"dmc_<domain>_<task>"`` (see ``isodream_rl.envs.env_names``)."""
+    """``"sprites"``, ``"highway"``, ``"dmc_<domain>_<task>"`` (see ``isodream_rl.envs.env_names``) or a registered
+    gymnasium id with a ``Box`` action space (observed through its render, resized to 64x64)."""
     kwargs: dict[str, Any] = field(default_factory=dict)
-    """Constructor arguments of the env class (e.g. ``task``, ``vehicles_count``, ``background``)."""
+    """Constructor arguments of the env class (e.g. ``task``, ``vehicles_count``, ``background``), or
+    ``gymnasium.make`` keywords; with ``factory``, that callable's keywords."""
+    factory: str = ""
+    """Your own TorchRL env instead of ``name``: ``"package.module:function"``, a callable that returns an
+    ``EnvBase`` from ``**kwargs`` with uint8 ``"pixels"`` ``[3, 64, 64]``, a float ``"action"`` in ``[-1, 1]``,
+    ``("next", "reward")`` ``[1]`` and ``"is_init"`` (``isodream_rl.envs.wrap_gym_env`` makes one of a
+    gymnasium env). ``name`` then only names the run."""
     num_envs: int = 1
     """Envs collecting in parallel; above 1 a multi-process TorchRL collector runs one env per process."""
     action_repeat: int = 1
@@ -50,7 +58,7 @@ class EnvConfig:
 
 @dataclass
 class ModelConfig:
-    """World-model and behaviour sizes; ``size`` picks a preset of ``WorldModelConfig``."""
+    """World-model and behavior sizes; ``size`` picks a preset of ``WorldModelConfig``."""
 
     size: str = "small"
     """``"paper"``, ``"small"`` or ``"tiny"`` (``isodream_rl.modules.SIZE_PRESETS``)."""
@@ -76,6 +84,9 @@ class AlgoConfig:
     """The static background branch."""
     inverse_dynamics: bool = True
     """The inverse-dynamics cell and its loss."""
+    paper_exact: bool = False
+    """The paper's settings where the library's defaults depart from them (``WorldModelConfig.paper_exact``;
+    pair it with ``lambda_inverse=1``, as ``algo=isodream_paper`` does)."""
     free_branch_loss: str = "kl"
     """``"kl"`` (CARLA: the free branch has its KL term) or ``"recon_only"`` (DMC, paper §3.2)."""
     reward_uses_free: bool = False
@@ -99,8 +110,9 @@ class AlgoConfig:
     [-1, 1]; 0 as the authors; DreamerV1 and TorchRL's Dreamer example use 0.3)."""
     lambda_reward: float = 1.0
     """Weight of the reward log-loss (``reward_scale``: 2 in the authors' DMC and CARLA configs)."""
-    lambda_inverse: float = 1.0
-    """alpha, the weight of the inverse-dynamics loss."""
+    lambda_inverse: float = LAMBDA_INVERSE
+    """alpha, the weight of the inverse-dynamics loss (``IsoDreamModelLoss``'s default; the paper's 1 goes
+    with the paper's inverse input, ``algo=isodream_paper``)."""
     free_nats: float = 1.0
     """Free nats of each branch's KL."""
     kl_balance: float = 0.8
@@ -353,6 +365,14 @@ def validate_config(cfg: RunConfig) -> None:
             f"model.overrides.channels_last=true cannot be used with train.collector_backend="
             f"{train.collector_backend}: its weight transfer sends dense tensors only; drop the override"
         )
+    if env.factory:
+        module, _, attribute = env.factory.partition(":")
+        found = importlib.util.find_spec(module) is not None if module and attribute else False
+        if not found or not callable(getattr(importlib.import_module(module), attribute, None)):
+            errors.append(
+                f"env.factory={env.factory!r} must name a callable as 'package.module:function' that returns a "
+                "TorchRL EnvBase"
+            )
     if (cfg.resume or cfg.checkpoint.resume) and not cfg.checkpoint.replay:
         errors.append(
             "resume=true restores the replay buffer from the checkpoint: set checkpoint.replay=true (a resumed "
@@ -366,13 +386,12 @@ def world_model_overrides(cfg: RunConfig) -> dict[str, Any]:
     """The ``WorldModelConfig`` fields set by the algorithm preset, merged with ``model.overrides``."""
     algo = cfg.algo
     fields_from_algo = {
+        **(PAPER_EXACT if algo.paper_exact else {}),
         "free_branch": algo.free_branch,
         "static_branch": algo.static_branch,
         "inverse_dynamics": algo.inverse_dynamics,
         "reward_uses_free": algo.reward_uses_free,
     }
-    if not (algo.free_branch or algo.static_branch):
-        fields_from_algo["decoder_input"] = "posterior"
     if not algo.static_branch:
         fields_from_algo["mask_mode"] = "softmax"
     if cfg.train.collector_backend in REMOTE_BACKENDS:

@@ -138,7 +138,7 @@ class Throughput(TrainerHookBase):
 class StopOnSignal:
     """Turns the first SIGINT/SIGTERM into "checkpoint, then stop" at the end of the current batch.
 
-    A second signal of the same kind gets the default behaviour (immediate stop), for a user who insists.
+    A second signal of the same kind gets the default behavior (immediate stop), for a user who insists.
     Use as a context manager around ``trainer.train()``.
     """
 

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from torchrl.trainers import ReplayBufferTrainer, Trainer, UpdateWeights
 
+from isodream_rl.trainers import trainer_state
 from isodream_rl.trainers.builders import (
     close_logger,
     env_factory,
@@ -128,8 +129,8 @@ class RunComponents:
             "counters": {
                 "env_steps": env_steps,
                 "wall_s": wall_s,
-                "optim_count": trainer._optim_count if trainer is not None else 0,
-                "last_log": dict(trainer._last_log) if trainer is not None else {},
+                "optim_count": trainer_state.optim_count(trainer) if trainer is not None else 0,
+                "last_log": trainer_state.log_marks(trainer) if trainer is not None else {},
             },
             "hooks": {
                 "preparation": self.preparation.state_dict(),
@@ -158,7 +159,7 @@ def make_components(cfg: RunConfig, *, action_dim: int, scratch_dir: Path):
 def train(cfg: RunConfig) -> RunResult:
     """Train (or resume) a run described by ``cfg``; see ``docs/recipes`` for the recipes.
 
-    Steps: check the config; build env probe, world model + loss, behaviour (actor, value, attention,
+    Steps: check the config; build env probe, world model + loss, behavior (actor, value, attention,
     acting policy), three Adam optimisers in an :class:`IsoDreamOptimizationStepper`, a
     ``TensorDictReplayBuffer(LazyMemmapStorage, SliceSampler)``, a TorchRL ``Collector`` (random prefill, then
     the policy) and a TorchRL ``Trainer`` with hooks for replay, logging, evaluation and checkpoints; with
@@ -231,8 +232,8 @@ def train(cfg: RunConfig) -> RunResult:
     )
     trainer.collected_frames = env_steps
     if state is not None:
-        trainer._optim_count = state["counters"]["optim_count"]
-        trainer._last_log = dict(state["counters"]["last_log"])
+        counters = state["counters"]
+        trainer_state.restore(trainer, optim_count=counters["optim_count"], log_marks=counters["last_log"])
         # The collector restarts its prefill count at 0; the Trainer compares against the remaining prefill.
         collector.init_random_frames = max(0, train_cfg.prefill_steps - env_steps)
 
@@ -274,7 +275,7 @@ def train(cfg: RunConfig) -> RunResult:
             evaluation.load_state_dict(state["hooks"]["evaluation"])
         evaluation.register(trainer)
     if cfg.logging.progress_bar and env_steps:
-        trainer.register_op("setup", lambda: trainer._pbar.update(env_steps))
+        trainer.register_op("setup", lambda: trainer_state.advance_progress_bar(trainer, env_steps))
 
     last_checkpoint: list[Path | None] = [resumed_from]
 
@@ -320,7 +321,7 @@ def train(cfg: RunConfig) -> RunResult:
     close_logger(log)
     metrics = {
         key: float(values[-1])
-        for key, values in trainer._log_dict.items()
+        for key, values in trainer_state.logged_values(trainer).items()
         if values and _is_scalar(values[-1])
     }
     return RunResult(

@@ -153,11 +153,11 @@ class IsoDreamOptimizationStepper(OptimizationStepper):
         # gradient reaches the attention, which the value optimiser steps, so its grads must not be zeroed
         # between the two passes. The world model is held out of the actor loss and the rollout given to the
         # value loss is detached, so nothing else is shared.
-        behaviour = ["actor", "value"]
+        behavior = ["actor", "value"]
         total = _loss_sum(actor_losses) + _loss_sum(value_losses)
-        if not self._backward(total, behaviour):
+        if not self._backward(total, behavior):
             return False
-        return self._clip_and_step(behaviour, metrics)
+        return self._clip_and_step(behavior, metrics)
 
     def step(self, trainer, sub_batch: TensorDictBase) -> TensorDictBase:
         """One update on a flat ``[B * T]`` replay sample; returns detached scalar metrics."""

@@ -147,8 +147,8 @@ class ThreeBranchPredictor(nn.Module):
             A dict with ``"frames"`` ``[B, T-1, C, H, W]`` (prediction of frames ``1 .. T-1``; the first
             ``context - 1`` are one-step predictions from observed frames), ``"decouple"`` (scalar
             PredRNN-v2 decoupling term summed over branches), and if the inverse cell exists
-            ``"action_pred"`` ``[B, T-1, A]``. With ``return_components``: ``"control_rgb"``,
-            ``"free_rgb"``, ``"control_mask"``, ``"free_mask"``, ``"static_mask"`` (``[B, T-1, C|1, H, W]``;
+            ``"action_pred"`` ``[B, T-1, A]``. With ``return_components``: ``"reco_control"``,
+            ``"reco_free"``, ``"mask_control"``, ``"mask_free"``, ``"mask_static"`` (``[B, T-1, C|1, H, W]``;
             only those that exist).
         """
         if frames.ndim != 5 or actions.ndim != 3 or frames.shape[:2] != actions.shape[:2]:
@@ -221,12 +221,12 @@ class ThreeBranchPredictor(nn.Module):
 
     @staticmethod
     def _record(outputs, rgb_c, masks, rgb_f) -> None:
-        outputs.setdefault("control_rgb", []).append(rgb_c)
-        outputs.setdefault("control_mask", []).append(masks[:, :1])
-        outputs.setdefault("static_mask", []).append(masks[:, -1:])
+        outputs.setdefault("reco_control", []).append(rgb_c)
+        outputs.setdefault("mask_control", []).append(masks[:, :1])
+        outputs.setdefault("mask_static", []).append(masks[:, -1:])
         if rgb_f is not None:
-            outputs.setdefault("free_rgb", []).append(rgb_f)
-            outputs.setdefault("free_mask", []).append(masks[:, 1:2])
+            outputs.setdefault("reco_free", []).append(rgb_f)
+            outputs.setdefault("mask_free", []).append(masks[:, 1:2])
 
     def _inverse(self, frames: torch.Tensor, control_inputs: torch.Tensor) -> torch.Tensor:
         batch, steps = control_inputs.shape[:2]

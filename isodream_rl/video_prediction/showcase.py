@@ -17,11 +17,11 @@ __all__ = ["showcase_rows", "save_showcase", "save_metric_curves"]
 _ROWS = (
     ("ground truth", "truth"),
     ("prediction", "frames"),
-    ("action branch", "control_rgb"),
-    ("action mask", "control_mask"),
-    ("action-free branch", "free_rgb"),
-    ("action-free mask", "free_mask"),
-    ("static mask", "static_mask"),
+    ("action branch", "reco_control"),
+    ("action mask", "mask_control"),
+    ("action-free branch", "reco_free"),
+    ("action-free mask", "mask_free"),
+    ("static mask", "mask_static"),
 )
 
 

@@ -25,7 +25,7 @@ from isodream_rl.objectives.imagination import policy_features
 
 A, L, N = 2, 5, 6
 GAMMA, LMBDA = 0.99, 0.95
-DOCS = pathlib.Path(__file__).resolve().parents[1] / "docs" / "behaviour.md"
+DOCS = pathlib.Path(__file__).resolve().parents[1] / "docs" / "behavior.md"
 
 
 @pytest.fixture(autouse=True)
@@ -202,8 +202,8 @@ def test_missing_start_keys_and_targets_are_reported():
 
 
 def test_docs_snippet_runs():
-    """The "use the modules in your own TorchRL loop" snippet of docs/behaviour.md."""
+    """The "use the modules in your own TorchRL loop" snippet of docs/behavior.md."""
     text = DOCS.read_text()
     blocks = re.findall(r"```python\n(.*?)```", text, flags=re.S)
-    assert blocks, "docs/behaviour.md has no python block"
+    assert blocks, "docs/behavior.md has no python block"
     exec(compile(blocks[0], str(DOCS), "exec"), {})
