@@ -42,7 +42,7 @@ def composed(*overrides) -> RunConfig:
 def test_groups_hold_the_presets_the_paper_needs():
     assert {"isodream", "isodream_paper", "dreamerv2", "isodream_no_inverse"} <= set(ALGOS)
     assert set(ALGOS) == set(ALGO_NAMES)  # the names the schema declares are the preset files
-    assert set(SIZES) == {"paper", "small", "quickstart", "tiny"}
+    assert set(SIZES) == {"paper", "small", "quickstart", "tiny", "bench"}
     assert {"sprites", "highway", "dmc_walker_walk"} <= set(ENVS)
 
 

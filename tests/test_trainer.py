@@ -115,6 +115,28 @@ class TestStepper:
             after = [p for g in opt.param_groups for p in g["params"]]
             assert any(not torch.equal(a, b) for a, b in zip(after, before[name])), name
 
+    def test_world_model_warmup_trains_the_world_model_alone_first(self, tmp_path):
+        torch.manual_seed(0)
+        cfg = tiny_config(tmp_path)
+        cfg.train.world_model_warmup = 2
+        stepper = RunComponents(cfg, action_dim=2, scratch_dir=tmp_path / "scratch").stepper
+
+        def snapshot(name):
+            return [p.detach().clone() for g in stepper.optimizers[name].param_groups for p in g["params"]]
+
+        def changed(name, before):
+            return any(not torch.equal(a, b) for a, b in zip(snapshot(name), before))
+
+        for update in range(3):
+            before = {name: snapshot(name) for name in stepper.optimizers}
+            metrics = stepper.step(None, replay_batch())
+            warm = update < 2
+            assert changed("world_model", before["world_model"])
+            assert changed("actor", before["actor"]) != warm and changed("value", before["value"]) != warm
+            assert math.isnan(float(metrics["loss_actor"])) == warm
+            assert metrics["nonfinite_skipped"] == 0
+        assert stepper.updates == 3
+
     def test_nonfinite_updates_are_skipped_then_stop_the_run(self, components):
         stepper = components.stepper
         params = [p.detach().clone() for p in components.world_model.parameters()]

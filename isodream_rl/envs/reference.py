@@ -9,7 +9,7 @@ policies, run on the raw gymnasium env (no TorchRL overhead) with the same episo
   directions at full magnitude and zero), chosen by mean return;
 - ``scripted``: a controller that reads the simulator's privileged state (:func:`scripted_action`):
   sprites steers straight at the target at full speed, ignoring the distractors; the highway keeps its lane
-  at the speed limit.
+  at the speed limit, following a slower car ahead.
 
 The **normalised score** of a return ``R`` is ``(R - R_constant) / (R_scripted - R_constant)``
 (:func:`normalised_score`): 0 is the best constant action, 1 the scripted controller.
@@ -43,7 +43,8 @@ def scripted_action(env: gym.Env) -> np.ndarray:
     - sprites (``task="reach"``): ``(dx, dy)`` towards the target, each axis at full speed until it is
       aligned (ignores the distractors);
     - highway: steer back to the centre of the current lane and hold the speed limit
-      (:data:`HIGHWAY_CRUISE_SPEED`) with proportional control.
+      (:data:`HIGHWAY_CRUISE_SPEED`) with proportional control, slowing down behind a slower car in the
+      lane (about 1.5 s headway); it never changes lanes.
 
     Args:
         env: a ``SpritesEnv`` or ``HighwayIsoEnv`` (or a wrapper of one), after ``reset``.
@@ -71,8 +72,29 @@ def scripted_action(env: gym.Env) -> np.ndarray:
         # Lateral offset is positive to the right of the lane centre; steer -1 turns left (towards -lateral).
         steer = -(0.15 * lateral + 1.5 * heading_error)
         throttle = 0.5 * (HIGHWAY_CRUISE_SPEED - ego.speed)
+        leader = _leader(base)
+        if leader is not None:
+            gap, leader_speed = leader
+            # Time-headway following: keep ~1.5 s plus 8 m behind the car ahead in the lane.
+            desired = 8.0 + 1.5 * ego.speed
+            throttle = min(throttle, 0.1 * (gap - desired) + 0.5 * (leader_speed - ego.speed))
         return np.clip(np.array([steer, throttle]), -1.0, 1.0).astype(np.float32)
     raise TypeError(f"no scripted controller for {type(base).__name__}")
+
+
+def _leader(env) -> tuple[float, float] | None:
+    """(bumper-to-bumper gap in metres, speed) of the nearest vehicle ahead in the ego's lane, if any."""
+    ego = env.ego
+    lane = ego.lane
+    ego_s = lane.local_coordinates(ego.position)[0]
+    best = None
+    for vehicle in env.road.vehicles:
+        if vehicle is ego or vehicle.lane_index != ego.lane_index:
+            continue
+        gap = lane.local_coordinates(vehicle.position)[0] - ego_s - 0.5 * (ego.LENGTH + vehicle.LENGTH)
+        if gap > -0.5 * ego.LENGTH and (best is None or gap < best[0]):
+            best = (float(gap), float(vehicle.speed))
+    return best
 
 
 def _wrap_angle(angle: float) -> float:

@@ -149,6 +149,9 @@ class TrainConfig:
     """Adam epsilon of all three optimisers."""
     grad_clip: float = 100.0
     """Gradient-norm clip of all three optimisers."""
+    world_model_warmup: int = 0
+    """Updates of the world model alone (after the prefill) before the actor and value start learning;
+    0 as the authors (DreamerV1 calls this pretraining)."""
     max_nonfinite_updates: int = 5
     """K: this many updates in a row with a NaN/inf loss or gradient stop the run."""
     collector_backend: str = "sync"
@@ -286,6 +289,7 @@ def validate_config(cfg: RunConfig) -> None:
         _positive(errors, name, value)
     _positive(errors, "checkpoint.keep", cfg.checkpoint.keep, 2)
     _positive(errors, "train.prefill_steps", train.prefill_steps, 0)
+    _positive(errors, "train.world_model_warmup", train.world_model_warmup, 0)
     _positive(errors, "logging.eval_every", cfg.logging.eval_every, 0)
     _positive(errors, "logging.final_eval_episodes", cfg.logging.final_eval_episodes, 0)
 

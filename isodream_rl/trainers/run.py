@@ -105,6 +105,7 @@ class RunComponents:
             sequence_length=train.sequence_length,
             grad_clip=train.grad_clip,
             max_nonfinite=train.max_nonfinite_updates,
+            world_model_warmup=train.world_model_warmup,
         )
         self.replay_buffer = make_replay_buffer(cfg, scratch_dir=scratch_dir)
         self.preparation = ReplayPreparation(

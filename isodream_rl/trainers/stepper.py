@@ -56,6 +56,9 @@ class IsoDreamOptimizationStepper(OptimizationStepper):
         target_updater: object with ``step()`` updating the slow value target, or ``None``.
         grad_clip: max gradient norm per optimiser.
         max_nonfinite: K, consecutive non-finite updates that stop the run.
+        world_model_warmup: updates of the world model alone before the actor and value start learning
+            (their losses are logged as NaN until then). An actor trained on an untrained world model
+            follows its errors and saturates its actions before the reward is learnt; 0 as the authors.
     """
 
     def __init__(
@@ -71,6 +74,7 @@ class IsoDreamOptimizationStepper(OptimizationStepper):
         target_updater=None,
         grad_clip: float = 100.0,
         max_nonfinite: int = 5,
+        world_model_warmup: int = 0,
     ) -> None:
         behavior = (actor_loss, value_loss, actor_optimizer, value_optimizer)
         if any(x is None for x in behavior) and any(x is not None for x in behavior):
@@ -79,6 +83,8 @@ class IsoDreamOptimizationStepper(OptimizationStepper):
             )
         if max_nonfinite < 1:
             raise ValueError(f"max_nonfinite must be >= 1, got {max_nonfinite}")
+        if world_model_warmup < 0:
+            raise ValueError(f"world_model_warmup must be >= 0, got {world_model_warmup}")
         self.model_loss = model_loss
         self.actor_loss, self.value_loss = actor_loss, value_loss
         self.optimizers = {"world_model": world_model_optimizer}
@@ -88,6 +94,7 @@ class IsoDreamOptimizationStepper(OptimizationStepper):
         self.sequence_length = sequence_length
         self.grad_clip = grad_clip
         self.max_nonfinite = max_nonfinite
+        self.world_model_warmup = world_model_warmup
         self.updates = 0
         self.nonfinite_in_a_row = 0
         self.nonfinite_total = 0
@@ -143,7 +150,7 @@ class IsoDreamOptimizationStepper(OptimizationStepper):
             return False
         if not self._clip_and_step(["world_model"], metrics):
             return False
-        if self.actor_loss is None:
+        if self.actor_loss is None or self.updates < self.world_model_warmup:
             return True
         actor_losses, imagined = self.actor_loss(model_out)
         metrics.update({k: v.detach() for k, v in actor_losses.items()})
