@@ -109,6 +109,10 @@ class SpritesEnv(gym.Env):
             this step, as a fraction of ``S``); 0 gives the sparse task. Defaults to 10.0 (about 0.5 per step
             at full speed straight at the target).
         target_style (str, optional): ``"disc"`` (filled, the default) or ``"ring"`` (two pixels wide).
+        fixed_start (bool, optional): every episode starts with the agent a quarter of the frame from the
+            top-left corner and the first target a quarter from the bottom-right one (later targets respawn
+            at random): a task whose first reach needs no perception, to check that behavior learning works.
+            Defaults to ``False`` (random positions).
         render_mode (str, optional): ``None`` or ``"rgb_array"``. Defaults to ``None``.
         num_backgrounds (int, optional): size of a fixed pool of backgrounds that episodes draw from;
             ``None`` draws a new background every episode. Defaults to ``None``.
@@ -147,6 +151,7 @@ class SpritesEnv(gym.Env):
         contact_penalty: float = 0.5,
         progress_reward: float = 10.0,
         target_style: str = "disc",
+        fixed_start: bool = False,
         render_mode: str | None = None,
         num_backgrounds: int | None = None,
         background_seed: int = 0,
@@ -199,6 +204,7 @@ class SpritesEnv(gym.Env):
         self.contact_penalty = contact_penalty
         self.progress_reward = float(progress_reward)
         self.target_style = target_style
+        self.fixed_start = bool(fixed_start)
         self.render_mode = render_mode
 
         self.sprite_size = sprite_size
@@ -261,6 +267,10 @@ class SpritesEnv(gym.Env):
         speed = self.distractor_speed * self.image_size
         self._velocities = speed * np.stack([np.cos(angles), np.sin(angles)], axis=-1)
         self._target = self._spawn_target(rng)
+        if self.fixed_start:
+            quarter = 0.25 * (self.image_size - 1)
+            self._agent = np.full(2, quarter)
+            self._target = np.full(2, self.image_size - 1 - quarter)
         self._steps = 0
         obs, info = self._render_with_masks()
         info["reached"] = False
