@@ -170,6 +170,11 @@ def train(cfg: RunConfig) -> RunResult:
         CheckpointError: ``resume`` without a readable checkpoint.
         NonFiniteLossError: too many NaN/inf updates in a row.
     """
+    if cfg.mode == "world_model":
+        # the world model alone, on random-action episodes: its own loop, the same run folder and checkpoints
+        from isodream_rl.trainers import world_model_run
+
+        return world_model_run.train(cfg)
     validate_config(cfg)
     started = time.perf_counter()
     train_cfg = cfg.train
