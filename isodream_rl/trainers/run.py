@@ -397,6 +397,8 @@ def evaluate_checkpoint(
         )
     state, path = checkpoints.load_latest()
     cfg = config_from_dict(state["config"])
+    if cfg.mode == "world_model":
+        raise CheckpointError(f"{path} is of a mode=world_model run: it has no policy to evaluate")
     torch.set_num_threads(cfg.train.threads)
     seed_everything(seed)
     components = make_components(

@@ -19,6 +19,7 @@ random generator, so how often they run does not change the training.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import logging
 import time
@@ -27,6 +28,7 @@ from pathlib import Path
 
 import torch
 from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
 from tqdm import tqdm
 
 from isodream_rl.modules import IsoDreamWorldModel
@@ -91,10 +93,9 @@ def collect_episodes(cfg: RunConfig, *, episodes: int, seed: int) -> TensorDict:
         ).split(steps)
         rollouts = []
         for chunk in actions:
-            queue = iter(chunk)
-            rollout = env.rollout(
-                steps, policy=lambda td, queue=queue: td.set("action", next(queue)), break_when_any_done=False
-            )
+            # a policy that reads nothing and hands out the episode's held actions in turn
+            policy = TensorDictModule(functools.partial(next, iter(chunk)), in_keys=[], out_keys=["action"])
+            rollout = env.rollout(steps, policy=policy, break_when_any_done=False)
             rollouts.append(rollout.select(*REPLAY_KEYS, strict=False))
     finally:
         env.close()
