@@ -277,7 +277,10 @@ def train(cfg: RunConfig) -> RunResult:
             },
         )
 
-    def evaluate(update: int) -> dict[str, float]:
+    log = make_logger(cfg, run_dir=run_dir)
+
+    def evaluate(update: int) -> tuple[dict[str, float], Path]:
+        """Held-out and training scores, logged, and the branch picture of the first held-out window."""
         # on a forked generator (the posteriors are samples): evaluating does not change the training
         with torch.random.fork_rng(devices=[]):
             scores, out = score_branches(world_model, held_out, window=window, device=train_cfg.device)
@@ -285,14 +288,10 @@ def train(cfg: RunConfig) -> RunResult:
         scores.update({f"train_{key}": value for key, value in train_scores.items()})
         for key, value in scores.items():
             log.log_scalar(key, value, step=update)
-        last_picture[0] = save_png(
-            branch_grid(out, sample=0, steps=window), pictures / f"branches_{update:08d}.png"
-        )
-        return scores
+        picture = pictures / f"branches_{update:08d}.png"
+        return scores, save_png(branch_grid(out, sample=0, steps=window), picture)
 
-    log = make_logger(cfg, run_dir=run_dir)
-    last_picture: list[Path | None] = [None]
-    last_checkpoint, scores, metrics = resumed_from, {}, {}
+    last_checkpoint, picture, scores, metrics = resumed_from, None, {}, {}
     schedule = wm.static_mask_bias_schedule
     bar = tqdm(
         range(first, wm.updates),
@@ -322,7 +321,7 @@ def train(cfg: RunConfig) -> RunResult:
                     log.log_scalar(key, value, step=update)
                 bar.set_postfix(loss=f"{metrics['loss_model_reco']:.1f}", mse=f"{metrics['reco_mse']:.4f}")
             if (cfg.logging.eval_every and done % cfg.logging.eval_every == 0) or done == wm.updates:
-                scores = evaluate(done)
+                scores, picture = evaluate(done)
                 bar.write(
                     f"update {done}: "
                     + ", ".join(f"{k} {v:.3f}" for k, v in scores.items() if not k.startswith("train_"))
@@ -355,7 +354,7 @@ def train(cfg: RunConfig) -> RunResult:
             "size": cfg.model.size,
             "seed": train_cfg.seed,
             **{key: round(value, 3) for key, value in scores.items()},
-            "png": str(last_picture[0]),
+            "png": str(picture),
             "checkpoint": str(last_checkpoint),
             "logs": str(logs),
         }
