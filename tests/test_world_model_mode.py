@@ -194,7 +194,7 @@ def test_composes_with_the_authors_sigmoid_masks_and_refuses_a_background_bias_t
         train(tmp_path / "b", "+model.overrides.mask_mode=sigmoid", "+model.overrides.static_mask_bias=3")
 
 
-def test_resumes_from_its_checkpoint_and_refuses_another_world_model(tmp_path):
+def test_resumes_from_its_checkpoint_and_refuses_other_settings(tmp_path):
     train(tmp_path)
     before = latest_state(tmp_path)
     result = train(tmp_path, "world_model.updates=4", "resume=true")
@@ -203,8 +203,11 @@ def test_resumes_from_its_checkpoint_and_refuses_another_world_model(tmp_path):
     # Adam's step counters continue from the saved ones
     assert all(s["step"] == 2 for s in before["stepper"]["optimizers"]["world_model"]["state"].values())
     assert all(s["step"] == 4 for s in after["stepper"]["optimizers"]["world_model"]["state"].values())
+    # another world model, or other data (the episodes are made again from the settings), is refused
     with pytest.raises(ConfigError, match="static_mask_bias"):
         train(tmp_path, "world_model.updates=6", "resume=true", "+model.overrides.static_mask_bias=1")
+    with pytest.raises(ConfigError, match="sprite_size"):
+        train(tmp_path, "world_model.updates=6", "resume=true", "+env.kwargs.sprite_size=0.1")
     # a finished run is left as it is
     assert train(tmp_path, "world_model.updates=4", "resume=true").updates == 4
     with pytest.raises(CheckpointError, match="no checkpoint"):

@@ -180,23 +180,44 @@ def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDream
     return model, cfg
 
 
-def _same_world_model(state: dict, cfg: RunConfig, config) -> None:
-    """Raise a ``ConfigError`` naming the fields where the checkpoint's world model differs from ``config``
-    (its precision may change)."""
-    saved_cfg = config_from_dict(state["config"])
-    if saved_cfg.mode != cfg.mode:
-        raise ConfigError(
-            f"the checkpoint is of a mode={saved_cfg.mode} run: point run_dir at another folder"
-        )
-    saved = make_world_model_config(saved_cfg, action_dim=config.action_dim).to_dict()
+#: what a resumed run may change: its length, logging and checkpoint cadence, threads, device and precision
+_RESUMABLE = (
+    "run_dir",
+    "resume",
+    "world_model.updates",
+    "logging.",
+    "checkpoint.",
+    "train.threads",
+    "train.device",
+    "model.overrides.precision",
+)
+
+
+def _flat(tree: dict, prefix: str = "") -> dict:
+    flat = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            flat.update(_flat(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
+def _same_run(state: dict, cfg: RunConfig) -> None:
+    """Raise a ``ConfigError`` naming the settings where ``cfg`` differs from the checkpoint's run, but for
+    those a resumed run may change (``_RESUMABLE``): the episodes are made again from the settings, so a
+    changed scene or seed would continue the training on other data."""
+    saved = _flat(dataclasses.asdict(config_from_dict(state["config"])))
+    now = _flat(dataclasses.asdict(cfg))
     differ = {
-        key: (saved[key], value)
-        for key, value in config.to_dict().items()
-        if key != "precision" and saved[key] != value
+        key: (saved.get(key), now.get(key))
+        for key in sorted(saved.keys() | now.keys())
+        if not key.startswith(_RESUMABLE) and saved.get(key) != now.get(key)
     }
     if differ:
         raise ConfigError(
-            f"the checkpoint's world model was trained with other settings (saved, now): {differ}"
+            f"resume=true continues the run in {cfg.run_dir}, trained with other settings (saved, now): {differ}; "
+            "keep them, or give another run_dir"
         )
 
 
@@ -204,7 +225,7 @@ def train(cfg: RunConfig) -> RunResult:
     """Train (or, with ``resume=true``, continue) the world model of ``cfg`` alone; see the module docstring.
 
     Raises:
-        ConfigError: invalid configuration (before anything is built), or ``resume`` with another world model.
+        ConfigError: invalid configuration (before anything is built), or ``resume`` with other settings.
         CheckpointError: ``resume`` without a readable checkpoint.
         NonFiniteLossError: too many NaN/inf updates in a row.
     """
@@ -251,7 +272,7 @@ def train(cfg: RunConfig) -> RunResult:
                 "point run_dir at the run to continue"
             )
         state, resumed_from = checkpoints.load_latest()
-        _same_world_model(state, cfg, world_model.config)
+        _same_run(state, cfg)
         world_model.load_state_dict(state["models"]["world_model"])
         stepper.load_state_dict(state["stepper"])
         set_rng_state(state["rng"])
