@@ -3,8 +3,10 @@ the world model alone, scores the masks, writes its run folder and resumes."""
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -340,3 +342,30 @@ def test_isodream_demo_is_isodream_train_exp_world_model(tmp_path):
         timeout=120,
     )
     assert former.returncode != 0 and "docs/results/world_model_demo.md" in former.stderr
+
+
+def test_sigterm_saves_a_checkpoint_and_stops_before_the_summary(tmp_path):
+    env = dict(os.environ, OMP_NUM_THREADS="1", HYDRA_FULL_ERROR="0")
+    args = [*TINY, "world_model.updates=100000", "logging.log_every=1", "run_dir=run"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "isodream_rl.cli", *args],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        deadline = time.monotonic() + 50
+        while not list((tmp_path / "run" / "logs").rglob("loss_model_reco.csv")):  # the first update is done
+            assert proc.poll() is None and time.monotonic() < deadline, "the run did not start"
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0 and "SIGTERM received" in stderr, stderr[-3000:]
+    updates = latest_state(tmp_path / "run")["stepper"]["updates"]
+    assert 0 < updates < 100000 and f"{updates} updates" in stdout
+    assert not (tmp_path / "run" / "summary.json").exists()
