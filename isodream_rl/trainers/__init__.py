@@ -12,6 +12,7 @@ from isodream_rl.trainers.config import (
     TrainConfig,
     validate_config,
 )
+from isodream_rl.trainers.world_model_config import WorldModelModeConfig
 from isodream_rl.trainers.run import RunComponents, RunResult, evaluate_checkpoint, train
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper, NonFiniteLossError
 
@@ -30,6 +31,7 @@ __all__ = [
     "RunConfig",
     "RunResult",
     "TrainConfig",
+    "WorldModelModeConfig",
     "evaluate_checkpoint",
     "train",
     "validate_config",

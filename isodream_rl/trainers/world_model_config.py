@@ -80,6 +80,7 @@ def world_model_mode_errors(cfg: Any) -> list[str]:
         ("train.batch_size", train.batch_size, 1),
         ("train.sequence_length", train.sequence_length, 1),
         ("train.threads", train.threads, 1),
+        ("train.max_nonfinite_updates", train.max_nonfinite_updates, 1),
         ("logging.log_every", cfg.logging.log_every, 1),
         ("logging.eval_every", cfg.logging.eval_every, 0),
         ("checkpoint.every_updates", cfg.checkpoint.every_updates, 1),
