@@ -12,9 +12,9 @@ from isodream_rl.trainers.config import (
     TrainConfig,
     validate_config,
 )
-from isodream_rl.trainers.world_model_config import WorldModelModeConfig
 from isodream_rl.trainers.run import RunComponents, RunResult, evaluate_checkpoint, train
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper, NonFiniteLossError
+from isodream_rl.trainers.world_model_config import WorldModelModeConfig
 
 __all__ = [
     "AlgoConfig",
