@@ -91,7 +91,8 @@ def world_model_mode_errors(cfg: Any) -> list[str]:
     if train.sequence_length >= 1 and wm.episode_length % train.sequence_length:
         errors.append(
             f"world_model.episode_length={wm.episode_length} must be a multiple of train.sequence_length="
-            f"{train.sequence_length}"
+            f"{train.sequence_length} (exp=world_model, the recorded recipe, has 96-step episodes and 8 x 16 "
+            "windows)"
         )
     softmax_static = algo.static_branch and overrides.get("mask_mode", "softmax") == "softmax"
     if overrides.get("static_mask_bias") and not softmax_static:
