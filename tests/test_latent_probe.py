@@ -1,5 +1,5 @@
-"""The latent probe (isodream_rl/recipes/latent_probe.py): sprite centres, ridge R^2, tiny models and the checkpoints
-of both modes of isodream-train."""
+"""The latent probe (isodream_rl/recipes/latent_probe.py): sprite centres, ridge R^2, tiny models and the
+checkpoints of both modes of isodream-train."""
 
 from pathlib import Path
 

@@ -1,5 +1,5 @@
-"""``mode=world_model`` (``isodream-train exp=world_model``, alias ``isodream-demo``) at a tiny size: it trains
-the world model alone, scores the masks, writes its run folder and resumes."""
+"""``mode=world_model`` (``isodream-train exp=world_model``, alias ``isodream-demo``) at a tiny size: it
+trains the world model alone, scores the masks, writes its run folder and resumes."""
 
 import json
 import os

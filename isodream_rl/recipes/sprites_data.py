@@ -81,7 +81,8 @@ def collect_sprites_episodes(
 
 
 def held_random_actions(seed: int, *, episodes: int, steps: int, hold: int, dim: int) -> torch.Tensor:
-    """Uniform random actions in ``[-1, 1]``, each kept for ``hold`` steps: ``[episodes * steps, dim]`` float32."""
+    """Uniform random actions in ``[-1, 1]``, each kept for ``hold`` steps: float32 ``[episodes * steps, dim]``
+    (the draws of ``numpy.random.default_rng(seed)``)."""
     if hold < 1:
         raise ValueError(f"action_hold must be >= 1, got {hold}")
     draws = np.random.default_rng(seed).uniform(-1, 1, (episodes, -(-steps // hold), dim)).astype(np.float32)

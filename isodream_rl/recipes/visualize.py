@@ -90,7 +90,8 @@ def mask_iou(predicted: torch.Tensor, truth: torch.Tensor, *, threshold: float =
 def score_branches(
     world_model: nn.Module, data: TensorDictBase, *, window: int, device: torch.device | str = "cpu"
 ) -> tuple[dict[str, float], TensorDictBase]:
-    """Scores of a world model on flat episode data cut into windows, and its output (for :func:`branch_grid`).
+    """Scores of a world model on flat episode data cut into windows, and its output (for
+    :func:`branch_grid`).
 
     ``reco_mse``: the composite's mean squared error per pixel and channel (``[-0.5, 0.5]`` range). Where the
     data hold the sprites scene's ground truth (``"mask_agent"``, ``"mask_distractors"``, ``"distractor_ids"``

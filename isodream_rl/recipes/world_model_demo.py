@@ -2,9 +2,9 @@
 
 The world model alone on random-action episodes of the sprites scene, scored against the ground-truth masks
 (:mod:`isodream_rl.trainers.world_model_run`). Another recorded recipe replaces the default one
-(``isodream-demo exp=world_model_three_yellow``); overrides are ``isodream-train``'s (``world_model.updates=5000
-train.seed=1``). The flags this command took before it became an alias (``--steps`` ...) are translated in
-docs/results/world_model_demo.md.
+(``isodream-demo exp=world_model_three_yellow``); overrides are ``isodream-train``'s
+(``world_model.updates=5000 train.seed=1``). The flags this command took before it became an alias
+(``--steps`` ...) are translated in docs/results/world_model_demo.md.
 """
 
 from __future__ import annotations
@@ -15,7 +15,8 @@ from isodream_rl import cli
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Run ``isodream-train`` with ``exp=world_model`` unless ``argv`` (default: the command line) names an exp."""
+    """Run ``isodream-train`` with ``exp=world_model`` unless ``argv`` (default: the command line) names an
+    exp."""
     args = sys.argv[1:] if argv is None else list(argv)
     former = [arg for arg in args if arg.startswith("--") and arg.lstrip("-").split("=")[0] in FORMER_FLAGS]
     if former:
@@ -31,11 +32,13 @@ def main(argv: list[str] | None = None) -> None:
 
 #: the former flags (translated in docs/results/world_model_demo.md), refused with that pointer
 FORMER_FLAGS = frozenset(
-    "steps batch-size window size model episodes episode-length backgrounds action-hold sprite-size distractors "
-    "distractor-colours agent-colour mask-mode static-mask-bias static-mask-bias-schedule inverse-input "
-    "decoder-input free-decoder-input clamp-gradient free-branch-loss lambda-kl-free lambda-reco-pyramid "
-    "pyramid-levels reco-pyramid-from ramp-updates free-nats lambda-inverse lr adam-eps precision device "
-    "eval-every probe-episodes seed out resume".split()
+    """
+    steps batch-size window size model episodes episode-length backgrounds action-hold sprite-size distractors
+    distractor-colours agent-colour mask-mode static-mask-bias static-mask-bias-schedule inverse-input
+    decoder-input free-decoder-input clamp-gradient free-branch-loss lambda-kl-free lambda-reco-pyramid
+    pyramid-levels reco-pyramid-from ramp-updates free-nats lambda-inverse lr adam-eps precision device
+    eval-every probe-episodes seed out resume
+    """.split()
 )
 
 

@@ -1,4 +1,4 @@
-"""Settings of ``mode=world_model`` (the world model trained alone on random-action episodes) and their checks.
+"""Settings of ``mode=world_model`` (the world model alone, on random-action episodes) and their checks.
 
 The rest of such a run is configured by the sections every run shares: ``train`` (batch ``B x T``, learning
 rate, seed, device), ``model`` and ``algo`` (the world model and its loss), ``env`` (the scene),
@@ -50,7 +50,8 @@ class WorldModelModeConfig:
     """Update at which the pyramid term starts, its weight then rising linearly over ``ramp_updates`` (0: from
     the start)."""
     ramp_updates: int | None = None
-    """Updates over which the pyramid term rises to its weight once it starts (``None``: as many as it waited)."""
+    """Updates over which the pyramid term rises to its weight once it starts (``None``: as many as it
+    waited)."""
 
 
 def world_model_mode_errors(cfg: Any) -> list[str]:
@@ -103,8 +104,8 @@ def world_model_mode_errors(cfg: Any) -> list[str]:
     schedule = wm.static_mask_bias_schedule
     if schedule and not softmax_static:
         errors.append(
-            "world_model.static_mask_bias_schedule moves the static branch's mask logit: it needs softmax masks "
-            "and algo.static_branch=true"
+            "world_model.static_mask_bias_schedule moves the static branch's mask logit: it needs softmax "
+            "masks and algo.static_branch=true"
         )
     if not all(len(point) == 2 for point in schedule):
         errors.append(f"world_model.static_mask_bias_schedule={schedule}: give [update, offset] pairs")

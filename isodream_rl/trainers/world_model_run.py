@@ -66,7 +66,8 @@ def _sprites_scene(cfg: RunConfig) -> dict:
 
 def collect_episodes(cfg: RunConfig, *, episodes: int, seed: int) -> TensorDict:
     """``episodes`` random-action episodes of ``world_model.episode_length`` steps, actions held for
-    ``world_model.action_hold`` steps, in TorchRL's layout: flat ``[episodes * steps]`` with an ``"episode"`` id.
+    ``world_model.action_hold`` steps, in TorchRL's layout: flat ``[episodes * steps]`` with an ``"episode"``
+    id.
 
     Sprites is stepped directly, with its ground-truth masks
     (:func:`~isodream_rl.recipes.sprites_data.collect_sprites_episodes`, 100x faster than through TorchRL);
@@ -156,14 +157,15 @@ def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDream
         device: where the model goes.
 
     Raises:
-        CheckpointError: no readable checkpoint there, or one of ``algo=torchrl_dreamer`` (another world model).
+        CheckpointError: no readable checkpoint there, or one of ``algo=torchrl_dreamer`` (another world
+            model).
     """
     path = Path(path)
     if path.is_file():
         raise CheckpointError(
             f"{path} is a single file: checkpoints are folders (<run_dir>/checkpoints/step_*/), and the "
-            "world_model.pt files of isodream-demo before it became isodream-train exp=world_model are no longer "
-            "read; give a run folder"
+            "world_model.pt files of isodream-demo before it became isodream-train exp=world_model are no "
+            "longer read; give a run folder"
         )
     single = path.name.startswith("step_")
     manager = CheckpointManager(path.parent if single else path / "checkpoints")
@@ -216,8 +218,8 @@ def _same_run(state: dict, cfg: RunConfig) -> None:
     }
     if differ:
         raise ConfigError(
-            f"resume=true continues the run in {cfg.run_dir}, trained with other settings (saved, now): {differ}; "
-            "keep them, or give another run_dir"
+            f"resume=true continues the run in {cfg.run_dir}, trained with other settings (saved, now): "
+            f"{differ}; keep them, or give another run_dir"
         )
 
 
