@@ -171,7 +171,8 @@ def train(cfg: RunConfig) -> RunResult:
         NonFiniteLossError: too many NaN/inf updates in a row.
     """
     if cfg.mode == "world_model":
-        # the world model alone, on random-action episodes: its own loop, the same run folder and checkpoints
+        # the world model alone: its own loop, this run folder and checkpoint format (imported here, as it
+        # builds on this module)
         from isodream_rl.trainers import world_model_run
 
         return world_model_run.train(cfg)
