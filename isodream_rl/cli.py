@@ -6,6 +6,7 @@ Examples::
     isodream-train env=highway size=tiny algo=dreamerv2 train.total_steps=500
     isodream-train env=dmc_walker_walk size=paper run_dir=runs/walker
     isodream-train run_dir=runs/walker resume=true   # continue after a crash or Ctrl-C
+    isodream-train exp=world_model                   # the world model alone (isodream-demo)
     isodream-eval runs/walker --episodes 10 --video walker.gif
 
 ``python -m isodream_rl.cli ...`` runs ``isodream-train``; ``python -m isodream_rl.cli eval ...`` runs
@@ -46,6 +47,8 @@ def _summary(result: run_module.RunResult) -> str:
     gifs = sorted(result.pictures.glob("openloop_*.gif")) if result.pictures.is_dir() else []
     if gifs:
         lines.append(f"  newest open-loop prediction: {gifs[-1]}")
+    if result.summary is not None:
+        lines.append(f"  summary:     {result.run_dir / 'summary.json'}")
     for key in ("episode_return", "eval_return", "loss_model_reco", "env_steps_per_s", "updates_per_s"):
         if key in result.metrics:
             lines.append(f"  {key}: {result.metrics[key]:.4g}")

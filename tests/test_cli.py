@@ -19,6 +19,7 @@ CONFIGS = Path(isodream_rl.cli.__file__).parent / "configs"
 ENVS = sorted(p.stem for p in (CONFIGS / "env").glob("*.yaml"))
 ALGOS = sorted(p.stem for p in (CONFIGS / "algo").glob("*.yaml"))
 SIZES = sorted(p.stem for p in (CONFIGS / "size").glob("*.yaml"))
+EXPS = sorted(p.stem for p in (CONFIGS / "exp").glob("*.yaml"))
 TINY = ["size=tiny", "train.threads=1", "logging.progress_bar=false"]
 
 
@@ -53,6 +54,17 @@ def test_every_env_algo_preset_composes_to_a_valid_config(env, algo):
     validate_config(cfg)
     # every env preset names its env, but for gym's, an example id: the group is for any gymnasium id
     assert cfg.env.name == {"gym": "Pendulum-v1"}.get(env, env) and cfg.algo.name == algo
+
+
+@pytest.mark.parametrize("exp", EXPS)
+def test_every_exp_composes_to_a_valid_config_and_names_the_recorded_run_it_repeats(exp):
+    cfg = composed(f"exp={exp}")
+    validate_config(cfg)
+    assert cfg.mode == "world_model" and cfg.run_dir.startswith("runs/world_model")
+    header = (CONFIGS / "exp" / f"{exp}.yaml").read_text()
+    recorded = json.loads((CONFIGS.parents[1] / "docs" / "results" / "world_model_demo.json").read_text())["runs"]
+    runs = re.findall(r"runs? ([A-Z]+[0-9]+)\b", header)
+    assert runs and all(any(key.endswith(f" {run}") for key in recorded) for run in runs), runs
 
 
 def test_domain_presets_follow_the_paper():

@@ -1,10 +1,21 @@
-"""The latent probe (isodream_rl/recipes/latent_probe.py): sprite centres, ridge R^2, a run on a tiny model."""
+"""The latent probe (isodream_rl/recipes/latent_probe.py): sprite centres, ridge R^2, tiny models and the
+checkpoints of both modes of isodream-train."""
 
+from pathlib import Path
+
+import pytest
 import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 from tensordict import TensorDict
 
+import isodream_rl.cli
 from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
 from isodream_rl.recipes.latent_probe import main, probe, ridge_cv, ridge_r2, sprite_centres
+from isodream_rl.trainers import CheckpointError, RunConfig, train
+from isodream_rl.trainers.world_model_run import load_world_model, probe_scene
+
+CONFIGS = Path(isodream_rl.cli.__file__).parent / "configs"
 
 
 def test_sprite_centres_are_pixel_centroids_in_unit_coordinates():
@@ -29,7 +40,7 @@ def test_ridge_r2_is_one_for_a_linear_target_and_low_for_noise():
     assert ridge_r2(x[:200], noise[:200], x[200:], noise[200:], ridge=1.0) < 0.1
 
 
-def test_probe_scores_every_branch_and_sprite_and_the_cli_writes_json(tmp_path):
+def test_probe_scores_every_branch_and_sprite_with_seeded_samples():
     torch.manual_seed(0)
     model = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
     scores = probe(model, window=8, episodes=4, episode_length=16)
@@ -39,30 +50,57 @@ def test_probe_scores_every_branch_and_sprite_and_the_cli_writes_json(tmp_path):
     # the latent samples are seeded: the same scores again, whatever the global generator did meanwhile
     torch.rand(7)
     assert probe(model, window=8, episodes=4, episode_length=16) == scores
-    path = tmp_path / "model.pt"
-    torch.save({"config": model.config.to_dict(), "model": model.state_dict()}, path)
-    out = main([str(path), "--episodes", "4", "--window", "8", "--json", str(tmp_path / "p.json")])
-    assert set(out) == set(scores) and (tmp_path / "p.json").stat().st_size > 0
 
 
-def test_the_cli_probes_on_the_scene_the_checkpoint_was_trained_on(tmp_path):
-    torch.manual_seed(0)
-    model = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
-    scene = {"num_backgrounds": 2, "background_seed": 5, "action_hold": 4, "window": 8, "episode_length": 16}
-    path = tmp_path / "model.pt"
-    torch.save({"config": model.config.to_dict(), "model": model.state_dict(), "scene": scene}, path)
-    expected = probe(model, episodes=4, **scene)
-    assert main([str(path), "--episodes", "4"]) == expected
-    # a flag overrides the checkpoint's value
-    assert main([str(path), "--episodes", "4", "--background-seed", "6"]) == probe(
-        model, episodes=4, **{**scene, "background_seed": 6}
+def composed(*overrides) -> RunConfig:
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        return OmegaConf.to_object(
+            compose(config_name="config", overrides=["logging.progress_bar=false", *overrides])
+        )
+
+
+def test_the_cli_probes_a_world_model_run_on_its_scene_and_writes_json(tmp_path):
+    cfg = composed(
+        "exp=world_model",
+        "size=tiny",
+        "world_model.updates=2",
+        "world_model.episodes=2",
+        "world_model.episode_length=16",
+        "world_model.probe_episodes=0",
+        "train.sequence_length=8",
+        "train.batch_size=2",
+        "train.seed=3",
+        "+env.kwargs.sprite_size=0.1",
+        f"run_dir={tmp_path}",
     )
-    assert probe(model, episodes=4, **{**scene, "background_seed": 6}) != expected
-    # the sprite size is part of the scene: a checkpoint trained on larger sprites is probed on them
-    bigger = {**scene, "sprite_size": 0.1}
-    torch.save({"config": model.config.to_dict(), "model": model.state_dict(), "scene": bigger}, path)
-    assert main([str(path), "--episodes", "4"]) == probe(model, episodes=4, **bigger)
-    assert probe(model, episodes=4, **bigger) != expected
+    train(cfg)
+    model, saved = load_world_model(tmp_path)
+    scene = probe_scene(saved)
+    assert scene == {
+        "task": "none",
+        "num_backgrounds": 8,
+        "background_seed": 3,
+        "sprite_size": 0.1,
+        "action_hold": 8,
+        "window": 8,
+        "episode_length": 16,
+    }
+    expected = probe(model, episodes=4, seed=1003, **scene)
+    out = main([str(tmp_path), "--episodes", "4", "--json", str(tmp_path / "p.json")])
+    assert out == expected and (tmp_path / "p.json").stat().st_size > 0
+    # one checkpoint folder of the run reads the same
+    assert main([str(tmp_path / "checkpoints" / "step_00000002"), "--episodes", "4"]) == expected
+    torch.save({"config": {}, "model": {}}, tmp_path / "world_model.pt")
+    with pytest.raises(CheckpointError, match="no longer"):
+        main([str(tmp_path / "world_model.pt")])
+
+
+def test_the_cli_probes_the_world_model_of_a_reinforcement_learning_run(tmp_path):
+    overrides = ["size=tiny", "train.threads=1", "train.total_steps=20", "train.prefill_steps=10"]
+    overrides += ["train.frames_per_batch=10", "logging.final_eval_episodes=0", f"run_dir={tmp_path}"]
+    train(composed(*overrides))
+    scores = main([str(tmp_path), "--episodes", "2"])  # windows of train.sequence_length (10) steps
+    assert "r2_free_agent" in scores and all(v <= 1.0 for v in scores.values())
 
 
 def white_detector_trunk(model):
@@ -82,7 +120,8 @@ def test_encoder_probe_reads_positions_off_the_trunk_and_picks_its_ridge():
     torch.manual_seed(0)
     model = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
     white_detector_trunk(model)
-    scores = probe(model, window=8, episodes=16, episode_length=32, encoder=True)
+    # a pool of 8 backgrounds, as the world-model recipe's: the white detector stays quiet on their textures
+    scores = probe(model, window=8, episodes=16, episode_length=32, encoder=True, num_backgrounds=8)
     names = ["agent", "distractor_0", "distractor_1", "distractor_2"]
     layers = ("control", "free", "trunk", "embed_control", "embed_free")
     assert set(scores) == {f"r2_{b}_{n}" for b in layers for n in names}

@@ -22,9 +22,9 @@ PAPER_EXACT = {
     "clamp_gradient": "zero",
     "static_mask_bias": 0.0,
 }
-#: The single-branch DreamerV2 baseline, defined here only: ``WorldModelConfig.dreamerv2`` and the demo's
-#: ``--model dreamerv2`` build it from this; ``algo=dreamerv2`` sets the same switches for the trainer's checks, and
-#: tests/test_cli.py holds the model it trains to ``WorldModelConfig.dreamerv2``.
+#: The single-branch DreamerV2 baseline, defined here only: ``WorldModelConfig.dreamerv2`` builds it from this;
+#: ``algo=dreamerv2`` (both modes of ``isodream-train``, e.g. ``exp=world_model_dreamerv2``) sets the same switches
+#: for the trainer's checks, and tests/test_cli.py holds the model it trains to ``WorldModelConfig.dreamerv2``.
 DREAMERV2 = {"free_branch": False, "static_branch": False, "inverse_dynamics": False}
 FREE_DECODER_INPUTS = ("posterior", "prior")
 PRECISIONS = ("fp32", "bf16")

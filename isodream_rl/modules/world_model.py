@@ -171,7 +171,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
 
         The constructor applies ``config.static_mask_bias`` this way; a training loop can raise it later
         (a background prior that grows once the dynamic branches' components have structure: see
-        ``isodream-demo --static-mask-bias-schedule``). The bias stays a learned parameter.
+        ``isodream-train`` ``world_model.static_mask_bias_schedule``). The bias stays a learned parameter.
 
         Raises:
             ValueError: without the static branch or outside softmax mode (the background has no logit).

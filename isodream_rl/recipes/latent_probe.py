@@ -9,7 +9,7 @@ each sprite's centre (the centroid of its ground-truth pixels), and reports the 
 and branch: near 1, the branch knows where the sprite is; at or below 0 (worse than the mean
 position), it does not.
 
-    python -m isodream_rl.recipes.latent_probe runs/world_model_demo/world_model.pt
+    python -m isodream_rl.recipes.latent_probe runs/world_model
 
 With ``encoder=True`` (CLI ``--encoder``) the same read-out is also fitted one step earlier, on the
 encoder: ``trunk`` (the shared trunk ``Enc_theta``'s feature map, 2x2 average-pooled and flattened),
@@ -18,21 +18,20 @@ encoder: ``trunk`` (the shared trunk ``Enc_theta``'s feature map, 2x2 average-po
 rather than each by its own, and their ridge penalty is chosen by cross-validation on the fitting half. A
 sprite the trunk carries but ``embed_free`` does not is dropped by the noncontrollable head, before its RSSM.
 
-The episodes are made like the demo's (its background pool, action hold and window, read from the
-checkpoint; flags override them), from seeds the demo never trains on. ``isodream-demo`` runs the same
+The episodes are made like the run's (its scene, ``env.kwargs``, action hold and window, read from the
+checkpoint's configuration), from seeds it never trains on. ``isodream-train exp=world_model`` runs the same
 probe at the end of training and reports it as ``probe_r2_*`` in its ``summary.json``.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
+from typing import Any
 
 import torch
 
-from isodream_rl.envs.sprites import SPRITE_SIZE
-from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
+from isodream_rl.modules import IsoDreamWorldModel
 from isodream_rl.recipes.sprites_data import collect_sprites_episodes, episode_windows, model_input
 
 
@@ -139,16 +138,12 @@ def probe(
     window: int = 16,
     episodes: int = 32,
     episode_length: int = 96,
-    num_backgrounds: int | None = 8,
-    background_seed: int = 0,
     action_hold: int = 8,
     num_distractors: int = 3,
-    sprite_size: float = SPRITE_SIZE,
-    distractor_colours: tuple[str, ...] | None = None,
-    agent_colour: str = "white",
     seed: int = 1000,
     ridge: float = 10.0,
     encoder: bool = False,
+    **scene: Any,
 ) -> dict[str, float]:
     """``r2_{branch}_{sprite}`` for each dynamic branch and sprite (``agent``, ``distractor_0`` ...).
 
@@ -156,19 +151,20 @@ def probe(
     branches' posterior features; with ``encoder=True`` the encoder's features (see :func:`encoder_features`)
     are probed too, as ``r2_trunk_*``, ``r2_embed_control_*``, ``r2_embed_free_*``, each sprite with the
     penalty :func:`ridge_cv` picks on the fitting half. ``seed`` makes the episodes and the
-    model's latent samples; the scores of one checkpoint are the same on every call."""
+    model's latent samples; the scores of one checkpoint are the same on every call. ``action_hold``,
+    ``num_distractors`` and ``scene`` (``SpritesEnv`` keywords: ``num_backgrounds``, ``background_seed``,
+    ``sprite_size``, ``distractor_colours``...) make the episodes, as
+    :func:`~isodream_rl.recipes.sprites_data.collect_sprites_episodes` does."""
     if episode_length % window:
         raise ValueError(f"episode_length ({episode_length}) must be a multiple of window ({window})")
-    scene = {
-        "num_backgrounds": num_backgrounds,
-        "background_seed": background_seed,
-        "action_hold": action_hold,
-        "num_distractors": num_distractors,
-        "sprite_size": sprite_size,
-        "distractor_colours": distractor_colours,
-        "agent_colour": agent_colour,
-    }
-    data = collect_sprites_episodes(episodes=episodes, steps=episode_length, seed=seed, **scene)
+    data = collect_sprites_episodes(
+        episodes=episodes,
+        steps=episode_length,
+        seed=seed,
+        action_hold=action_hold,
+        num_distractors=num_distractors,
+        **scene,
+    )
     training = model.training
     model.eval()
     device = next(model.parameters()).device
@@ -199,35 +195,19 @@ def probe(
     return scores
 
 
-def load_checkpoint(path, device="cpu") -> tuple[IsoDreamWorldModel, dict]:
-    """The world model of a demo checkpoint and the scene it was trained on, as :func:`probe` keywords
-    (empty for checkpoints that predate storing it: :func:`probe`'s defaults are the demo's)."""
-    state = torch.load(path, map_location="cpu", weights_only=False)
-    # fields of options since removed are dropped; a model that used one fails in load_state_dict below
-    known = {f.name for f in dataclasses.fields(WorldModelConfig)}
-    saved = {k: v for k, v in state["config"].items() if k in known}
-    config = WorldModelConfig(**{**saved, "precision": "fp32"})
-    model = IsoDreamWorldModel(config, device=device)
-    model.load_state_dict(state["model"])
-    return model, dict(state.get("scene", {}))
+def main(argv: list[str] | None = None) -> dict[str, float]:
+    """``python -m isodream_rl.recipes.latent_probe RUN_DIR [--encoder] [--episodes N] [--json PATH]``."""
+    # the trainers import this module for the probe at the end of a run: read checkpoints through them here
+    from isodream_rl.trainers.world_model_run import load_world_model, probe_scene
 
-
-def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("checkpoint", help="a world_model.pt written by isodream-demo")
+    p.add_argument(
+        "checkpoint",
+        help="a run folder of isodream-train on sprites (its newest readable checkpoint) or one of its "
+        "checkpoints/step_* folders",
+    )
     p.add_argument("--episodes", type=int, default=32, help="probe episodes (half fit, half score)")
-    p.add_argument("--window", type=int, default=None, help="default: the checkpoint's (16)")
-    p.add_argument(
-        "--backgrounds",
-        type=int,
-        default=None,
-        help="background pool size (0: a new one each); default: the checkpoint's (8)",
-    )
-    p.add_argument(
-        "--background-seed", type=int, default=None, help="the demo's --seed; default: the checkpoint's (0)"
-    )
-    p.add_argument("--action-hold", type=int, default=None, help="default: the checkpoint's (8)")
-    p.add_argument("--sprite-size", type=float, default=None, help="default: the checkpoint's (0.06)")
+    p.add_argument("--window", type=int, default=None, help="default: the run's train.sequence_length")
     p.add_argument(
         "--encoder",
         action="store_true",
@@ -235,18 +215,9 @@ def main(argv=None) -> dict:
     )
     p.add_argument("--json", default=None, help="also write the scores here")
     args = p.parse_args(argv)
-    model, scene = load_checkpoint(args.checkpoint)
-    flags = {
-        "window": args.window,
-        "num_backgrounds": args.backgrounds,
-        "background_seed": args.background_seed,
-        "action_hold": args.action_hold,
-        "sprite_size": args.sprite_size,
-    }
-    scene.update({k: v for k, v in flags.items() if v is not None})
-    if "num_backgrounds" in scene:
-        scene["num_backgrounds"] = scene["num_backgrounds"] or None  # 0: a new background each episode
-    scores = probe(model, episodes=args.episodes, encoder=args.encoder, **scene)
+    model, cfg = load_world_model(args.checkpoint)
+    scene = probe_scene(cfg, window=args.window)
+    scores = probe(model, episodes=args.episodes, seed=cfg.train.seed + 1000, encoder=args.encoder, **scene)
     text = json.dumps({k: round(v, 3) for k, v in scores.items()}, indent=2)
     print(text)
     if args.json:

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import torch
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, SliceSampler, TensorDictReplayBuffer
 
-from isodream_rl.envs.sprites import SPRITE_SIZE, SpritesEnv
+from isodream_rl.envs.sprites import SpritesEnv
 
 
 def collect_sprites_episodes(
@@ -15,14 +17,9 @@ def collect_sprites_episodes(
     episodes: int,
     steps: int,
     seed: int = 0,
-    num_distractors: int = 3,
-    task: str = "none",
-    num_backgrounds: int | None = None,
-    background_seed: int = 0,
     action_hold: int = 1,
-    sprite_size: float = SPRITE_SIZE,
-    distractor_colours: tuple[str, ...] | None = None,
-    agent_colour: str = "white",
+    num_distractors: int = 3,
+    **scene: Any,
 ) -> TensorDict:
     """Roll out uniform random actions in :class:`~isodream_rl.envs.sprites.SpritesEnv`.
 
@@ -31,10 +28,11 @@ def collect_sprites_episodes(
     first frames, which the static branch reads, already show it almost where it stays; held actions make it
     travel as far as the distractors do.
 
-    ``num_backgrounds`` / ``background_seed`` / ``sprite_size`` / ``distractor_colours`` / ``agent_colour`` are
-    passed to the env (a fixed background pool; ``None``: a new background per episode). The gymnasium env is
-    stepped directly (about 0.1 ms per step, 100x less than through a TorchRL wrapper) and the result is laid
-    out as TorchRL's collectors do it.
+    ``num_distractors`` and ``scene`` (``num_backgrounds``, ``background_seed``, ``sprite_size``,
+    ``distractor_colours``, ``agent_colour``, ``task``...) are :class:`~isodream_rl.envs.sprites.SpritesEnv`'s
+    keywords (``num_backgrounds``: a fixed background pool; ``None``, the default, a new background per
+    episode). The gymnasium env is stepped directly (about 0.1 ms per step, 100x less than through a TorchRL
+    wrapper) and the result is laid out as TorchRL's collectors do it.
 
     Returns:
         a flat ``[episodes * steps]`` tensordict with ``"action"``, ``"is_init"``, ``"episode"`` and under
@@ -42,26 +40,13 @@ def collect_sprites_episodes(
         ``"done"``, and the ground-truth masks ``"mask_agent"``, ``"mask_distractors"`` bool ``[64, 64]`` and
         ``"distractor_ids"`` uint8 ``[64, 64]`` (``i + 1`` on distractor ``i``).
     """
-    env = SpritesEnv(
-        num_distractors=num_distractors,
-        task=task,
-        max_steps=steps,
-        num_backgrounds=num_backgrounds,
-        background_seed=background_seed,
-        sprite_size=sprite_size,
-        distractor_colours=distractor_colours,
-        agent_colour=agent_colour,
-    )
-    rng = np.random.default_rng(seed)
+    env = SpritesEnv(num_distractors=num_distractors, max_steps=steps, **scene)
     n = episodes * steps
     pixels = np.empty((n, 64, 64, 3), np.uint8)
     agent = np.empty((n, 64, 64), bool)
     distractors = np.empty((n, 64, 64), bool)
     ids = np.empty((n, 64, 64), np.uint8)
-    if action_hold < 1:
-        raise ValueError(f"action_hold must be >= 1, got {action_hold}")
-    draws = rng.uniform(-1, 1, (episodes, -(-steps // action_hold), 2)).astype(np.float32)
-    actions = np.repeat(draws, action_hold, axis=1)[:, :steps].reshape(n, 2)
+    actions = held_random_actions(seed, episodes=episodes, steps=steps, hold=action_hold, dim=2).numpy()
     rewards = np.empty((n, 1), np.float32)
     for episode in range(episodes):
         env.reset(seed=seed * 100_003 + episode)
@@ -93,6 +78,15 @@ def collect_sprites_episodes(
         },
         [n],
     )
+
+
+def held_random_actions(seed: int, *, episodes: int, steps: int, hold: int, dim: int) -> torch.Tensor:
+    """Uniform random actions in ``[-1, 1]``, each kept for ``hold`` steps: float32 ``[episodes * steps, dim]``
+    (the draws of ``numpy.random.default_rng(seed)``)."""
+    if hold < 1:
+        raise ValueError(f"action_hold must be >= 1, got {hold}")
+    draws = np.random.default_rng(seed).uniform(-1, 1, (episodes, -(-steps // hold), dim)).astype(np.float32)
+    return torch.from_numpy(np.repeat(draws, hold, axis=1)[:, :steps].reshape(episodes * steps, dim))
 
 
 def episode_windows(data: TensorDict, *, window: int) -> TensorDict:

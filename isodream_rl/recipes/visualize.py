@@ -8,6 +8,10 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw
 from tensordict import TensorDictBase
+from torch import nn
+
+from isodream_rl.modules.encoder import preprocess_pixels
+from isodream_rl.recipes.sprites_data import episode_windows, model_input
 
 #: Rows of :func:`branch_grid`: (label, key under "next" or root, kind).
 _ROWS = (
@@ -80,3 +84,66 @@ def mask_iou(predicted: torch.Tensor, truth: torch.Tensor, *, threshold: float =
     truth = truth.bool()
     union = (pred | truth).sum().item()
     return float((pred & truth).sum().item() / union) if union else float("nan")
+
+
+@torch.no_grad()
+def score_branches(
+    world_model: nn.Module, data: TensorDictBase, *, window: int, device: torch.device | str = "cpu"
+) -> tuple[dict[str, float], TensorDictBase]:
+    """Scores of a world model on flat episode data cut into windows, and its output (for
+    :func:`branch_grid`).
+
+    ``reco_mse``: the composite's mean squared error per pixel and channel (``[-0.5, 0.5]`` range). Where the
+    data hold the sprites scene's ground truth (``"mask_agent"``, ``"mask_distractors"``, ``"distractor_ids"``
+    under ``"next"``, as :func:`~isodream_rl.recipes.sprites_data.collect_sprites_episodes` writes them):
+
+    * ``iou_{branch}_vs_{agent|distractors}``: :func:`mask_iou` of each dynamic branch's mask;
+    * ``free_covers_distractor_{i}``: the fraction of distractor ``i``'s visible pixels where the
+      noncontrollable mask is above 0.5 (which distractors the branch has taken, one by one);
+    * ``reco_error_distractor_{i}``: the composite's squared error on those pixels (summed over RGB), which
+      tells a disc drawn by the wrong branch (low error) from a disc not drawn at all (the error of the disc
+      against the background, ~0.3-0.5); ``reco_error_agent`` the same on the agent's pixels;
+    * ``{branch}_on_background``: the fraction of the pixels of neither the agent nor a distractor where that
+      branch's mask is above 0.5 (a branch sharing the background with the static one, which the IoU counts
+      only against the objects' area).
+
+    Args:
+        world_model: an :class:`~isodream_rl.modules.IsoDreamWorldModel` (or a module with its output keys).
+        data: flat ``[episodes * steps]`` episodes, ``steps`` a multiple of ``window``.
+        window: steps per window; each is filtered from zero states.
+        device: where the world model runs.
+
+    Returns:
+        ``(scores, output)``: the scores, and the world model's ``[N, window]`` output on CPU.
+    """
+    windows = episode_windows(data, window=window)
+    out = world_model(model_input(windows).to(device)).cpu()
+    nxt, truth = out["next"], windows["next"]
+    target = preprocess_pixels(truth["pixels"])
+    error = (nxt["reco_pixels"].float() - target).pow(2)
+    scores = {"reco_mse": float(error.mean())}
+    if "mask_agent" not in truth.keys():
+        return scores, out
+    for branch in ("control", "free"):
+        if f"mask_{branch}" in nxt.keys():
+            for gt in ("agent", "distractors"):
+                scores[f"iou_{branch}_vs_{gt}"] = mask_iou(nxt[f"mask_{branch}"], truth[f"mask_{gt}"])
+    ids = truth["distractor_ids"]
+    error = error.sum(-3).reshape(ids.shape)
+    # where each dynamic branch's mask holds a pixel
+    held = {
+        b: nxt[f"mask_{b}"].reshape(ids.shape) > 0.5 for b in ("control", "free") if f"mask_{b}" in nxt.keys()
+    }
+    taken = held.get("free")
+    for i in range(1, int(ids.max()) + 1):
+        pixels = ids == i
+        count = pixels.sum().clamp(min=1)
+        if taken is not None:
+            scores[f"free_covers_distractor_{i - 1}"] = float((taken & pixels).sum() / count)
+        scores[f"reco_error_distractor_{i - 1}"] = float(error[pixels].sum() / count)
+    agent = truth["mask_agent"].reshape(ids.shape).bool()
+    scores["reco_error_agent"] = float(error[agent].sum() / agent.sum().clamp(min=1))
+    background = ~agent & (ids == 0)
+    for branch, mask in held.items():
+        scores[f"{branch}_on_background"] = float((mask & background).sum() / background.sum().clamp(min=1))
+    return scores, out

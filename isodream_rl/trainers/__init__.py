@@ -14,6 +14,7 @@ from isodream_rl.trainers.config import (
 )
 from isodream_rl.trainers.run import RunComponents, RunResult, evaluate_checkpoint, train
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper, NonFiniteLossError
+from isodream_rl.trainers.world_model_config import WorldModelModeConfig
 
 __all__ = [
     "AlgoConfig",
@@ -30,6 +31,7 @@ __all__ = [
     "RunConfig",
     "RunResult",
     "TrainConfig",
+    "WorldModelModeConfig",
     "evaluate_checkpoint",
     "train",
     "validate_config",

@@ -87,8 +87,9 @@ def make_world_model_config(cfg: RunConfig, *, action_dim: int) -> WorldModelCon
     return WorldModelConfig.from_preset(cfg.model.size, action_dim=action_dim, **world_model_overrides(cfg))
 
 
-def make_world_model_loss(cfg: RunConfig, *, action_dim: int) -> IsoDreamModelLoss:
-    """The world model and its loss (eq. 5) with the algorithm's weights and free-branch mode."""
+def make_world_model_loss(cfg: RunConfig, *, action_dim: int, extra_terms=()) -> IsoDreamModelLoss:
+    """The world model and its loss (eq. 5) with the algorithm's weights and free-branch mode, plus
+    ``extra_terms`` (see :class:`~isodream_rl.objectives.IsoDreamModelLoss`)."""
     world_model = IsoDreamWorldModel(
         make_world_model_config(cfg, action_dim=action_dim), device=cfg.train.device
     )
@@ -100,6 +101,7 @@ def make_world_model_loss(cfg: RunConfig, *, action_dim: int) -> IsoDreamModelLo
         free_nats=algo.free_nats,
         kl_balance=algo.kl_balance,
         free_branch_loss=algo.free_branch_loss,
+        extra_terms=extra_terms,
     )
 
 

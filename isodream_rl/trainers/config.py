@@ -13,6 +13,7 @@ from typing import Any
 
 from isodream_rl.modules.config import PAPER_EXACT, SIZE_PRESETS
 from isodream_rl.objectives.world_model import FREE_BRANCH_MODES, LAMBDA_INVERSE
+from isodream_rl.trainers.world_model_config import MODES, WorldModelModeConfig, world_model_mode_errors
 
 POLICY_INPUTS = ("controllable", "attention", "concat")
 COLLECTOR_BACKENDS = ("sync", "multiprocess", "ray", "distributed")
@@ -187,10 +188,11 @@ class LoggingConfig:
     backend: str = "csv"
     """TorchRL logger: ``"csv"``, ``"tensorboard"`` or ``"wandb"``."""
     log_every: int = 500
-    """Agent steps between scalar logs."""
+    """Agent steps between scalar logs (updates in ``mode=world_model``)."""
     eval_every: int = 5000
     """Agent steps between evaluations (episodes with the mode action plus an open-loop prediction GIF);
-    0 disables them."""
+    0 disables them. In ``mode=world_model``: updates between held-out scores and branch pictures (0: after
+    the last update only)."""
     eval_episodes: int = 1
     """Episodes per evaluation."""
     final_eval_episodes: int = 10
@@ -226,12 +228,16 @@ class CheckpointConfig:
 class RunConfig:
     """The whole training configuration (the Hydra root)."""
 
+    mode: str = "rl"
+    """``"rl"``: Algorithm 1 (world model, actor and value on collected data); ``"world_model"``: the world model
+    alone on random-action episodes, scored on held-out ones (``world_model`` below; ``exp=world_model``)."""
     env: EnvConfig = field(default_factory=EnvConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     algo: AlgoConfig = field(default_factory=AlgoConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     logging: LoggingConfig = field(default_factory=LoggingConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+    world_model: WorldModelModeConfig = field(default_factory=WorldModelModeConfig)
     size_name: str = "small"
     """Name of the chosen ``size`` group (used in the default ``run_dir``)."""
     run_dir: str = "runs/default"
@@ -260,6 +266,12 @@ def validate_config(cfg: RunConfig) -> None:
         ConfigError: with one line per problem, naming the field(s) and what to change.
     """
     errors: list[str] = []
+    _choice(errors, "mode", cfg.mode, MODES)
+    if cfg.mode == "world_model":
+        errors += world_model_mode_errors(cfg)
+        if errors:
+            raise ConfigError("invalid training configuration:\n  - " + "\n  - ".join(errors))
+        return
     algo, train, env = cfg.algo, cfg.train, cfg.env
     _choice(errors, "model.size", cfg.model.size, SIZE_PRESETS)
     _choice(errors, "algo.policy_input", algo.policy_input, POLICY_INPUTS)

@@ -171,6 +171,12 @@ def train(cfg: RunConfig) -> RunResult:
         CheckpointError: ``resume`` without a readable checkpoint.
         NonFiniteLossError: too many NaN/inf updates in a row.
     """
+    if cfg.mode == "world_model":
+        # the world model alone: its own loop, this run folder and checkpoint format (imported here, as it
+        # builds on this module)
+        from isodream_rl.trainers import world_model_run
+
+        return world_model_run.train(cfg)
     validate_config(cfg)
     started = time.perf_counter()
     train_cfg = cfg.train
@@ -393,6 +399,8 @@ def evaluate_checkpoint(
         )
     state, path = checkpoints.load_latest()
     cfg = config_from_dict(state["config"])
+    if cfg.mode == "world_model":
+        raise CheckpointError(f"{path} is of a mode=world_model run: it has no policy to evaluate")
     torch.set_num_threads(cfg.train.threads)
     seed_everything(seed)
     components = make_components(

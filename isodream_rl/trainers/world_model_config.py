@@ -1,0 +1,124 @@
+"""Settings of ``mode=world_model`` (the world model alone, on random-action episodes) and their checks.
+
+The rest of such a run is configured by the sections every run shares: ``train`` (batch ``B x T``, learning
+rate, seed, device), ``model`` and ``algo`` (the world model and its loss), ``env`` (the scene),
+``logging`` (cadence in updates) and ``checkpoint``. ``configs/exp/world_model*.yaml`` are the recorded
+recipes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from isodream_rl.modules.config import SIZE_PRESETS
+from isodream_rl.objectives.world_model import FREE_BRANCH_MODES
+
+#: What ``isodream-train`` trains: Algorithm 1 (world model, actor and value), or the world model alone.
+MODES = ("rl", "world_model")
+
+
+@dataclass
+class WorldModelModeConfig:
+    """The data, length and extra terms of a ``mode=world_model`` run."""
+
+    updates: int = 3000
+    """World-model updates to run (``train.batch_size`` windows of ``train.sequence_length`` steps each)."""
+    episodes: int = 60
+    """Random-action training episodes, collected once before the first update."""
+    episode_length: int = 96
+    """Steps per episode; a multiple of ``train.sequence_length`` (held-out episodes are cut into windows)."""
+    held_out_episodes: int = 4
+    """Episodes of other seeds, scored at every evaluation (as many training episodes are scored beside them,
+    so a gap between the two is memorisation)."""
+    action_hold: int = 8
+    """Steps each random action is kept (1: a new one every step, and the sprites agent then jitters in place
+    and the background branch absorbs it)."""
+    probe_episodes: int = 32
+    """Fresh episodes of the final latent probe on sprites (half fit, half score; 0: no probe)."""
+    static_mask_bias_schedule: list[list[Any]] = field(default_factory=list)
+    """An offset added to the background's mask-logit bias during training (not in the paper): ``[update,
+    offset]`` points, updates increasing, linear from 0 at update 0 through the points, held after the last
+    (``[[2500, 0], [3500, 3]]`` raises the prior by 3 over updates 2500-3500). Softmax masks with the static
+    branch only."""
+    lambda_reco_pyramid: float = 0.0
+    """Weight of the coarse-to-fine image term on pyramid levels 1..L (``PyramidImageTerm``, an extra term of
+    eq. 5, not in the paper; 0: off)."""
+    pyramid_levels: int = 3
+    """L, the pyramid levels of that term."""
+    reco_pyramid_from: int = 0
+    """Update at which the pyramid term starts, its weight then rising linearly over ``ramp_updates`` (0: from
+    the start)."""
+    ramp_updates: int | None = None
+    """Updates over which the pyramid term rises to its weight once it starts (``None``: as many as it
+    waited)."""
+
+
+def world_model_mode_errors(cfg: Any) -> list[str]:
+    """The problems of a ``mode=world_model`` :class:`~isodream_rl.trainers.config.RunConfig`, one line each
+    with its fix (the checks of Algorithm 1's collection and replay do not apply to it)."""
+    errors: list[str] = []
+    wm, train, algo = cfg.world_model, cfg.train, cfg.algo
+    overrides = dict(cfg.model.overrides)
+    if cfg.model.size not in SIZE_PRESETS:
+        errors.append(f"model.size={cfg.model.size!r} is not one of {list(SIZE_PRESETS)}")
+    if algo.free_branch_loss not in FREE_BRANCH_MODES:
+        errors.append(
+            f"algo.free_branch_loss={algo.free_branch_loss!r} is not one of {list(FREE_BRANCH_MODES)}"
+        )
+    if algo.name == "torchrl_dreamer":
+        errors.append(
+            "mode=world_model trains Iso-Dream's world model: pick another algo (dreamerv2 is the baseline)"
+        )
+    for name, value, minimum in (
+        ("world_model.updates", wm.updates, 1),
+        ("world_model.episodes", wm.episodes, 1),
+        ("world_model.held_out_episodes", wm.held_out_episodes, 1),
+        ("world_model.action_hold", wm.action_hold, 1),
+        ("world_model.probe_episodes", wm.probe_episodes, 0),
+        ("world_model.pyramid_levels", wm.pyramid_levels, 1),
+        ("world_model.reco_pyramid_from", wm.reco_pyramid_from, 0),
+        ("train.batch_size", train.batch_size, 1),
+        ("train.sequence_length", train.sequence_length, 1),
+        ("train.threads", train.threads, 1),
+        ("train.max_nonfinite_updates", train.max_nonfinite_updates, 1),
+        ("logging.log_every", cfg.logging.log_every, 1),
+        ("logging.eval_every", cfg.logging.eval_every, 0),
+        ("checkpoint.every_updates", cfg.checkpoint.every_updates, 1),
+        ("checkpoint.keep", cfg.checkpoint.keep, 2),
+    ):
+        if value < minimum:
+            errors.append(f"{name}={value} must be >= {minimum}")
+    if train.sequence_length >= 1 and wm.episode_length % train.sequence_length:
+        errors.append(
+            f"world_model.episode_length={wm.episode_length} must be a multiple of train.sequence_length="
+            f"{train.sequence_length} (exp=world_model, the recorded recipe, has 96-step episodes and 8 x 16 "
+            "windows)"
+        )
+    softmax_static = algo.static_branch and overrides.get("mask_mode", "softmax") == "softmax"
+    if overrides.get("static_mask_bias") and not softmax_static:
+        errors.append(
+            "model.overrides.static_mask_bias needs the static branch's mask logit (softmax masks, "
+            "algo.static_branch=true); in sigmoid mode the background has no logit: drop it"
+        )
+    schedule = wm.static_mask_bias_schedule
+    if schedule and not softmax_static:
+        errors.append(
+            "world_model.static_mask_bias_schedule moves the static branch's mask logit: it needs softmax "
+            "masks and algo.static_branch=true"
+        )
+    if not all(len(point) == 2 for point in schedule):
+        errors.append(f"world_model.static_mask_bias_schedule={schedule}: give [update, offset] pairs")
+    else:
+        updates = [point[0] for point in schedule]
+        if (updates and updates[0] < 0) or any(b <= a for a, b in zip(updates, updates[1:])):
+            errors.append(
+                f"world_model.static_mask_bias_schedule={schedule}: updates must be >= 0 and increasing"
+            )
+    if wm.lambda_reco_pyramid < 0:
+        errors.append(f"world_model.lambda_reco_pyramid={wm.lambda_reco_pyramid} must be >= 0")
+    if wm.probe_episodes == 1:
+        errors.append(
+            "world_model.probe_episodes=1: the probe fits on half the episodes and scores the rest: 0 or >= 2"
+        )
+    return errors

@@ -1,0 +1,399 @@
+"""``mode=world_model``: the world model trained alone on random-action episodes, scored on held-out ones.
+
+``isodream-train exp=world_model`` (or its alias ``isodream-demo``) collects random-action episodes with held
+actions (the sprites scene by default; any env of the ``env`` group), trains
+:class:`~isodream_rl.modules.IsoDreamWorldModel` with :class:`~isodream_rl.objectives.IsoDreamModelLoss`
+through the trainer's :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` (no actor, no value),
+and every ``logging.eval_every`` updates scores it on held-out episodes
+(:func:`~isodream_rl.recipes.visualize.score_branches`: mask IoU against the sprites scene's ground truth,
+each disc's coverage and reconstruction error) and draws ``pictures/branches_<updates>.png``. At the end, on
+sprites, it probes what each branch's state knows (:func:`~isodream_rl.recipes.latent_probe.probe`) and
+writes ``summary.json``. The run folder is an RL run's: ``logs/`` (the TorchRL logger),
+``checkpoints/step_<updates>/`` (:class:`~isodream_rl.trainers.checkpoint.CheckpointManager`, which
+``resume=true`` continues from), ``pictures/``.
+
+The data are generated from the seed, so checkpoints hold no replay buffer; evaluations run on a forked
+random generator, so how often they run does not change the training.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import logging
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from tqdm import tqdm
+
+from isodream_rl.modules import IsoDreamWorldModel
+from isodream_rl.objectives.pyramid import PyramidImageTerm
+from isodream_rl.recipes.latent_probe import probe
+from isodream_rl.recipes.sprites_data import collect_sprites_episodes, held_random_actions, make_window_buffer
+from isodream_rl.recipes.visualize import branch_grid, save_png, score_branches
+from isodream_rl.trainers.builders import (
+    REPLAY_KEYS,
+    action_dim_of,
+    close_logger,
+    env_factory,
+    make_adam,
+    make_logger,
+    make_world_model_config,
+    make_world_model_loss,
+)
+from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager, rng_state, set_rng_state
+from isodream_rl.trainers.config import ConfigError, RunConfig, validate_config
+from isodream_rl.trainers.hooks import StopOnSignal
+from isodream_rl.trainers.run import RunResult, _probe_action_dim, config_from_dict, seed_everything
+from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
+
+logger = logging.getLogger(__name__)
+
+
+def _is_sprites(cfg: RunConfig) -> bool:
+    return cfg.env.name == "sprites" and not cfg.env.factory
+
+
+def _sprites_scene(cfg: RunConfig) -> dict:
+    """``env.kwargs`` as ``SpritesEnv`` keywords of every episode (their length is the mode's own)."""
+    return {key: value for key, value in cfg.env.kwargs.items() if key != "max_steps"}
+
+
+def collect_episodes(cfg: RunConfig, *, episodes: int, seed: int) -> TensorDict:
+    """``episodes`` random-action episodes of ``world_model.episode_length`` steps, actions held for
+    ``world_model.action_hold`` steps, in TorchRL's layout: flat ``[episodes * steps]`` with an ``"episode"``
+    id.
+
+    Sprites is stepped directly, with its ground-truth masks
+    (:func:`~isodream_rl.recipes.sprites_data.collect_sprites_episodes`, 100x faster than through TorchRL);
+    any other env of ``cfg.env`` is rolled out through TorchRL (an episode that ends early is reset, marked by
+    ``is_init``).
+
+    Raises:
+        ConfigError: ``env.kwargs`` the sprites scene does not take.
+    """
+    wm = cfg.world_model
+    steps = wm.episode_length
+    if _is_sprites(cfg):
+        try:
+            return collect_sprites_episodes(
+                episodes=episodes, steps=steps, seed=seed, action_hold=wm.action_hold, **_sprites_scene(cfg)
+            )
+        except (TypeError, ValueError) as err:
+            raise ConfigError(f"invalid training configuration:\n  - env.kwargs: {err}") from err
+    env = env_factory(cfg)()
+    try:
+        env.set_seed(seed)
+        actions = held_random_actions(
+            seed, episodes=episodes, steps=steps, hold=wm.action_hold, dim=action_dim_of(env)
+        ).split(steps)
+        rollouts = []
+        for chunk in actions:
+            # a policy that reads nothing and hands out the episode's held actions in turn
+            policy = TensorDictModule(functools.partial(next, iter(chunk)), in_keys=[], out_keys=["action"])
+            rollout = env.rollout(steps, policy=policy, break_when_any_done=False)
+            rollouts.append(rollout.select(*REPLAY_KEYS, strict=False))
+    finally:
+        env.close()
+    data = torch.cat(rollouts)
+    data["episode"] = torch.arange(episodes).repeat_interleave(steps)
+    return data
+
+
+def schedule_value(points: Sequence[Sequence[float]], update: int) -> float:
+    """The piecewise-linear schedule of ``[update, value]`` points (updates increasing) at ``update``: linear
+    from 0 at update 0 through the points (a point at update 0 sets the start), the last value held after the
+    last point; 0 before update 0."""
+    if not points or update < 0:
+        return 0.0
+    for (u0, v0), (u1, v1) in zip([(0, 0.0), *points], points):
+        if update < u1:
+            return v0 + (v1 - v0) * max(0.0, update - u0) / (u1 - u0)
+    return float(points[-1][1])
+
+
+def ramp_weight(weight: float, update: int, start: int, length: int | None = None) -> float:
+    """0 before update ``start``, then linearly up to ``weight`` at update ``start + length`` (``length``
+    defaults to ``start``; ``start = 0``: ``weight`` throughout)."""
+    if not start:
+        return weight
+    length = start if length is None else length
+    # length <= 0: the weight jumps from 0 to its value at update start
+    return schedule_value([(start, 0.0), (start + max(length, 0), weight)], update)
+
+
+def probe_scene(cfg: RunConfig, *, window: int | None = None) -> dict:
+    """The :func:`~isodream_rl.recipes.latent_probe.probe` keywords that make episodes like a sprites run's:
+    its scene, action hold and window (``window`` overrides ``train.sequence_length``), episodes of
+    ``world_model.episode_length`` steps rounded up to whole windows.
+
+    Raises:
+        ConfigError: the run is not on the sprites scene (the probe needs its ground truth).
+    """
+    if not _is_sprites(cfg):
+        raise ConfigError(
+            f"the latent probe needs the sprites scene's ground truth; this run is on {cfg.env.name!r}"
+        )
+    window = window or cfg.train.sequence_length
+    episode_length = -(-cfg.world_model.episode_length // window) * window
+    return {
+        **_sprites_scene(cfg),
+        "action_hold": cfg.world_model.action_hold,
+        "window": window,
+        "episode_length": episode_length,
+    }
+
+
+def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDreamWorldModel, RunConfig]:
+    """The world model (in fp32) and configuration of a checkpoint of ``isodream-train``, either mode.
+
+    Args:
+        path: a run folder (its newest readable checkpoint) or one of its ``checkpoints/step_*`` folders.
+        device: where the model goes.
+
+    Raises:
+        CheckpointError: no readable checkpoint there, or one of ``algo=torchrl_dreamer`` (another world
+            model).
+    """
+    path = Path(path)
+    if path.is_file():
+        raise CheckpointError(
+            f"{path} is a single file: checkpoints are folders (<run_dir>/checkpoints/step_*/), and the "
+            "world_model.pt files of isodream-demo before it became isodream-train exp=world_model are no "
+            "longer read; give a run folder"
+        )
+    single = path.name.startswith("step_")
+    manager = CheckpointManager(path.parent if single else path / "checkpoints")
+    if single:
+        state = torch.load(path / "state.pt", map_location="cpu", weights_only=False)
+    else:
+        state, path = manager.load_latest()
+    cfg = config_from_dict(state["config"])
+    if cfg.algo.name == "torchrl_dreamer":
+        raise CheckpointError(f"{path} holds TorchRL's Dreamer world model, not Iso-Dream's")
+    cfg.model.overrides = {**cfg.model.overrides, "precision": "fp32"}
+    model = IsoDreamWorldModel(make_world_model_config(cfg, action_dim=_probe_action_dim(cfg)), device=device)
+    model.load_state_dict(state["models"]["world_model"])
+    return model, cfg
+
+
+#: what a resumed run may change: its length, logging and checkpoint cadence, threads, device and precision
+_RESUMABLE = (
+    "run_dir",
+    "resume",
+    "world_model.updates",
+    "logging.",
+    "checkpoint.",
+    "train.threads",
+    "train.device",
+    "model.overrides.precision",
+)
+
+
+def _flat(tree: dict, prefix: str = "") -> dict:
+    flat = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            flat.update(_flat(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
+def _same_run(state: dict, cfg: RunConfig) -> None:
+    """Raise a ``ConfigError`` naming the settings where ``cfg`` differs from the checkpoint's run, but for
+    those a resumed run may change (``_RESUMABLE``): the episodes are made again from the settings, so a
+    changed scene or seed would continue the training on other data."""
+    saved = _flat(dataclasses.asdict(config_from_dict(state["config"])))
+    now = _flat(dataclasses.asdict(cfg))
+    differ = {
+        key: (saved.get(key), now.get(key))
+        for key in sorted(saved.keys() | now.keys())
+        if not key.startswith(_RESUMABLE) and saved.get(key) != now.get(key)
+    }
+    if differ:
+        raise ConfigError(
+            f"resume=true continues the run in {cfg.run_dir}, trained with other settings (saved, now): "
+            f"{differ}; keep them, or give another run_dir"
+        )
+
+
+def train(cfg: RunConfig) -> RunResult:
+    """Train (or, with ``resume=true``, continue) the world model of ``cfg`` alone; see the module docstring.
+
+    Raises:
+        ConfigError: invalid configuration (before anything is built), or ``resume`` with other settings.
+        CheckpointError: ``resume`` without a readable checkpoint.
+        NonFiniteLossError: too many NaN/inf updates in a row.
+    """
+    validate_config(cfg)
+    started = time.perf_counter()
+    wm, train_cfg = cfg.world_model, cfg.train
+    window, batch_size = train_cfg.sequence_length, train_cfg.batch_size
+    torch.set_num_threads(train_cfg.threads)
+    seed_everything(train_cfg.seed)
+    run_dir = Path(cfg.run_dir)
+    pictures, logs = run_dir / "pictures", run_dir / "logs"
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "run_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
+
+    logger.info("collecting %d random-action episodes of %d steps", wm.episodes, wm.episode_length)
+    data = collect_episodes(cfg, episodes=wm.episodes, seed=train_cfg.seed)
+    held_out = collect_episodes(cfg, episodes=wm.held_out_episodes, seed=train_cfg.seed + 1)
+    # as many training episodes, scored beside the held-out ones: a gap between the two is memorisation
+    seen = data[: held_out.shape[0]]
+    buffer = make_window_buffer(data, batch_size=batch_size, window=window)
+
+    pyramid = (
+        [PyramidImageTerm(levels=wm.pyramid_levels, lambda_reco_pyramid=wm.lambda_reco_pyramid)]
+        if wm.lambda_reco_pyramid
+        else []
+    )
+    loss = make_world_model_loss(cfg, action_dim=data["action"].shape[-1], extra_terms=pyramid)
+    world_model = loss.world_model
+    stepper = IsoDreamOptimizationStepper(
+        model_loss=loss,
+        world_model_optimizer=make_adam(
+            loss.parameters(), lr=train_cfg.world_model_lr, eps=train_cfg.adam_eps
+        ),
+        sequence_length=window,
+        grad_clip=train_cfg.grad_clip,
+        max_nonfinite=train_cfg.max_nonfinite_updates,
+    )
+    checkpoints = CheckpointManager(run_dir / "checkpoints", keep=cfg.checkpoint.keep)
+    resumed_from, wall_before = None, 0.0
+    if cfg.resume or cfg.checkpoint.resume:
+        if not checkpoints.checkpoints():
+            raise CheckpointError(
+                f"resume=true but there is no checkpoint in {checkpoints.directory}; start without resume or "
+                "point run_dir at the run to continue"
+            )
+        state, resumed_from = checkpoints.load_latest()
+        _same_run(state, cfg)
+        world_model.load_state_dict(state["models"]["world_model"])
+        stepper.load_state_dict(state["stepper"])
+        set_rng_state(state["rng"])
+        wall_before = state["counters"]["wall_s"]
+        logger.info("resumed from %s (%d updates)", resumed_from, stepper.updates)
+    first = stepper.updates
+    env_steps = wm.episodes * wm.episode_length
+    if first >= wm.updates:
+        return RunResult(run_dir, resumed_from, logs, pictures, env_steps, first, resumed_from)
+
+    def save() -> Path:
+        return checkpoints.save(
+            stepper.updates,
+            {
+                "config": dataclasses.asdict(cfg),
+                "models": {"world_model": world_model.state_dict()},
+                "stepper": stepper.state_dict(),
+                "counters": {
+                    "updates": stepper.updates,
+                    "wall_s": wall_before + time.perf_counter() - started,
+                },
+                "rng": rng_state(),
+            },
+        )
+
+    log = make_logger(cfg, run_dir=run_dir)
+
+    def evaluate(update: int) -> tuple[dict[str, float], Path]:
+        """Held-out and training scores, logged, and the branch picture of the first held-out window."""
+        # on a forked generator (the posteriors are samples): evaluating does not change the training
+        with torch.random.fork_rng(devices=[]):
+            scores, out = score_branches(world_model, held_out, window=window, device=train_cfg.device)
+            train_scores, _ = score_branches(world_model, seen, window=window, device=train_cfg.device)
+        scores.update({f"train_{key}": value for key, value in train_scores.items()})
+        for key, value in scores.items():
+            log.log_scalar(key, value, step=update)
+        picture = pictures / f"branches_{update:08d}.png"
+        return scores, save_png(branch_grid(out, sample=0, steps=window), picture)
+
+    last_checkpoint, picture, scores, metrics = resumed_from, None, {}, {}
+    schedule = wm.static_mask_bias_schedule
+    bar = tqdm(
+        range(first, wm.updates),
+        desc=f"world model ({cfg.model.size}, {world_model.config.precision})",
+        unit="update",
+        initial=first,
+        total=wm.updates,
+        disable=not cfg.logging.progress_bar,
+    )
+    clock = time.perf_counter()
+    with StopOnSignal() as signals:
+        for update in bar:
+            # the bias holds the schedule's offset of the previous update (a resumed model too): move it on
+            change = schedule_value(schedule, update) - schedule_value(schedule, update - 1)
+            if change:
+                world_model.shift_static_mask_bias(change)
+            if pyramid and wm.reco_pyramid_from:
+                pyramid[0].lambda_reco_pyramid = ramp_weight(
+                    wm.lambda_reco_pyramid, update, wm.reco_pyramid_from, wm.ramp_updates
+                )
+            values = stepper.step(None, buffer.sample().to(train_cfg.device))
+            done = update + 1
+            if update % cfg.logging.log_every == 0 or done == wm.updates:
+                metrics = {key: float(value) for key, value in values.items()}
+                metrics["updates_per_s"] = (done - first) / (time.perf_counter() - clock)
+                for key, value in metrics.items():
+                    log.log_scalar(key, value, step=update)
+                bar.set_postfix(loss=f"{metrics['loss_model_reco']:.1f}", mse=f"{metrics['reco_mse']:.4f}")
+            if (cfg.logging.eval_every and done % cfg.logging.eval_every == 0) or done == wm.updates:
+                scores, picture = evaluate(done)
+                bar.write(
+                    f"update {done}: "
+                    + ", ".join(f"{k} {v:.3f}" for k, v in scores.items() if not k.startswith("train_"))
+                )
+            if done % cfg.checkpoint.every_updates == 0 or done == wm.updates or signals.received is not None:
+                last_checkpoint = save()
+            if signals.received is not None:
+                break
+    bar.close()
+    summary = None
+    if signals.received is None:
+        if wm.probe_episodes and _is_sprites(cfg):
+            # what each branch's state knows, on fresh episodes of the same scene (seeds never trained on)
+            probed = probe(
+                world_model,
+                episodes=wm.probe_episodes,
+                seed=train_cfg.seed + 1000,
+                encoder=True,
+                **probe_scene(cfg),
+            )
+            scores.update({f"probe_{key}": value for key, value in probed.items()})
+            for key, value in probed.items():
+                log.log_scalar(f"probe_{key}", value, step=wm.updates)
+        summary = {
+            "mode": cfg.mode,
+            "algo": cfg.algo.name,
+            "updates": wm.updates,
+            "seconds": round(wall_before + time.perf_counter() - started, 1),
+            "precision": world_model.config.precision,
+            "size": cfg.model.size,
+            "seed": train_cfg.seed,
+            **{key: round(value, 3) for key, value in scores.items()},
+            "png": str(picture),
+            "checkpoint": str(last_checkpoint),
+            "logs": str(logs),
+        }
+        path = run_dir / "summary.json"
+        tmp = path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(summary, indent=2))
+        tmp.replace(path)
+    close_logger(log)
+    return RunResult(
+        run_dir=run_dir,
+        checkpoint=last_checkpoint,
+        logs=logs,
+        pictures=pictures,
+        env_steps=env_steps,
+        updates=stepper.updates,
+        resumed_from=resumed_from,
+        metrics=metrics,
+        summary=summary,
+    )

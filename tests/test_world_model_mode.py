@@ -1,0 +1,371 @@
+"""``mode=world_model`` (``isodream-train exp=world_model``, alias ``isodream-demo``) at a tiny size: it
+trains the world model alone, scores the masks, writes its run folder and resumes."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+import isodream_rl.cli
+from isodream_rl.envs.sprites import DISTRACTOR_COLOURS
+from isodream_rl.recipes.sprites_data import collect_sprites_episodes, episode_windows
+from isodream_rl.recipes.visualize import score_branches
+from isodream_rl.trainers import CheckpointError, CheckpointManager, ConfigError
+from isodream_rl.trainers import run as run_module
+from isodream_rl.trainers.world_model_run import collect_episodes, ramp_weight, schedule_value
+
+CONFIGS = Path(isodream_rl.cli.__file__).parent / "configs"
+# two updates of 2 windows x 8 steps on two short episodes, no probe: what every tiny run here shares
+TINY = [
+    "exp=world_model",
+    "size=tiny",
+    "world_model.updates=2",
+    "world_model.episodes=2",
+    "world_model.episode_length=16",
+    "world_model.probe_episodes=0",
+    "train.sequence_length=8",
+    "train.batch_size=2",
+    "logging.progress_bar=false",
+]
+
+
+def composed(*overrides):
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        return OmegaConf.to_object(compose(config_name="config", overrides=[*TINY, *overrides]))
+
+
+def train(run_dir, *overrides):
+    return run_module.train(composed(f"run_dir={run_dir}", *overrides))
+
+
+def latest_state(run_dir) -> dict:
+    return CheckpointManager(Path(run_dir) / "checkpoints").load_latest()[0]
+
+
+def test_writes_pictures_scores_probe_checkpoint_and_logs_in_the_run_folder(tmp_path):
+    result = train(
+        tmp_path,
+        "world_model.updates=3",
+        "logging.eval_every=2",
+        "world_model.probe_episodes=4",
+        "train.adam_eps=1e-7",
+    )
+    assert result.updates == 3 and result.env_steps == 32
+    assert sorted(p.name for p in (tmp_path / "pictures").iterdir()) == [
+        "branches_00000002.png",
+        "branches_00000003.png",
+    ]
+    state = latest_state(tmp_path)
+    assert result.checkpoint == tmp_path / "checkpoints" / "step_00000003"
+    assert state["stepper"]["updates"] == 3 and set(state["models"]) == {"world_model"}
+    assert state["stepper"]["optimizers"]["world_model"]["param_groups"][0]["eps"] == 1e-7
+    assert (
+        state["config"]["mode"] == "world_model" and state["config"]["env"]["kwargs"]["num_backgrounds"] == 8
+    )
+    saved = json.loads((tmp_path / "summary.json").read_text())
+    assert saved == result.summary
+    assert saved["updates"] == 3 and 0.0 <= saved["iou_control_vs_agent"] <= 1.0
+    for name in (
+        "iou_free_vs_distractors",
+        "free_covers_distractor_2",
+        "reco_error_distractor_0",
+        "reco_error_agent",
+        "free_on_background",
+        "control_on_background",
+    ):
+        assert 0.0 <= saved[name] <= 3.0 and 0.0 <= saved[f"train_{name}"] <= 3.0, name
+    # the final latent probe: every branch x sprite, an R^2 (at most 1), in the summary and the log
+    probes = {k for k in saved if k.startswith("probe_r2_")}
+    sprites = ("agent", "distractor_0", "distractor_1", "distractor_2")
+    layers = ("control", "free", "trunk", "embed_control", "embed_free")
+    assert probes == {f"probe_r2_{b}_{n}" for b in layers for n in sprites}
+    assert all(saved[k] <= 1.0 for k in probes)
+    scalars = tmp_path / "logs"
+    assert list(scalars.rglob("probe_r2_free_agent.csv")) and list(scalars.rglob("loss_model_reco.csv"))
+    assert saved["png"] == str(tmp_path / "pictures" / "branches_00000003.png")
+    with pytest.raises(CheckpointError, match="no policy"):
+        run_module.evaluate_checkpoint(tmp_path)
+
+
+def test_the_world_model_exp_holds_the_demos_defaults():
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        cfg = OmegaConf.to_object(compose(config_name="config", overrides=["exp=world_model"]))
+    assert cfg.mode == "world_model" and cfg.run_dir == "runs/world_model"
+    assert (cfg.train.batch_size, cfg.train.sequence_length, cfg.train.world_model_lr) == (8, 16, 1e-3)
+    assert (cfg.model.size, cfg.algo.name, cfg.model.overrides) == ("small", "isodream", {})
+    wm = cfg.world_model
+    assert (wm.updates, wm.episodes, wm.episode_length, wm.held_out_episodes) == (3000, 60, 96, 4)
+    assert (wm.action_hold, wm.probe_episodes, wm.lambda_reco_pyramid) == (8, 32, 0.0)
+    assert cfg.env.kwargs == {"task": "none", "max_steps": 200, "num_backgrounds": 8, "background_seed": 0}
+    assert (cfg.logging.log_every, cfg.logging.eval_every) == (20, 200)
+    # the demo's loss: reward head on [s, h] at weight 1 (the sprites RL preset's are (s, z) and 2)
+    assert (cfg.algo.reward_uses_free, cfg.algo.lambda_reward, cfg.algo.lambda_inverse) == (False, 1.0, 30.0)
+
+
+def test_held_random_actions_make_the_agent_travel():
+    jitter = collect_sprites_episodes(episodes=4, steps=32, seed=3)
+    held = collect_sprites_episodes(episodes=4, steps=32, seed=3, action_hold=8)
+    actions = held["action"].reshape(4, 4, 8, 2)
+    assert (actions == actions[:, :, :1]).all(), "an action must stay for action_hold steps"
+    assert not (actions[:, 1:, 0] == actions[:, :-1, 0]).all()
+
+    def travel(data):  # mean distance between the agent's centre at steps 0 and 15 of each episode
+        mask = data["next", "mask_agent"].reshape(4, 32, 64, 64).float()
+        grid = torch.arange(64.0)
+        ys = (mask.sum(-1) * grid).sum(-1) / mask.sum((-1, -2))
+        xs = (mask.sum(-2) * grid).sum(-1) / mask.sum((-1, -2))
+        return torch.hypot(ys[:, 15] - ys[:, 0], xs[:, 15] - xs[:, 0]).mean()
+
+    assert travel(held) > 1.5 * travel(jitter)
+    with pytest.raises(ValueError, match="action_hold"):
+        collect_sprites_episodes(episodes=1, steps=8, action_hold=0)
+
+
+def test_late_term_weight_waits_then_ramps_up():
+    weights = [ramp_weight(2.0, step, 100) for step in (0, 99, 100, 150, 200, 300)]
+    assert weights == pytest.approx([0.0, 0.0, 0.0, 1.0, 2.0, 2.0])
+    assert ramp_weight(2.0, 0, 0) == 2.0
+    # a late start with a ramp of its own length (world_model.ramp_updates), and a step switch-on
+    weights = [ramp_weight(2.0, step, 4000, 1000) for step in (3999, 4000, 4500, 5000, 9000)]
+    assert weights == pytest.approx([0.0, 0.0, 1.0, 2.0, 2.0])
+    assert [ramp_weight(2.0, step, 10, 0) for step in (9, 10)] == [0.0, 2.0]
+
+
+def test_schedule_is_piecewise_linear_from_zero_and_held_after_its_last_point():
+    raise_ = [[2500, 0], [3500, 3]]
+    assert [schedule_value(raise_, s) for s in (0, 2500, 3000, 3500, 9000)] == [0.0, 0.0, 1.5, 3.0, 3.0]
+    dip = [[0, -3], [1000, -3], [2000, 0]]
+    assert [schedule_value(dip, s) for s in (0, 999, 1500, 2000, 5000)] == [-3.0, -3.0, -1.5, 0.0, 0.0]
+    assert [schedule_value([[100, 2]], s) for s in (0, 50, 100)] == [0.0, 1.0, 2.0]
+    assert schedule_value([], 10) == 0.0
+    assert schedule_value(dip, -1) == 0.0  # before update 0: nothing applied yet
+    for bad in ("[[3500,3],[2500,0]]", "[[1,2],[1,3]]", "[[-1,0]]", "[[100]]"):
+        with pytest.raises(ConfigError, match="static_mask_bias_schedule"):
+            run_module.train(composed(f"world_model.static_mask_bias_schedule={bad}"))
+
+
+def test_logs_the_pyramid_term_once_it_starts(tmp_path):
+    train(
+        tmp_path,
+        "world_model.updates=41",
+        "logging.eval_every=41",
+        "world_model.lambda_reco_pyramid=1",
+        "world_model.reco_pyramid_from=30",
+        "world_model.ramp_updates=5",
+    )
+    (csv,) = tmp_path.rglob("loss_model_reco_pyramid.csv")
+    logged = {
+        int(float(step)): float(value)
+        for step, value in (line.split(",")[:2] for line in csv.read_text().split())
+    }
+    # logged every 20 updates; its weight is zero up to update 30, then ramps up over 5 updates
+    assert logged[0] == 0.0 and logged[20] == 0.0 and logged[40] > 0.0
+
+
+def test_the_single_branch_baseline_is_scored_by_disc_reconstruction_and_probed(tmp_path):
+    result = train(
+        tmp_path, "exp=world_model_dreamerv2", "world_model.episodes=2", "world_model.probe_episodes=4"
+    )
+    summary = result.summary
+    assert summary["algo"] == "dreamerv2"
+    assert "iou_free_vs_distractors" not in summary and "free_covers_distractor_0" not in summary
+    # probed like the full model, on its one state
+    assert {k for k in summary if k.startswith("probe_")} == {
+        f"probe_r2_{b}_{n}"
+        for b in ("control", "trunk", "embed_control")
+        for n in ("agent", "distractor_0", "distractor_1", "distractor_2")
+    }
+    assert 0.0 <= summary["reco_error_distractor_0"] <= 3.0
+    assert latest_state(tmp_path)["config"]["algo"]["free_branch"] is False
+
+
+def test_composes_with_the_authors_sigmoid_masks_and_refuses_a_background_bias_there(tmp_path):
+    summary = train(tmp_path, "+model.overrides.mask_mode=sigmoid").summary
+    assert 0.0 <= summary["iou_free_vs_distractors"] <= 1.0
+    assert latest_state(tmp_path)["config"]["model"]["overrides"]["mask_mode"] == "sigmoid"
+    # the background has no logit in sigmoid mode: a bias for it is an error, not silently dropped
+    with pytest.raises(ConfigError, match="static_mask_bias"):
+        train(tmp_path / "b", "+model.overrides.mask_mode=sigmoid", "+model.overrides.static_mask_bias=3")
+
+
+def test_resumes_from_its_checkpoint_and_refuses_other_settings(tmp_path):
+    train(tmp_path)
+    before = latest_state(tmp_path)
+    result = train(tmp_path, "world_model.updates=4", "resume=true")
+    after = latest_state(tmp_path)
+    assert result.resumed_from == tmp_path / "checkpoints" / "step_00000002" and result.updates == 4
+    # Adam's step counters continue from the saved ones
+    assert all(s["step"] == 2 for s in before["stepper"]["optimizers"]["world_model"]["state"].values())
+    assert all(s["step"] == 4 for s in after["stepper"]["optimizers"]["world_model"]["state"].values())
+    # another world model, or other data (the episodes are made again from the settings), is refused
+    with pytest.raises(ConfigError, match="static_mask_bias"):
+        train(tmp_path, "world_model.updates=6", "resume=true", "+model.overrides.static_mask_bias=1")
+    with pytest.raises(ConfigError, match="sprite_size"):
+        train(tmp_path, "world_model.updates=6", "resume=true", "+env.kwargs.sprite_size=0.1")
+    # a finished run is left as it is
+    assert train(tmp_path, "world_model.updates=4", "resume=true").updates == 4
+    with pytest.raises(CheckpointError, match="no checkpoint"):
+        train(tmp_path / "empty", "resume=true")
+
+
+def test_scene_comes_from_env_kwargs_and_a_wrong_one_is_a_config_error(tmp_path):
+    summary = train(tmp_path, "+env.kwargs.num_distractors=2", "world_model.probe_episodes=4").summary
+    assert "free_covers_distractor_1" in summary and "free_covers_distractor_2" not in summary
+    assert "probe_r2_free_distractor_1" in summary and "probe_r2_free_distractor_2" not in summary
+    with pytest.raises(ConfigError, match="distractor_colours"):
+        train(tmp_path / "b", "+env.kwargs.distractor_colours=[cyan,magenta]")
+
+
+def test_the_three_yellow_discs_recipe_draws_three_yellow_discs():
+    cfg = composed("exp=world_model_three_yellow")
+    data = collect_episodes(cfg, episodes=1, seed=0)
+    discs = data["next", "pixels"].permute(0, 2, 3, 1)[data["next", "distractor_ids"] > 0]  # [pixels, RGB]
+    assert (discs == torch.tensor(DISTRACTOR_COLOURS["yellow"], dtype=torch.uint8)).all(-1).all()
+
+
+def _static_mask_bias(run_dir) -> torch.Tensor:
+    model = latest_state(run_dir)["models"]["world_model"]
+    (bias,) = [
+        v for k, v in model.items() if k.startswith("static_decoder.") and k.endswith("bias") and v[3] > 1
+    ]
+    return bias
+
+
+def test_raises_the_background_prior_on_schedule_and_across_a_resume(tmp_path):
+    # lr 0: the parameters move only by the raise, so the bias shows exactly how much of it was applied
+    small = ["train.world_model_lr=0", "logging.eval_every=2"]
+    raise_ = "world_model.static_mask_bias_schedule=[[1,0],[3,2]]"
+    train(tmp_path / "plain", *small, "world_model.updates=4")
+    train(tmp_path / "raised", *small, raise_, "world_model.updates=4")
+    plain = _static_mask_bias(tmp_path / "plain")
+    assert torch.allclose(_static_mask_bias(tmp_path / "raised") - plain, torch.tensor([0.0, 0.0, 0.0, 2.0]))
+    # half-way (updates 0, 1, 2 ran: 1.0 of the raise at update 2), then resumed: 2.0 in all, not more
+    train(tmp_path / "half", *small, raise_, "world_model.updates=3")
+    assert torch.allclose(_static_mask_bias(tmp_path / "half") - plain, torch.tensor([0.0, 0.0, 0.0, 1.0]))
+    train(tmp_path / "half", *small, raise_, "world_model.updates=4", "resume=true")
+    assert torch.allclose(_static_mask_bias(tmp_path / "half"), _static_mask_bias(tmp_path / "raised"))
+    with pytest.raises(ConfigError, match="static_mask_bias_schedule"):
+        train(tmp_path / "sigmoid", raise_, "+model.overrides.mask_mode=sigmoid")
+
+
+def test_how_often_it_evaluates_does_not_change_the_training(tmp_path):
+    train(tmp_path / "often", "world_model.updates=3", "logging.eval_every=1")
+    train(tmp_path / "once", "world_model.updates=3", "logging.eval_every=0")
+    often, once = (latest_state(tmp_path / name)["models"]["world_model"] for name in ("often", "once"))
+    assert all(torch.equal(often[k], once[k]) for k in often)
+    assert (
+        len(list((tmp_path / "once" / "pictures").iterdir())) == 1
+    )  # eval_every=0: after the last update only
+
+
+def test_any_env_of_the_env_group_trains_without_ground_truth(tmp_path):
+    overrides = [
+        "mode=world_model",
+        "env=highway",
+        "size=tiny",
+        "train.threads=1",
+        "logging.progress_bar=false",
+    ]
+    overrides += ["world_model.updates=2", "world_model.episodes=1", "world_model.held_out_episodes=1"]
+    overrides += ["world_model.episode_length=10", f"run_dir={tmp_path}"]
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        result = run_module.train(OmegaConf.to_object(compose(config_name="config", overrides=overrides)))
+    assert result.updates == 2 and set(result.summary) >= {"reco_mse", "train_reco_mse"}
+    assert not any(k.startswith(("iou_", "probe_")) for k in result.summary)
+
+
+class _MasksFromTruth(torch.nn.Module):
+    """A stand-in world model whose masks are built from the ground truth: ``free`` on the distractors plus
+    the left half of the frame, ``control`` on the agent; the composite is the true frame."""
+
+    def __init__(self, truth):
+        super().__init__()
+        self.truth = truth
+
+    def forward(self, td):
+        nxt = self.truth["next"]
+        shape = nxt["mask_agent"].shape
+        left = torch.zeros(shape, dtype=torch.bool)
+        left[..., : shape[-1] // 2] = True
+        free = (nxt["mask_distractors"].bool() | left).float()
+        out = td.clone()
+        out["next", "mask_free"] = free
+        out["next", "mask_control"] = nxt["mask_agent"].float()
+        out["next", "reco_pixels"] = nxt["pixels"].float() / 255.0 - 0.5
+        return out
+
+
+def test_scores_the_share_of_background_each_mask_holds():
+    data = collect_sprites_episodes(episodes=1, steps=16, seed=0)
+    truth = episode_windows(data, window=8)
+    scores, _ = score_branches(_MasksFromTruth(truth), data, window=8)
+    background = ~truth["next", "mask_agent"].bool() & ~truth["next", "mask_distractors"].bool()
+    left = background[..., :32].sum() / background.sum()  # the background pixels in the left half
+    assert scores["control_on_background"] == 0.0
+    assert scores["free_on_background"] == pytest.approx(float(left), abs=1e-6)
+    assert 0.3 < scores["free_on_background"] < 0.7
+    assert all(scores[f"free_covers_distractor_{i}"] == 1.0 for i in range(3))
+    assert scores["reco_error_agent"] == pytest.approx(0.0, abs=1e-6)
+    assert scores["reco_mse"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_isodream_demo_is_isodream_train_exp_world_model(tmp_path):
+    env = dict(os.environ, OMP_NUM_THREADS="1", HYDRA_FULL_ERROR="0")
+    args = [a for a in TINY if a != "exp=world_model"] + ["run_dir=demo"]
+    out = subprocess.run(
+        [sys.executable, "-m", "isodream_rl.recipes.world_model_demo", *args],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "run finished: 32 env steps, 2 updates" in out.stdout
+    assert f"summary:     {Path('demo') / 'summary.json'}" in out.stdout
+    assert json.loads((tmp_path / "demo" / "summary.json").read_text())["mode"] == "world_model"
+    # its former flags are refused with a pointer to their translation
+    former = subprocess.run(
+        [sys.executable, "-m", "isodream_rl.recipes.world_model_demo", "--steps", "5"],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert former.returncode != 0 and "docs/results/world_model_demo.md" in former.stderr
+
+
+def test_sigterm_saves_a_checkpoint_and_stops_before_the_summary(tmp_path):
+    env = dict(os.environ, OMP_NUM_THREADS="1", HYDRA_FULL_ERROR="0")
+    args = [*TINY, "world_model.updates=100000", "logging.log_every=1", "run_dir=run"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "isodream_rl.cli", *args],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        deadline = time.monotonic() + 50
+        while not list((tmp_path / "run" / "logs").rglob("loss_model_reco.csv")):  # the first update is done
+            assert proc.poll() is None and time.monotonic() < deadline, "the run did not start"
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0 and "SIGTERM received" in stderr, stderr[-3000:]
+    updates = latest_state(tmp_path / "run")["stepper"]["updates"]
+    assert 0 < updates < 100000 and f"{updates} updates" in stdout
+    assert not (tmp_path / "run" / "summary.json").exists()
