@@ -54,7 +54,7 @@ def make_dot_env(speed: float = 1.0):
     """An env factory as a user writes one: their gymnasium env, wrapped by ``wrap_gym_env``."""
     from isodream_rl.envs.builder import RenderedPixels
 
-    return wrap_gym_env(RenderedPixels(Dot(render_mode="rgb_array", speed=speed)))
+    return wrap_gym_env(RenderedPixels(gym.wrappers.TimeLimit(Dot(render_mode="rgb_array", speed=speed), 30)))
 
 
 def test_a_gymnasium_id_gives_64x64_pixels_and_actions_in_the_unit_box():
@@ -84,7 +84,7 @@ def test_isodream_train_runs_on_a_gymnasium_id_and_on_a_factory(tmp_path):
         cfg.train.prefill_steps, cfg.train.frames_per_batch, cfg.train.total_steps = 10, 10, 20
         cfg.train.threads = 1
         cfg.algo.horizon, cfg.algo.attention_window = 3, 2
-        cfg.logging.progress_bar, cfg.logging.eval_every = False, 0
+        cfg.logging.progress_bar, cfg.logging.eval_every, cfg.logging.final_eval_episodes = False, 0, 1
         cfg.logging.video_length, cfg.logging.video_context = 6, 3
         for key, value in env.items():
             setattr(cfg.env, key, value)
