@@ -203,7 +203,7 @@ def test_readme_main_job_shows_a_progress_bar_and_says_where_its_outputs_went(tm
         "logging.video_length=8",
         "logging.eval_every=20",
     ]
-    args += ["logging.log_every=20", "env.kwargs.max_steps=30"]
+    args += ["logging.log_every=10", "env.kwargs.max_steps=30"]
     out = run_cli(args, tmp_path)
     assert out.returncode == 0, out.stderr[-3000:]
     assert re.search(r"updates_per_s: [0-9.]+.*\| *40/40", out.stderr), "no tqdm bar with updates/s"

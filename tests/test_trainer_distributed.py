@@ -68,6 +68,7 @@ def test_torch_distributed_workers_collect_on_localhost(tmp_path):
         f"train.distributed_port={free_port()}",
         "train.prefill_steps=10",
         "logging.eval_every=30",
+        "logging.log_every=10",
         f"run_dir={tmp_path}",
     )
     result = train(cfg)

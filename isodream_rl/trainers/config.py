@@ -325,6 +325,12 @@ def validate_config(cfg: RunConfig) -> None:
             "algo.free_branch_loss=recon_only configures the noncontrollable branch, which is off "
             "(algo.free_branch=false): set algo.free_branch_loss=kl or algo.free_branch=true"
         )
+    if 0 < cfg.logging.eval_every <= cfg.logging.log_every:
+        errors.append(
+            f"logging.eval_every={cfg.logging.eval_every} must exceed logging.log_every={cfg.logging.log_every}: "
+            "TorchRL's Trainer writes a scalar only once more than log_every steps have passed since its last "
+            "write, so evaluations closer together than that would not be logged"
+        )
     if algo.exploration_noise < 0:
         errors.append(f"algo.exploration_noise={algo.exploration_noise} must be >= 0")
     if not 0.0 < algo.gamma <= 1.0 or not 0.0 <= algo.lmbda <= 1.0:
