@@ -14,12 +14,13 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import platform
-import subprocess
 import sys
 from pathlib import Path
 
 import yaml
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import cpu_name, git_commit  # noqa: E402
 
 from isodream_rl.envs.reference import reference_returns
 
@@ -75,18 +76,11 @@ def main(argv: list[str] | None = None) -> None:
                 **{name: {k: v for k, v in ref.items() if k != "returns"} for name, ref in refs.items()},
             }
         run["references"] = key
-    commit = subprocess.run(
-        ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True
-    ).stdout.strip()
-    cpu = next(
-        (line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")),
-        platform.machine(),
-    )
     out = {
         "runs": runs,
         "references": references,
-        "commit": commit,
-        "cpu": cpu,
+        "commit": git_commit(),
+        "cpu": cpu_name(),
         "command": "python bench/ladder.py " + " ".join(sys.argv[1:] if argv is None else argv),
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)

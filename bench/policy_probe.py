@@ -17,8 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
-import subprocess
 import sys
 from pathlib import Path
 
@@ -26,6 +24,9 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import cpu_name, git_commit  # noqa: E402
 
 from isodream_rl.envs import make_env
 from isodream_rl.trainers.checkpoint import CheckpointManager
@@ -83,15 +84,8 @@ def main(argv: list[str] | None = None) -> dict:
         "action_std_within_episode": batch["action"].std(1).mean(0).numpy().round(3).tolist(),
         "imagined_reward_mean": float(imagined["next", "reward"].mean()),
         "lambda_target_mean": float(imagined["lambda_target"].mean()),
-        "commit": subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip(),
-        "cpu": next(
-            (
-                line.split(":", 1)[1].strip()
-                for line in open("/proc/cpuinfo")
-                if line.startswith("model name")
-            ),
-            platform.machine(),
-        ),
+        "commit": git_commit(),
+        "cpu": cpu_name(),
         "command": "python bench/policy_probe.py " + " ".join(sys.argv[1:] if argv is None else argv),
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)

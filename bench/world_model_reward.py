@@ -13,8 +13,6 @@ it writes an open-loop prediction GIF and the JSON ``--out`` (with the CPU, comm
 
 import argparse
 import json
-import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -22,6 +20,10 @@ from pathlib import Path
 import numpy as np
 import torch
 from tensordict import TensorDict
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import cpu_name, git_commit  # noqa: E402  (bench/common.py, on the path above)
 
 from isodream_rl.envs.builder import make_gym_env
 from isodream_rl.envs.reference import scripted_action
@@ -141,11 +143,6 @@ for u in range(1, a.updates + 1):
         )
         res.append(row)
         print(a.name, row, flush=True)
-commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
-cpu = next(
-    (line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")),
-    platform.machine(),
-)
 out_path = Path(a.out or f"runs/world_model_reward_{a.name}.json")
 out_path.parent.mkdir(parents=True, exist_ok=True)
 out_path.write_text(
@@ -153,8 +150,8 @@ out_path.write_text(
         {
             "args": vars(a),
             "curve": res,
-            "cpu": cpu,
-            "commit": commit,
+            "cpu": cpu_name(),
+            "commit": git_commit(),
             "command": "python bench/world_model_reward.py " + " ".join(sys.argv[1:]),
         },
         indent=1,

@@ -1,20 +1,15 @@
 """``bench/world_model_speed.py`` at a tiny size: it runs both sides and writes the JSON the issue names."""
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 
-BENCH = Path(__file__).resolve().parents[1] / "bench" / "world_model_speed.py"
+from tests.conftest import load_bench
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("world_model_speed", BENCH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_bench("world_model_speed")
 
 
 def test_world_model_speed_writes_both_times_their_ratio_and_the_flops(bench, tmp_path):

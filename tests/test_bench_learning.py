@@ -1,21 +1,12 @@
 """bench/learning.py at a tiny size: runs, resumes nothing twice, and writes the JSON, the picture and the table."""
 
-import importlib.util
 import json
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def load_bench():
-    spec = importlib.util.spec_from_file_location("bench_learning", ROOT / "bench" / "learning.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from tests.conftest import load_bench
 
 
 def test_learning_bench_writes_the_schema(tmp_path):
-    bench = load_bench()
+    bench = load_bench("learning")
     out = tmp_path / "learning.json"
     tiny = [
         "train.prefill_steps=20",

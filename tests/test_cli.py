@@ -62,7 +62,9 @@ def test_every_exp_composes_to_a_valid_config_and_names_the_recorded_run_it_repe
     validate_config(cfg)
     assert cfg.mode == "world_model" and cfg.run_dir.startswith("runs/world_model")
     header = (CONFIGS / "exp" / f"{exp}.yaml").read_text()
-    recorded = json.loads((CONFIGS.parents[1] / "docs" / "results" / "world_model_demo.json").read_text())["runs"]
+    recorded = json.loads((CONFIGS.parents[1] / "docs" / "results" / "world_model_demo.json").read_text())[
+        "runs"
+    ]
     runs = re.findall(r"runs? ([A-Z]+[0-9]+)\b", header)
     assert runs and all(any(key.endswith(f" {run}") for key in recorded) for run in runs), runs
 

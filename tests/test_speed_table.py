@@ -1,16 +1,14 @@
 """The Speed table of docs/architecture.md is bench/speed_table.py's output over the committed bench JSONs."""
 
-import importlib.util
 from pathlib import Path
+
+from tests.conftest import load_bench
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _speed_table():
-    spec = importlib.util.spec_from_file_location("speed_table", ROOT / "bench" / "speed_table.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_bench("speed_table")
 
 
 def test_architecture_doc_holds_the_table_of_the_committed_jsons():

@@ -64,7 +64,8 @@ def seed_everything(seed: int) -> None:
     random.seed(seed)
 
 
-def _probe_action_dim(cfg: RunConfig) -> int:
+def probe_action_dim(cfg: RunConfig) -> int:
+    """The width of the action of ``cfg``'s env (built once and closed)."""
     env = env_factory(cfg)()
     try:
         return int(env.action_spec.shape[-1])
@@ -146,6 +147,23 @@ class RunComponents:
             module.load_state_dict(state["models"][name])
 
 
+def begin_run(cfg: RunConfig) -> tuple[float, Path, Path, Path]:
+    """What every mode does first: check the config, set threads and seeds, create the run folder and write
+    ``run_config.json``.
+
+    Returns:
+        ``(start time from time.perf_counter, run_dir, pictures folder, logs folder)``.
+    """
+    validate_config(cfg)
+    started = time.perf_counter()
+    torch.set_num_threads(cfg.train.threads)
+    seed_everything(cfg.train.seed)
+    run_dir = Path(cfg.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "run_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
+    return started, run_dir, run_dir / "pictures", run_dir / "logs"
+
+
 def make_components(cfg: RunConfig, *, action_dim: int, scratch_dir: Path):
     """The run's components for ``cfg.algo.name``: :class:`RunComponents` (Iso-Dream, its ablations and the
     DreamerV2 baseline), or, for ``torchrl_dreamer``, TorchRL's own Dreamer pieces with the same interface
@@ -177,21 +195,14 @@ def train(cfg: RunConfig) -> RunResult:
         from isodream_rl.trainers import world_model_run
 
         return world_model_run.train(cfg)
-    validate_config(cfg)
-    started = time.perf_counter()
+    started, run_dir, pictures, logs = begin_run(cfg)
     train_cfg = cfg.train
-    torch.set_num_threads(train_cfg.threads)
-    seed_everything(train_cfg.seed)
-    run_dir = Path(cfg.run_dir)
-    pictures, logs = run_dir / "pictures", run_dir / "logs"
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "run_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
 
     scratch = run_dir / "replay_scratch"
     # The memmap files of an earlier process of this run (killed, or finished) are stale: the replay data
     # that matters is in the checkpoints.
     shutil.rmtree(scratch, ignore_errors=True)
-    components = make_components(cfg, action_dim=_probe_action_dim(cfg), scratch_dir=scratch)
+    components = make_components(cfg, action_dim=probe_action_dim(cfg), scratch_dir=scratch)
     stepper, policy = components.stepper, components.behavior.policy
     checkpoints = CheckpointManager(run_dir / "checkpoints", keep=cfg.checkpoint.keep)
     resumed_from, state = None, None
@@ -404,7 +415,7 @@ def evaluate_checkpoint(
     torch.set_num_threads(cfg.train.threads)
     seed_everything(seed)
     components = make_components(
-        cfg, action_dim=_probe_action_dim(cfg), scratch_dir=Path(run_dir) / "eval_scratch"
+        cfg, action_dim=probe_action_dim(cfg), scratch_dir=Path(run_dir) / "eval_scratch"
     )
     components.load_models(state)
     policy = components.behavior.policy

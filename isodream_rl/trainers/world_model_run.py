@@ -47,9 +47,9 @@ from isodream_rl.trainers.builders import (
     make_world_model_loss,
 )
 from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager, rng_state, set_rng_state
-from isodream_rl.trainers.config import ConfigError, RunConfig, validate_config
+from isodream_rl.trainers.config import ConfigError, RunConfig
 from isodream_rl.trainers.hooks import StopOnSignal
-from isodream_rl.trainers.run import RunResult, _probe_action_dim, config_from_dict, seed_everything
+from isodream_rl.trainers.run import RunResult, begin_run, config_from_dict, probe_action_dim
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
 
 logger = logging.getLogger(__name__)
@@ -177,7 +177,7 @@ def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDream
     if cfg.algo.name == "torchrl_dreamer":
         raise CheckpointError(f"{path} holds TorchRL's Dreamer world model, not Iso-Dream's")
     cfg.model.overrides = {**cfg.model.overrides, "precision": "fp32"}
-    model = IsoDreamWorldModel(make_world_model_config(cfg, action_dim=_probe_action_dim(cfg)), device=device)
+    model = IsoDreamWorldModel(make_world_model_config(cfg, action_dim=probe_action_dim(cfg)), device=device)
     model.load_state_dict(state["models"]["world_model"])
     return model, cfg
 
@@ -231,16 +231,9 @@ def train(cfg: RunConfig) -> RunResult:
         CheckpointError: ``resume`` without a readable checkpoint.
         NonFiniteLossError: too many NaN/inf updates in a row.
     """
-    validate_config(cfg)
-    started = time.perf_counter()
+    started, run_dir, pictures, logs = begin_run(cfg)
     wm, train_cfg = cfg.world_model, cfg.train
     window, batch_size = train_cfg.sequence_length, train_cfg.batch_size
-    torch.set_num_threads(train_cfg.threads)
-    seed_everything(train_cfg.seed)
-    run_dir = Path(cfg.run_dir)
-    pictures, logs = run_dir / "pictures", run_dir / "logs"
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "run_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
 
     logger.info("collecting %d random-action episodes of %d steps", wm.episodes, wm.episode_length)
     data = collect_episodes(cfg, episodes=wm.episodes, seed=train_cfg.seed)
