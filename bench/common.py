@@ -1,7 +1,9 @@
-"""What every bench JSON records about where and from what it was made: the CPU and the commit."""
+"""What every bench JSON records about where and from what it was made (the CPU and the commit), and the
+reader of a run's CSV logs."""
 
 from __future__ import annotations
 
+import csv
 import platform
 import subprocess
 from pathlib import Path
@@ -32,3 +34,12 @@ def git_commit() -> str:
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
     return head.stdout.strip() + ("-dirty" if dirty.strip() else "")
+
+
+def read_scalar(run_dir: Path, name: str) -> list[tuple[int, float]]:
+    """``(env step, value)`` rows of an ``isodream-train`` run's CSV log of scalar ``name`` (empty if absent)."""
+    path = Path(run_dir) / "logs" / "train" / "scalars" / f"{name}.csv"
+    if not path.exists():
+        return []
+    with path.open() as f:
+        return [(int(float(row[0])), float(row[1])) for row in csv.reader(f) if len(row) >= 2]

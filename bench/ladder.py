@@ -12,7 +12,6 @@ run's env (random, best constant action, scripted) are measured once per distinc
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 from pathlib import Path
@@ -20,7 +19,7 @@ from pathlib import Path
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import cpu_name, git_commit  # noqa: E402
+from common import cpu_name, git_commit, read_scalar  # noqa: E402
 
 from isodream_rl.envs.reference import reference_returns
 
@@ -28,11 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def scalar(run_dir: Path, name: str) -> list[list[float]]:
-    path = run_dir / "logs" / "train" / "scalars" / f"{name}.csv"
-    if not path.exists():
-        return []
-    with path.open() as f:
-        return [[int(float(row[0])), round(float(row[1]), 4)] for row in csv.reader(f) if len(row) >= 2]
+    return [[step, round(value, 4)] for step, value in read_scalar(run_dir, name)]
 
 
 def collect_run(run_dir: Path) -> dict:

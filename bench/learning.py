@@ -25,7 +25,6 @@ as lines) and a table (``--md``).
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import subprocess
@@ -36,20 +35,12 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import cpu_name, git_commit  # noqa: E402
+from common import cpu_name, git_commit, read_scalar  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 ALGOS = ("isodream", "dreamerv2", "torchrl_dreamer")
 #: The task's success count reported beside the return, per env.
 SUCCESS_KEY = {"sprites": "reaches", "highway": "distance"}
-
-
-def read_scalar(run_dir: Path, name: str) -> list[tuple[int, float]]:
-    path = run_dir / "logs" / "train" / "scalars" / f"{name}.csv"
-    if not path.exists():
-        return []
-    with path.open() as f:
-        return [(int(float(row[0])), float(row[1])) for row in csv.reader(f) if len(row) >= 2]
 
 
 def run_command(algo: str, seed: int, run_dir: Path, args: argparse.Namespace) -> list[str]:
@@ -128,9 +119,8 @@ def collect(args: argparse.Namespace) -> dict:
             entry["final_successes_per_seed"].append(summary.get(f"eval_{success_key}"))
             entry["normalised_per_seed"].append(summary.get("normalised_score"))
             entry["wall_s_per_seed"].append(summary["wall_s"])
-            entry["updates_per_seed"].append(
-                read_scalar(run_dir, "updates")[-1][1] if read_scalar(run_dir, "updates") else None
-            )
+            updates = read_scalar(run_dir, "updates")
+            entry["updates_per_seed"].append(updates[-1][1] if updates else None)
             returns = read_scalar(run_dir, "eval_return")
             walls = dict(read_scalar(run_dir, "eval_wall_s"))
             steps = [s for s, _ in returns] + [summary["env_steps"]]

@@ -1,21 +1,16 @@
 """The latent probe (isodream_rl/recipes/latent_probe.py): sprite centres, ridge R^2, tiny models and the
 checkpoints of both modes of isodream-train."""
 
-from pathlib import Path
-
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
 from tensordict import TensorDict
 
-import isodream_rl.cli
 from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
 from isodream_rl.recipes.latent_probe import main, probe, ridge_cv, ridge_r2, sprite_centres
-from isodream_rl.trainers import CheckpointError, RunConfig, train
+from isodream_rl.trainers import CheckpointError, train
 from isodream_rl.trainers.world_model_run import load_world_model, probe_scene
-
-CONFIGS = Path(isodream_rl.cli.__file__).parent / "configs"
+from tests.test_cli import composed
+from tests.test_world_model_mode import composed as composed_world_model
 
 
 def test_sprite_centres_are_pixel_centroids_in_unit_coordinates():
@@ -52,23 +47,8 @@ def test_probe_scores_every_branch_and_sprite_with_seeded_samples():
     assert probe(model, window=8, episodes=4, episode_length=16) == scores
 
 
-def composed(*overrides) -> RunConfig:
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        return OmegaConf.to_object(
-            compose(config_name="config", overrides=["logging.progress_bar=false", *overrides])
-        )
-
-
 def test_the_cli_probes_a_world_model_run_on_its_scene_and_writes_json(tmp_path):
-    cfg = composed(
-        "exp=world_model",
-        "size=tiny",
-        "world_model.updates=2",
-        "world_model.episodes=2",
-        "world_model.episode_length=16",
-        "world_model.probe_episodes=0",
-        "train.sequence_length=8",
-        "train.batch_size=2",
+    cfg = composed_world_model(
         "train.seed=3",
         "+env.kwargs.sprite_size=0.1",
         f"run_dir={tmp_path}",
@@ -97,6 +77,7 @@ def test_the_cli_probes_a_world_model_run_on_its_scene_and_writes_json(tmp_path)
 
 def test_the_cli_probes_the_world_model_of_a_reinforcement_learning_run(tmp_path):
     overrides = ["size=tiny", "train.threads=1", "train.total_steps=20", "train.prefill_steps=10"]
+    overrides += ["logging.progress_bar=false"]
     overrides += ["train.frames_per_batch=10", "logging.final_eval_episodes=0", f"run_dir={tmp_path}"]
     train(composed(*overrides))
     scores = main([str(tmp_path), "--episodes", "2"])  # windows of train.sequence_length (10) steps

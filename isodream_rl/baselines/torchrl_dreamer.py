@@ -62,6 +62,7 @@ from torchrl.objectives import DreamerActorLoss, DreamerModelLoss, DreamerValueL
 from torchrl.objectives.utils import ValueEstimators
 
 from isodream_rl.modules.config import SIZE_PRESETS
+from isodream_rl.modules.policy import read_acting_inputs
 from isodream_rl.trainers.builders import make_adam, make_replay_buffer
 from isodream_rl.trainers.config import RunConfig
 from isodream_rl.trainers.hooks import EpisodeReturns, ReplayPreparation
@@ -74,9 +75,6 @@ logger = logging.getLogger(__name__)
 SIZE_KEYS = ("depth", "state_dim", "belief_dim", "hidden_dim", "units")
 #: Std of the acting policy's additive Gaussian noise (TorchRL's example: ``networks.exploration_noise``).
 EXPLORATION_NOISE = 0.3
-#: The frames ``ObsEncoder``/``ObsDecoder`` are built for: 4 layers (kernel 4, stride 2) take 64x64 to 2x2 with
-#: ``8 * depth`` channels, an embedding of ``32 * depth``.
-IMAGE_SHAPE = (3, 64, 64)
 
 _SAMPLING = (None, ExplorationType.RANDOM)
 
@@ -280,31 +278,22 @@ class TorchRLDreamerPolicy(TensorDictModuleBase):
 
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        pixels = tensordict.get(self.pixels_key, None)
-        if pixels is None:
-            raise KeyError(f"TorchRLDreamerPolicy needs the observation {self.pixels_key!r} in its input")
-        if pixels.dtype != torch.uint8 or tuple(pixels.shape[-3:]) != IMAGE_SHAPE:
-            raise ValueError(
-                f"{self.pixels_key!r} must be uint8 [*B, 3, 64, 64], got {pixels.dtype} {tuple(pixels.shape)}"
-            )
         batch = tensordict.batch_size
-        n = batch.numel()
         device = next(self.module.parameters()).device
-        carried = {}
-        for key in ("state", "belief"):
-            value = tensordict.get(key, None)
-            if value is None:
-                raise KeyError(
-                    f"TorchRLDreamerPolicy carries {key!r} in the tensordict; prime the env with "
-                    "TransformedEnv(env, policy.make_tensordict_primer())"
-                )
-            carried[key] = value.to(device).reshape(n, -1)
-        is_init = tensordict.get("is_init", None)
-        if is_init is not None:
-            reset = is_init.to(device).reshape(n, 1).bool()
+        pixels, carried, reset = read_acting_inputs(
+            tensordict,
+            owner="TorchRLDreamerPolicy",
+            pixels_key=self.pixels_key,
+            carried_keys=["state", "belief"],
+            device=device,
+        )
+        if pixels.dtype != torch.uint8:
+            raise ValueError(f"{self.pixels_key!r} must be uint8 [*B, 3, 64, 64], got {pixels.dtype}")
+        n = pixels.shape[0]
+        if reset is not None:
             carried = {k: v.masked_fill(reset, 0.0) for k, v in carried.items()}
         work = TensorDict(
-            {"pixels": pixels.to(device).reshape(n, *IMAGE_SHAPE).float().div(255), **carried},
+            {"pixels": pixels.to(device).float().div(255), **carried},
             batch_size=[n],
             device=device,
         )

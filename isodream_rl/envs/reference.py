@@ -118,6 +118,13 @@ TASK_METRICS: dict[str, dict[str, tuple[str, Callable]]] = {
 }
 
 
+def has_reference_policies(name: str, **env_kwargs: Any) -> bool:
+    """Whether env ``name`` built with ``env_kwargs`` has a scripted controller (sprites ``reach``, highway)."""
+    if name == "sprites":
+        return env_kwargs.get("task", "none") == "reach"
+    return name == "highway"
+
+
 def task_info_keys(name: str) -> tuple[str, ...]:
     """The info keys :data:`TASK_METRICS` reads for env ``name`` (empty for DMC)."""
     return tuple(key for key, _ in TASK_METRICS.get(name, {}).values())
@@ -246,6 +253,7 @@ __all__ = [
     "CONSTANT_ACTIONS",
     "TASK_METRICS",
     "episode_metrics",
+    "has_reference_policies",
     "normalised_score",
     "reference_returns",
     "run_reference_episodes",

@@ -18,6 +18,43 @@ from isodream_rl.modules.world_model import IsoDreamWorldModel
 _RANDOM = (None, ExplorationType.RANDOM)
 
 
+def read_acting_inputs(
+    tensordict: TensorDictBase,
+    *,
+    owner: str,
+    pixels_key: str,
+    carried_keys: list[str],
+    device: torch.device,
+) -> tuple[torch.Tensor, dict[str, torch.Tensor], torch.Tensor | None]:
+    """What a recurrent acting policy reads at one env step, flattened over the env batch ``[*B]``.
+
+    Returns:
+        ``(pixels, carried, reset)``: ``pixels`` ``[N, 3, 64, 64]`` (on their own device), each carried key
+        ``[N, F]`` on ``device``, and ``is_init`` as bool ``[N, 1]`` on ``device`` (``None`` without it).
+
+    Raises:
+        KeyError: a missing observation or carried key, naming ``owner`` and the primer to add.
+        ValueError: pixels that are not ``[*B, 3, 64, 64]``.
+    """
+    pixels = tensordict.get(pixels_key, None)
+    if pixels is None:
+        raise KeyError(f"{owner} needs the observation {pixels_key!r} in its input")
+    check_pixels(pixels, name=repr(pixels_key))
+    n = pixels[..., 0, 0, 0].numel()
+    carried = {}
+    for key in carried_keys:
+        value = tensordict.get(key, None)
+        if value is None:
+            raise KeyError(
+                f"{owner} carries {key!r} in the tensordict; prime the env with "
+                "TransformedEnv(env, policy.make_tensordict_primer())"
+            )
+        carried[key] = value.to(device).reshape(n, -1)
+    is_init = tensordict.get("is_init", None)
+    reset = None if is_init is None else is_init.to(device).reshape(n, 1).bool()
+    return pixels.reshape(n, *IMAGE_SHAPE), carried, reset
+
+
 class IsoDreamPolicy(TensorDictModuleBase):
     """Acting policy: filter the new observation, roll ``z`` ``tau - 1`` steps ahead, attend, act.
 
@@ -113,26 +150,17 @@ class IsoDreamPolicy(TensorDictModuleBase):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         wm = self.world_model
         batch = tensordict.batch_size
-        pixels = tensordict.get(self.pixels_key, None)
-        if pixels is None:
-            raise KeyError(f"IsoDreamPolicy needs the observation {self.pixels_key!r} in its input")
-        check_pixels(pixels, name=repr(self.pixels_key))
         device = next(wm.parameters()).device
-        n = pixels[..., 0, 0, 0].numel()
-        previous = {}
-        for key in [*self.recurrent_keys, "previous_action"]:
-            value = tensordict.get(key, None)
-            if value is None:
-                raise KeyError(
-                    f"IsoDreamPolicy carries {key!r} in the tensordict; prime the env with "
-                    "TransformedEnv(env, policy.make_tensordict_primer())"
-                )
-            previous[key] = value.to(device).reshape(n, -1)
-        is_init = tensordict.get("is_init", None)
-        reset = None if is_init is None else is_init.to(device).reshape(n, 1).bool()
+        pixels, previous, reset = read_acting_inputs(
+            tensordict,
+            owner="IsoDreamPolicy",
+            pixels_key=self.pixels_key,
+            carried_keys=[*self.recurrent_keys, "previous_action"],
+            device=device,
+        )
 
         with wm.autocast(device.type):
-            control_embed, free_embed = wm.encode(pixels.to(device).reshape(n, *IMAGE_SHAPE))
+            control_embed, free_embed = wm.encode(pixels.to(device))
             control_proj = wm.control_rssm.project_embedding(control_embed).float()
             free_proj = None if free_embed is None else wm.free_rssm.project_embedding(free_embed).float()
         post = filter_step(

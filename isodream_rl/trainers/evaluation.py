@@ -184,7 +184,9 @@ class Evaluation(TrainerHookBase):
         if self.world_model is not None:
             window = self.replay_buffer.sample().reshape(-1, self.sequence_length)[:1, : self.length]
             prediction = open_loop_prediction(self.world_model, window, context=self.context)
-            self.last_gif = save_gif(prediction_frames(prediction), self.pictures / f"openloop_{step:08d}.gif")
+            self.last_gif = save_gif(
+                prediction_frames(prediction), self.pictures / f"openloop_{step:08d}.gif"
+            )
             if self.logger is not None:
                 log_prediction(self.logger, "openloop_prediction", prediction_video(prediction), step=step)
         out = results.summary()
@@ -234,11 +236,11 @@ def learning_summary(
         controller), ``env_steps``, ``wall_s``, ``eval_episodes`` and ``references`` (each reference policy's
         returns and success counts).
     """
-    from isodream_rl.envs.reference import normalised_score, reference_returns
+    from isodream_rl.envs.reference import has_reference_policies, normalised_score, reference_returns
 
     summary: dict = {**results.summary(), "eval_episodes": len(results.returns)}
     refs = None
-    if env_name in TASK_METRICS and not (env_name == "sprites" and env_kwargs.get("task", "none") != "reach"):
+    if has_reference_policies(env_name, **env_kwargs):
         refs = reference_returns(env_name, episodes=len(results.returns), seed=seed, **env_kwargs)
     for name in ("random", "constant", "scripted"):
         summary[f"{name}_return"] = None if refs is None else refs[name]["return"]

@@ -370,11 +370,17 @@ def final_evaluation(
         results, env_name=cfg.env.name, env_kwargs=dict(cfg.env.kwargs), env_steps=env_steps, wall_s=wall_s
     )
     summary.update(updates_per_env_step=1.0 / cfg.train.train_every, algo=cfg.algo.name, seed=cfg.train.seed)
+    write_summary(run_dir, summary)
+    return summary
+
+
+def write_summary(run_dir: str | Path, summary: dict) -> Path:
+    """Write ``<run_dir>/summary.json`` atomically (temporary file, then rename); the path written."""
     path = Path(run_dir) / "summary.json"
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(summary, indent=2))
     tmp.replace(path)
-    return summary
+    return path
 
 
 def _is_scalar(value) -> bool:

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import logging
 import time
 from collections.abc import Sequence
@@ -49,7 +48,7 @@ from isodream_rl.trainers.builders import (
 from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager, rng_state, set_rng_state
 from isodream_rl.trainers.config import ConfigError, RunConfig
 from isodream_rl.trainers.hooks import StopOnSignal
-from isodream_rl.trainers.run import RunResult, begin_run, config_from_dict, probe_action_dim
+from isodream_rl.trainers.run import RunResult, begin_run, config_from_dict, probe_action_dim, write_summary
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
 
 logger = logging.getLogger(__name__)
@@ -374,10 +373,7 @@ def train(cfg: RunConfig) -> RunResult:
             "checkpoint": str(last_checkpoint),
             "logs": str(logs),
         }
-        path = run_dir / "summary.json"
-        tmp = path.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(summary, indent=2))
-        tmp.replace(path)
+        write_summary(run_dir, summary)
     close_logger(log)
     return RunResult(
         run_dir=run_dir,
