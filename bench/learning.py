@@ -64,11 +64,12 @@ def run_command(algo: str, seed: int, run_dir: Path, args: argparse.Namespace) -
 
 
 def train_all(args: argparse.Namespace) -> None:
-    """Run every (algo, seed) without a summary.json, ``--parallel`` at a time."""
+    """Run every (algo, seed) without a summary.json, ``--parallel`` at a time, seed by seed (so that a bench
+    stopped early still compares every algorithm on its first seeds)."""
     pending = [
         (algo, seed)
-        for algo in args.algos
         for seed in args.seeds
+        for algo in args.algos
         if not (args.runs / f"{algo}_s{seed}" / "summary.json").exists()
     ]
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")

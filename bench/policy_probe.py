@@ -8,7 +8,11 @@ Loads the newest readable checkpoint of an ``isodream-train`` run, plays ``--epi
 - the policy's actions: their mean and their spread over all steps (``action_std``) and within an episode
   (``action_std_within_episode``: near 0 means the policy holds one action whatever it sees);
 - the rewards the model imagines from those states under the actor (what the actor is optimising) next to
-  the true mean reward.
+  the true mean reward;
+- ``imagination_check``: from ``--starts`` fresh states (24 random steps, actions held 4 steps), 32
+  imagined trajectories of the actor each, and the same action sequences replayed in copies of the real env
+  (sprites only): the imagined and the real return over the horizon, and the per-step correlation of
+  imagined and real rewards (near 0: the actor optimises rewards that its actions do not get).
 
     python bench/policy_probe.py runs/ladder/R2_dv2 --json docs/results/ladder/policy_probe_R2_dv2.json
 """
@@ -16,6 +20,7 @@ Loads the newest readable checkpoint of an ``isodream-train`` run, plays ``--epi
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import sys
 from pathlib import Path
@@ -39,6 +44,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--episodes", type=int, default=4)
     parser.add_argument("--steps", type=int, default=40)
     parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--starts", type=int, default=8)
     parser.add_argument("--json", type=Path, required=True)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -84,6 +90,9 @@ def main(argv: list[str] | None = None) -> dict:
         "action_std_within_episode": batch["action"].std(1).mean(0).numpy().round(3).tolist(),
         "imagined_reward_mean": float(imagined["next", "reward"].mean()),
         "lambda_target_mean": float(imagined["lambda_target"].mean()),
+        "imagination_check": imagination_check(components, cfg, starts=args.starts)
+        if cfg.env.name == "sprites"
+        else None,
         "commit": git_commit(),
         "cpu": cpu_name(),
         "command": "python bench/policy_probe.py " + " ".join(sys.argv[1:] if argv is None else argv),
@@ -92,6 +101,58 @@ def main(argv: list[str] | None = None) -> dict:
     args.json.write_text(json.dumps(result, indent=1))
     print(json.dumps({k: v for k, v in result.items() if k not in ("commit", "cpu", "command")}, indent=1))
     return result
+
+
+@torch.no_grad()
+def imagination_check(components, cfg, *, starts: int, samples: int = 32, context: int = 24) -> dict:
+    """Imagined against real rewards of the actor's own imagined action sequences (see the module doc)."""
+    from isodream_rl.envs.sprites import SpritesEnv
+
+    kwargs = {"task": "reach", **dict(cfg.env.kwargs)}
+    rng = np.random.default_rng(1)
+    imagined_sums, real_sums, imagined_all, real_all = [], [], [], []
+    for start in range(starts):
+        env = SpritesEnv(**kwargs)
+        env.reset(seed=20_000 + start)
+        actions, pixels, rewards = [], [], []
+        for t in range(context):
+            if t % 4 == 0:
+                action = rng.uniform(-1, 1, 2)
+            obs, reward, *_ = env.step(action)
+            actions.append(action.copy())
+            pixels.append(obs.transpose(2, 0, 1))
+            rewards.append(reward)
+        window = TensorDict(
+            {
+                "action": torch.tensor(np.array(actions), dtype=torch.float32)[None],
+                ("next", "pixels"): torch.from_numpy(np.array(pixels))[None],
+                ("next", "reward"): torch.tensor(rewards, dtype=torch.float32)[None, :, None],
+                "is_init": torch.zeros(1, context, 1, dtype=torch.bool),
+            },
+            [1, context],
+        )
+        window["is_init"][:, 0] = True
+        _, out = components.model_loss(window)
+        _, imagined = components.behavior.actor_loss(out[:, -1:].expand(samples, 1).clone())
+        plan = imagined["action"].numpy()
+        dreamt = imagined["next", "reward"].squeeze(-1).numpy()
+        real = np.zeros_like(dreamt)
+        for k in range(samples):
+            replay = copy.deepcopy(env)
+            for j in range(plan.shape[1]):
+                real[k, j] = replay.step(plan[k, j])[1]
+        imagined_sums.append(dreamt.sum(1).mean())
+        real_sums.append(real.sum(1).mean())
+        imagined_all.append(dreamt.ravel())
+        real_all.append(real.ravel())
+    dreamt, real = np.concatenate(imagined_all), np.concatenate(real_all)
+    return {
+        "starts": starts,
+        "samples": samples,
+        "imagined_return": float(np.mean(imagined_sums)),
+        "real_return": float(np.mean(real_sums)),
+        "reward_correlation": float(np.corrcoef(dreamt, real)[0, 1]),
+    }
 
 
 if __name__ == "__main__":

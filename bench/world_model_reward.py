@@ -5,7 +5,9 @@ model must predict the reward from the latent state. This script collects ``--ep
 of sprites ``reach`` (no distractors; even episodes random actions held ``--hold`` steps, odd ones 70 %
 scripted steps towards the target), trains the world model alone (no behavior) on windows of ``B x T``,
 and every 100 updates scores it on 24 windows of 6 held-out episodes: the correlation between predicted
-and true rewards (after the first two steps of each window), the reconstruction loss and the KL. At the end
+and true rewards (after the first two steps of each window), the same correlation when the model imagines the
+last 24 steps of each window from 8 observed ones with the window's actions (``open_loop_corr``: what the
+actor's imagination relies on), the reconstruction loss and the KL. At the end
 it writes an open-loop prediction GIF and the JSON ``--out`` (with the CPU, commit and command).
 
     python bench/world_model_reward.py --name bg8 --backgrounds 8 --updates 600
@@ -49,6 +51,7 @@ p.add_argument("--hold", type=int, default=1)
 p.add_argument("--algo", default="dreamerv2")
 p.add_argument("--kl-scale", type=float, default=1.0)
 p.add_argument("--free-nats", type=float, default=1.0)
+p.add_argument("--action-repeat", type=int, default=1)
 a = p.parse_args()
 torch.set_num_threads(1)
 torch.manual_seed(0)
@@ -65,12 +68,15 @@ def collect(n, seed0, scripted_frac=0.5):
         obs, _ = env.reset(seed=seed0 + k)
         A, P, R = [], [], []
         act = rng.uniform(-1, 1, 2)
-        for t in range(200):
+        for t in range(200 // a.action_repeat):
             if k % 2 == 1 and rng.random() < 0.7:
                 act = scripted_action(env)
             elif t % a.hold == 0:
                 act = rng.uniform(-1, 1, 2)
-            obs, r, *_ = env.step(act)
+            r = 0.0
+            for _ in range(a.action_repeat):
+                obs, r_step, *_ = env.step(act)
+                r += r_step
             A.append(np.asarray(act, np.float32))
             P.append(obs.transpose(2, 0, 1))
             R.append(r)
@@ -85,7 +91,7 @@ def window(eps, B, T):
     A, P, R = [], [], []
     for _ in range(B):
         e = eps[rng.integers(len(eps))]
-        s = rng.integers(0, 200 - T + 1)
+        s = rng.integers(0, len(e[0]) - T + 1)
         A.append(e[0][s : s + T])
         P.append(e[1][s : s + T])
         R.append(e[2][s : s + T])
@@ -118,6 +124,21 @@ comp = RunComponents(cfg, action_dim=2, scratch_dir=Path("/tmp/world_model_rewar
 comp.model_loss.lambda_kl_control = a.kl_scale
 opt = torch.optim.Adam(comp.world_model.parameters(), lr=a.lr, eps=1e-5)
 test_batch = window(test, 24, a.T)
+
+
+@torch.no_grad()
+def open_loop_rewards(batch, context):
+    """Rewards the model predicts when it imagines the rest of each window with its actions (no images)."""
+    wm = comp.world_model
+    filtered = wm(batch[:, :context].select("action", ("next", "pixels"), "is_init").clone()).get("next")
+    state, belief = filtered["state"][:, -1], filtered["belief"][:, -1]
+    predicted = []
+    for t in range(context, batch.shape[1]):
+        _, _, state, belief = wm.control_rssm.imagine_step(state, belief, batch["action"][:, t].float())
+        predicted.append(wm.reward_head(wm.reward_features(state, belief)).float())
+    predicted = torch.stack(predicted, 1)
+    return predicted.flatten().numpy(), batch["next", "reward"][:, context:].flatten().numpy()
+
 res = []
 t0 = time.perf_counter()
 for u in range(1, a.updates + 1):
@@ -133,8 +154,10 @@ for u in range(1, a.updates + 1):
             out["next", "reward_pred"][:, 2:].flatten().numpy(),
             test_batch["next", "reward"][:, 2:].flatten().numpy(),
         )
+        open_pred, open_true = open_loop_rewards(test_batch, context=8)
         row = dict(
             u=u,
+            open_loop_corr=round(float(np.corrcoef(open_pred, open_true)[0, 1]), 3),
             s=round(time.perf_counter() - t0),
             corr=round(float(np.corrcoef(pr, tr)[0, 1]), 3),
             test_reco=round(float(tl["loss_model_reco"]), 1),
