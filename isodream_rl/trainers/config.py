@@ -241,9 +241,13 @@ class RunConfig:
     size_name: str = "small"
     """Name of the chosen ``size`` group (used in the default ``run_dir``)."""
     run_dir: str = "runs/default"
-    """Logs, checkpoints and pictures go here; ``resume=true`` needs the same ``run_dir``."""
+    """Logs, checkpoints and pictures go here; ``resume=true`` needs the same ``run_dir``. A folder that holds
+    another run's files is refused unless ``resume`` or ``overwrite`` is set (``trainers/run_dir.py``)."""
     resume: bool = False
     """Shortcut for ``checkpoint.resume``."""
+    overwrite: bool = False
+    """Delete the run already in ``run_dir`` (its checkpoints, logs, pictures, ``run_config.json`` and
+    ``summary.json``) before starting; without it, such a folder is refused."""
 
 
 def _choice(errors: list[str], name: str, value, valid) -> None:
@@ -254,6 +258,21 @@ def _choice(errors: list[str], name: str, value, valid) -> None:
 def _positive(errors: list[str], name: str, value, minimum: int | float = 1) -> None:
     if value < minimum:
         errors.append(f"{name}={value} must be >= {minimum}")
+
+
+def _device_error(device: str) -> str | None:
+    """Why ``train.device`` cannot be used on this machine, or ``None``."""
+    import torch
+
+    try:
+        kind = torch.device(device).type
+    except (RuntimeError, TypeError) as err:
+        return f"train.device={device!r} is not a torch device ({err})"
+    if kind == "cuda" and not torch.cuda.is_available():
+        return f"train.device={device!r} but this machine has no usable CUDA GPU: set train.device=cpu"
+    if kind == "mps" and not torch.backends.mps.is_available():
+        return f"train.device={device!r} but MPS is not available here: set train.device=cpu"
+    return None
 
 
 def validate_config(cfg: RunConfig) -> None:
@@ -267,6 +286,12 @@ def validate_config(cfg: RunConfig) -> None:
     """
     errors: list[str] = []
     _choice(errors, "mode", cfg.mode, MODES)
+    device_error = _device_error(cfg.train.device)
+    if device_error:
+        errors.append(device_error)
+    for name in ("world_model_lr", "actor_lr", "value_lr", "adam_eps", "grad_clip"):
+        if not getattr(cfg.train, name) > 0:
+            errors.append(f"train.{name}={getattr(cfg.train, name)} must be > 0")
     if cfg.mode == "world_model":
         errors += world_model_mode_errors(cfg)
         if errors:
@@ -402,6 +427,21 @@ def validate_config(cfg: RunConfig) -> None:
         )
     if errors:
         raise ConfigError("invalid training configuration:\n  - " + "\n  - ".join(errors))
+
+
+def config_from_dict(data: dict) -> RunConfig:
+    """Rebuild a :class:`RunConfig` from ``dataclasses.asdict`` output (as stored in checkpoints and
+    ``run_config.json``); fields added since it was written take their defaults."""
+    import dataclasses
+
+    sections = {f.name: f.type for f in dataclasses.fields(RunConfig)}
+    kwargs = {}
+    for name, value in data.items():
+        if name not in sections:
+            continue
+        section_type = globals().get(str(sections[name]))
+        kwargs[name] = section_type(**value) if isinstance(value, dict) and section_type else value
+    return RunConfig(**kwargs)
 
 
 def world_model_overrides(cfg: RunConfig) -> dict[str, Any]:

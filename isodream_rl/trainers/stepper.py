@@ -179,7 +179,9 @@ class IsoDreamOptimizationStepper(OptimizationStepper):
             # on a forked generator: a resumed stepper discovers its keys again, and the updates that follow
             # must draw the same numbers as those of the run it continues
             device = batch.device
-            with torch.random.fork_rng(devices=[device] if device is not None and device.type == "cuda" else []):
+            with torch.random.fork_rng(
+                devices=[device] if device is not None and device.type == "cuda" else []
+            ):
                 self._discover_keys(batch[:1, : min(2, self.sequence_length)].clone())
         metrics: dict[str, torch.Tensor] = {}
         finite = self._run(batch, metrics)
