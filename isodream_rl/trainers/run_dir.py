@@ -13,9 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import shutil
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +21,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import OmegaConf
 
 from isodream_rl.trainers.config import ConfigError, RunConfig, config_from_dict
+from isodream_rl.user_errors import report_user_errors
 
 #: the files and folders of a run (a folder holding one of them holds a run)
 RUN_FILES = ("run_config.json", "checkpoints", "logs", "pictures", "summary.json", "replay_scratch")
@@ -156,7 +155,5 @@ class RunDirGuard(Callback):
         run_dir = Path(str(setting("run_dir")))
         found = existing_run_files(run_dir)
         if found:
-            if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            with report_user_errors("isodream-train", (ConfigError,)):
                 raise ConfigError(_another_run(run_dir, found))
-            print(f"isodream-train: {_another_run(run_dir, found)}", file=sys.stderr)
-            sys.exit(2)

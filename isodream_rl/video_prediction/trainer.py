@@ -101,6 +101,8 @@ class TrainConfig:
             raise ValueError(f"dataset must be one of {_DATASETS}, got {self.dataset!r}")
         if self.dataset != "pusher" and not self.data_path:
             raise ValueError(f"dataset={self.dataset!r} needs data_path")
+        if self.data_path and not Path(self.data_path).is_dir():
+            raise FileNotFoundError(f"data_path={self.data_path!r}: no such folder")
         if not self.context < self.train_frames <= self.sequence_length:
             raise ValueError(
                 f"need context < train_frames <= sequence_length, got {self.context}, "
