@@ -376,9 +376,9 @@ def validate_config(cfg: RunConfig) -> None:
             f"train.prefill_steps={train.prefill_steps} is shorter than one replay window per env "
             f"(train.sequence_length * env.num_envs = {window_steps}): raise the prefill or shorten the window"
         )
-    if cfg.logging.video_context >= cfg.logging.video_length or cfg.logging.video_context < 1:
+    if cfg.logging.video_context >= cfg.logging.video_length or cfg.logging.video_context < 2:
         errors.append(
-            f"logging.video_context={cfg.logging.video_context} must be >= 1 and below "
+            f"logging.video_context={cfg.logging.video_context} must be >= 2 and below "
             f"logging.video_length={cfg.logging.video_length}"
         )
     if cfg.logging.video_length > train.sequence_length:
