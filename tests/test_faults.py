@@ -311,7 +311,7 @@ def test_nan_loss_is_skipped_then_stops_the_run(lineage, tmp_path, monkeypatch):
 
 def test_second_run_in_a_used_run_dir_is_refused_untouched(finished_run, tmp_path):
     """fault: a second run (another seed, shorter) started in a finished run's folder without resume |
-    refused: one message naming resume=true and overwrite=true; not one file of the first run changed;
+    refused with one message naming resume=true and overwrite=true, not one file of the first run changed;
     overwrite=true replaces it"""
     run_dir = copy_of(finished_run, tmp_path)
     before = snapshot(run_dir)
@@ -326,8 +326,8 @@ def test_second_run_in_a_used_run_dir_is_refused_untouched(finished_run, tmp_pat
 
 
 def test_resume_with_another_algorithm_is_refused_before_writing(finished_run, tmp_path):
-    """fault: resume=true with algo=dreamerv2 settings on an Iso-Dream run | refused: the differing settings
-    listed with both values; run_config.json and the checkpoints untouched"""
+    """fault: resume=true with algo=dreamerv2 settings on an Iso-Dream run | refused with the differing
+    settings listed with both values; run_config.json and the checkpoints untouched"""
     run_dir = copy_of(finished_run, tmp_path)
     before = snapshot(run_dir)
     cfg = tiny_run(run_dir, resume=True, train__total_steps=40)
@@ -421,16 +421,16 @@ BAD_INPUTS = {
 
 @pytest.mark.parametrize("case", list(BAD_INPUTS))
 def test_model_loss_refuses_bad_inputs(model_loss, case):
-    """refused: IsoDreamModelLoss / the world model on float pixels out of [0, 1], NaN pixels, inf actions,
-    no is_init: a ValueError naming the range and the fix"""
+    """refused: IsoDreamModelLoss (through the world model) on float pixels out of [0, 1], NaN pixels, inf
+    actions, no is_init | a ValueError naming the range and the fix"""
     entries, message = BAD_INPUTS[case]
     with pytest.raises(ValueError, match=message):
         model_loss(model_batch(entries))
 
 
 def test_one_step_window_is_refused_and_checks_can_be_skipped(model_loss):
-    """refused: a window of T=1 (was an internal tensordict error); check_inputs=False skips the value
-    checks"""
+    """refused: IsoDreamModelLoss on a window of T=1 (was an internal tensordict error) | a ValueError asking
+    for 2 steps or more; IsoDreamWorldModel(check_inputs=False) skips the value checks"""
     with pytest.raises(ValueError, match="at least 2 steps.*got T=1"):
         model_loss(model_batch(time=1))
     unchecked = IsoDreamModelLoss(
@@ -450,7 +450,8 @@ def test_one_step_window_is_refused_and_checks_can_be_skipped(model_loss):
     ],
 )
 def test_make_env_refuses_bad_arguments_naming_them(name, kwargs, error, message):
-    """refused: make_env with image_size=63, seed='abc', highway vehicles_count='many': the argument named"""
+    """refused: make_env with image_size=63, seed='abc', highway vehicles_count='many' | the argument named,
+    with the fix (any_image_size=True for other sizes)"""
     with pytest.raises(error, match=message):
         make_env(name, **kwargs)
     assert make_env("sprites", image_size=32, any_image_size=True).reset()["pixels"].shape == (3, 32, 32)
@@ -483,7 +484,7 @@ def run_command(module: str, args: list[str], cwd: Path, **env) -> subprocess.Co
 @pytest.mark.parametrize("case", list(CLI_ERRORS))
 def test_train_cli_says_a_user_error_in_one_line(case, tmp_path):
     """refused: isodream-train with env.name=carla, +env.kwargs.bogus=1, a negative learning rate,
-    train.device=cuda without a GPU: one line on stderr, exit status 2, no traceback"""
+    train.device=cuda without a GPU | one line on stderr, exit status 2, no traceback, no run_config.json"""
     args, message = CLI_ERRORS[case]
     out = run_command("isodream_rl.cli", ["size=tiny", "run_dir=run", *args], tmp_path)
     assert out.returncode == 2, out.stderr[-2000:]
@@ -494,8 +495,8 @@ def test_train_cli_says_a_user_error_in_one_line(case, tmp_path):
 
 
 def test_train_cli_refuses_a_used_run_dir_before_hydra_writes(finished_run, tmp_path):
-    """refused: isodream-train into a used run folder: one line naming resume=true and overwrite=true, exit 2,
-    Hydra's .hydra/ of the first run untouched; --debug shows the traceback"""
+    """refused: isodream-train into a used run folder | one line naming resume=true and overwrite=true, exit 2,
+    the first run's files (Hydra's .hydra/ too) untouched; --debug shows the traceback"""
     run_dir = copy_of(finished_run, tmp_path)
     before = snapshot(run_dir)
     out = run_command("isodream_rl.cli", ["size=tiny", "run_dir=run"], tmp_path)
@@ -523,14 +524,16 @@ def test_train_cli_refuses_a_used_run_dir_before_hydra_writes(finished_run, tmp_
     ],
 )
 def test_eval_and_video_cli_say_a_missing_path_in_one_line(module, args, message, tmp_path):
-    """refused: isodream-video train/eval and isodream-eval with a missing path: one line, exit 2"""
+    """refused: isodream-video train/eval and isodream-eval with a missing path | one line naming the path,
+    exit status 2"""
     out = run_command(module, args, tmp_path)
     assert out.returncode == 2 and out.stderr.strip().splitlines() == [out.stderr.strip()], out.stderr[-2000:]
     assert out.stderr.startswith(message)
 
 
 def test_every_dmc_task_has_an_env_preset():
-    """refused before, works now: env=dmc_<domain>_<task> for every dm_control suite task (ConfigStore)"""
+    """refused: env=dmc_<domain>_<task> beyond the 4 DMC presets (was a Hydra error) | every dm_control suite
+    task composes (presets stored in Hydra's ConfigStore)"""
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
