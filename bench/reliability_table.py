@@ -58,7 +58,7 @@ def outcomes(report: Path) -> list[tuple[str, str, str, float]]:
         for tag in ("failure", "error", "skipped"):
             if case.find(tag) is not None:
                 outcome = {"failure": "FAILED", "error": "ERROR", "skipped": "skipped"}[tag]
-        rows.append((function, params.rstrip("]"), outcome, float(case.get("time", 0.0))))
+        rows.append((function, params[:-1], outcome, float(case.get("time", 0.0))))
     return rows
 
 
@@ -73,7 +73,7 @@ def table(rows: list[tuple[str, str, str, float]], docs: dict[str, str], wall_s:
         doc = docs.get(function, function)
         kind, _, rest = doc.partition(":")
         what, _, result = rest.partition("|")
-        case = f"{what.strip()}" + (f" (`{params}`)" if params else "")
+        case = what.strip() + (f": `{params}`" if params else "")
         line = f"| {_cell(case)} | {_cell(result.strip())} | {outcome} | {seconds:.1f} |"
         (refused if kind.strip() == "refused" else faults).append(line)
     passed = sum(outcome == "passed" for *_, outcome, _ in rows)

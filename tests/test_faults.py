@@ -419,10 +419,10 @@ BAD_INPUTS = {
 }
 
 
-@pytest.mark.parametrize("case", list(BAD_INPUTS))
+@pytest.mark.parametrize("case", list(BAD_INPUTS), ids=list(BAD_INPUTS))
 def test_model_loss_refuses_bad_inputs(model_loss, case):
-    """refused: IsoDreamModelLoss (through the world model) on float pixels out of [0, 1], NaN pixels, inf
-    actions, no is_init | a ValueError naming the range and the fix"""
+    """refused: IsoDreamModelLoss (through the world model) on a bad batch | a ValueError naming what is
+    wrong and the fix (the range [0, 1] and how to get there for pixels)"""
     entries, message = BAD_INPUTS[case]
     with pytest.raises(ValueError, match=message):
         model_loss(model_batch(entries))
@@ -448,10 +448,11 @@ def test_one_step_window_is_refused_and_checks_can_be_skipped(model_loss):
         ("highway", {"vehicles_count": "many"}, TypeError, "vehicles_count='many' must be a number"),
         ("sprites", {"num_distractors": "x"}, TypeError, "num_distractors='x' must be a number"),
     ],
+    ids=["image_size=63", "seed='abc'", "highway vehicles_count='many'", "sprites num_distractors='x'"],
 )
 def test_make_env_refuses_bad_arguments_naming_them(name, kwargs, error, message):
-    """refused: make_env with image_size=63, seed='abc', highway vehicles_count='many' | the argument named,
-    with the fix (any_image_size=True for other sizes)"""
+    """refused: make_env with a bad argument | a ValueError/TypeError naming the argument and its value
+    (any_image_size=True allows other sizes)"""
     with pytest.raises(error, match=message):
         make_env(name, **kwargs)
     assert make_env("sprites", image_size=32, any_image_size=True).reset()["pixels"].shape == (3, 32, 32)
@@ -481,10 +482,10 @@ def run_command(module: str, args: list[str], cwd: Path, **env) -> subprocess.Co
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="train.device=cuda is valid here")
-@pytest.mark.parametrize("case", list(CLI_ERRORS))
+@pytest.mark.parametrize("case", list(CLI_ERRORS), ids=list(CLI_ERRORS))
 def test_train_cli_says_a_user_error_in_one_line(case, tmp_path):
-    """refused: isodream-train with env.name=carla, +env.kwargs.bogus=1, a negative learning rate,
-    train.device=cuda without a GPU | one line on stderr, exit status 2, no traceback, no run_config.json"""
+    """refused: isodream-train with a user error | one line on stderr, exit status 2, no traceback, no
+    run_config.json"""
     args, message = CLI_ERRORS[case]
     out = run_command("isodream_rl.cli", ["size=tiny", "run_dir=run", *args], tmp_path)
     assert out.returncode == 2, out.stderr[-2000:]
@@ -495,13 +496,22 @@ def test_train_cli_says_a_user_error_in_one_line(case, tmp_path):
 
 
 def test_train_cli_refuses_a_used_run_dir_before_hydra_writes(finished_run, tmp_path):
-    """refused: isodream-train into a used run folder | one line naming resume=true and overwrite=true, exit 2,
-    the first run's files (Hydra's .hydra/ too) untouched; --debug shows the traceback"""
+    """refused: isodream-train into a used run folder, then resume=true with algo=dreamerv2 | one line each
+    (naming resume=true and overwrite=true; listing the differing settings), exit 2, the first run's files
+    (Hydra's .hydra/ too) untouched; --debug shows the traceback"""
     run_dir = copy_of(finished_run, tmp_path)
     before = snapshot(run_dir)
     out = run_command("isodream_rl.cli", ["size=tiny", "run_dir=run"], tmp_path)
     assert out.returncode == 2 and out.stderr.strip().splitlines()[-1].startswith("isodream-train: run holds")
     assert "resume=true" in out.stderr and "overwrite=true" in out.stderr and "Traceback" not in out.stderr
+    assert snapshot(run_dir) == before
+    out = run_command(
+        "isodream_rl.cli", ["size=tiny", "run_dir=run", "resume=true", "algo=dreamerv2"], tmp_path
+    )
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr[-2000:]
+    line = out.stderr.strip().splitlines()[-1]
+    assert line.startswith("isodream-train: resume=true continues the run in run")
+    assert "algo.name: 'isodream' -> 'dreamerv2'" in line
     assert snapshot(run_dir) == before
     debug = run_command("isodream_rl.cli", ["size=tiny", "run_dir=run", "--debug"], tmp_path)
     assert debug.returncode != 0 and "Traceback" in debug.stderr
@@ -522,10 +532,10 @@ def test_train_cli_refuses_a_used_run_dir_before_hydra_writes(finished_run, tmp_
         ),
         ("isodream_rl.cli", ["eval", "missing"], "isodream-eval: no checkpoint in missing"),
     ],
+    ids=["isodream-video eval --checkpoint", "isodream-video train --data-path", "isodream-eval RUN_DIR"],
 )
 def test_eval_and_video_cli_say_a_missing_path_in_one_line(module, args, message, tmp_path):
-    """refused: isodream-video train/eval and isodream-eval with a missing path | one line naming the path,
-    exit status 2"""
+    """refused: a missing path | one line naming the path, exit status 2"""
     out = run_command(module, args, tmp_path)
     assert out.returncode == 2 and out.stderr.strip().splitlines() == [out.stderr.strip()], out.stderr[-2000:]
     assert out.stderr.startswith(message)

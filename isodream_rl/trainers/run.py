@@ -172,6 +172,7 @@ def begin_run(cfg: RunConfig) -> tuple[float, Path, Path, Path]:
 
     Raises:
         ConfigError: an invalid configuration, or a run folder that holds another run.
+        CheckpointError: ``resume`` without a checkpoint.
     """
     validate_config(cfg)
     started = time.perf_counter()

@@ -20,6 +20,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import OmegaConf
 
+from isodream_rl.trainers.checkpoint import CheckpointError
 from isodream_rl.trainers.config import ConfigError, RunConfig, config_from_dict
 from isodream_rl.user_errors import report_user_errors
 
@@ -63,8 +64,9 @@ def claim_run_dir(cfg: RunConfig) -> Path:
     """Check that ``cfg`` may write to its ``run_dir``, clearing it with ``overwrite=true``; the folder.
 
     Raises:
-        ConfigError: the folder holds another run and neither ``resume`` nor ``overwrite`` is set, both are
-            set, or ``resume`` finds no checkpoint there. Nothing is written or deleted then.
+        ConfigError: the folder holds another run and neither ``resume`` nor ``overwrite`` is set, or both are
+            set. Nothing is written or deleted then.
+        CheckpointError: ``resume`` and no checkpoint there.
     """
     run_dir = Path(cfg.run_dir)
     if resuming(cfg) and cfg.overwrite:
@@ -72,7 +74,7 @@ def claim_run_dir(cfg: RunConfig) -> Path:
     found = existing_run_files(run_dir)
     if resuming(cfg):
         if "checkpoints" not in found or not any((run_dir / "checkpoints").glob("step_*")):
-            raise ConfigError(
+            raise CheckpointError(
                 f"resume=true but there is no checkpoint in {run_dir / 'checkpoints'}; start without resume or "
                 "point run_dir at the run to continue"
             )
@@ -140,20 +142,31 @@ def check_same_run(saved: dict, cfg: RunConfig) -> None:
 
 
 class RunDirGuard(Callback):
-    """A Hydra callback (``hydra.callbacks`` in ``configs/config.yaml``): :func:`claim_run_dir`'s refusal of a
-    folder holding another run, before Hydra writes ``.hydra/`` into it, so a refused start leaves the folder as
-    it was. The refusal is one line on stderr and exit status 2 (the exception with ``HYDRA_FULL_ERROR=1``).
-    ``overwrite=true`` clears the folder later, in :func:`claim_run_dir`.
+    """A Hydra callback (``hydra.callbacks`` in ``configs/config.yaml``) that runs the refusals of
+    :func:`claim_run_dir` and :func:`check_same_run` before Hydra writes ``.hydra/`` into the run folder, so a
+    refused start leaves the folder as it was: a folder holding another run without ``resume``/``overwrite``,
+    and a resume whose settings differ from the run's ``run_config.json``. The refusal is one line on stderr and
+    exit status 2 (the exception with ``--debug`` or ``HYDRA_FULL_ERROR=1``). ``overwrite=true`` clears the
+    folder later, in :func:`claim_run_dir`; the checkpoint's own configuration is checked again when it loads.
     """
 
     def on_run_start(self, config, **kwargs) -> None:
         def setting(key: str):
             return OmegaConf.select(config, key, default=None)
 
-        if setting("overwrite") or setting("resume") or setting("checkpoint.resume"):
+        if setting("overwrite"):
             return
         run_dir = Path(str(setting("run_dir")))
-        found = existing_run_files(run_dir)
-        if found:
-            with report_user_errors("isodream-train", (ConfigError,)):
-                raise ConfigError(_another_run(run_dir, found))
+        with report_user_errors("isodream-train", (ConfigError,)):
+            if not (setting("resume") or setting("checkpoint.resume")):
+                found = existing_run_files(run_dir)
+                if found:
+                    raise ConfigError(_another_run(run_dir, found))
+                return
+            saved = run_dir / "run_config.json"
+            if saved.exists():
+                task = OmegaConf.masked_copy(config, [key for key in config if key != "hydra"])
+                check_same_run(
+                    json.loads(saved.read_text()),
+                    config_from_dict(OmegaConf.to_container(task, resolve=True)),
+                )
