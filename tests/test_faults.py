@@ -463,7 +463,7 @@ def test_make_env_refuses_bad_arguments_naming_them(name, kwargs, error, message
 CLI_ERRORS = {
     "env.name=carla": (["env.name=carla"], "env.name='carla'.*Unknown env name"),
     "+env.kwargs.bogus=1": (["+env.kwargs.bogus=1"], "unexpected keyword argument 'bogus'"),
-    "train.world_model_lr=-1": (["train.world_model_lr=-1"], r"train.world_model_lr=-1.0 must be > 0"),
+    "train.world_model_lr=-1": (["train.world_model_lr=-1"], r"train.world_model_lr=-1.0 must be >= 0"),
     "train.device=cuda": (["train.device=cuda"], "no usable CUDA GPU: set train.device=cpu"),
 }
 

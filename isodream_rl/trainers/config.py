@@ -289,7 +289,10 @@ def validate_config(cfg: RunConfig) -> None:
     device_error = _device_error(cfg.train.device)
     if device_error:
         errors.append(device_error)
-    for name in ("world_model_lr", "actor_lr", "value_lr", "adam_eps", "grad_clip"):
+    for name in ("world_model_lr", "actor_lr", "value_lr"):  # 0 freezes that part (tests use it)
+        if not getattr(cfg.train, name) >= 0:
+            errors.append(f"train.{name}={getattr(cfg.train, name)} must be >= 0")
+    for name in ("adam_eps", "grad_clip"):
         if not getattr(cfg.train, name) > 0:
             errors.append(f"train.{name}={getattr(cfg.train, name)} must be > 0")
     if cfg.mode == "world_model":
