@@ -9,8 +9,9 @@ final name; older checkpoints are deleted only after the new one is verified.
 Loading checks the manifest (every file present, of its size and checksum, no file missing from it), then the
 keys the caller needs in ``state.pt``; any failure makes that checkpoint unreadable and the previous one is
 tried, with a warning. Loading never writes to a checkpoint: the replay data are copied before TorchRL's
-``loads`` opens them (it extends a short memmap file in place). Hashing costs about 1 s per GB of replay data
-on one core (SHA-256, measured 1.5 GB/s; a 100k-step pixel buffer is 1.2 GB), once per save and once per load.
+``loads`` opens them (it extends a short memmap file in place). The cost, measured on a 0.25 GB replay buffer
+(20k steps of 64x64 pixels, one busy core): ``dumps`` alone 0.3 s, with the manifest (SHA-256 at ~1.5 GB/s) and
+the flushes 0.8 s; verifying it at load 0.17 s. A full 100k-step buffer (1.2 GB) adds ~2.5 s per checkpoint.
 
 TorchRL's ``Trainer(save_trainer_file=...)`` writes one file in place and has no fallback, and its ``Checkpoint``
 API does not save RNG states of numpy/python or skip unreadable versions, hence this module.
