@@ -15,6 +15,7 @@ import errno
 import json
 import logging
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -64,6 +65,19 @@ def tiny_run(run_dir, **changes) -> RunConfig:
         section, _, name = key.rpartition("__")
         setattr(getattr(cfg, section) if section else cfg, name, value)
     return cfg
+
+
+@pytest.fixture
+def said(record_property):
+    """``said(text)``: what the library said, recorded in the JUnit report (``bench/reliability_table.py``
+    shows it); ``tmp_path`` prefixes are cut."""
+
+    def record(text: str) -> None:
+        text = " ".join(str(text).split())
+        text = re.sub(r"/tmp/\S*?/(?=run\b|checkpoints\b|lineage\b)", "", text)
+        record_property("said", text[:300])
+
+    return record
 
 
 def snapshot(folder: Path) -> dict[str, bytes]:
@@ -158,7 +172,7 @@ def test_resume_is_exact(lineage, tmp_path):
     assert path.name == "step_00000004" and losses == lineage.after[4]
 
 
-def test_truncated_replay_memmap_falls_back_and_is_never_written(lineage, tmp_path, caplog):
+def test_truncated_replay_memmap_falls_back_and_is_never_written(lineage, tmp_path, caplog, said):
     """fault: the newest checkpoint's replay pixels.memmap truncated | recovered: a warning, the previous
     checkpoint loads, the truncated file is left as it was"""
     newest = lineage.manager.checkpoints()[-1]
@@ -169,13 +183,14 @@ def test_truncated_replay_memmap_falls_back_and_is_never_written(lineage, tmp_pa
     with caplog.at_level(logging.WARNING):
         path, losses = lineage.continue_from(tmp_path)
     assert "truncated" in caplog.text and "falling back to the previous one" in caplog.text
+    said(caplog.records[0].getMessage())
     assert path.name == "step_00000002" and losses == lineage.after[2]
     # loading wrote nothing: neither the truncated checkpoint nor the one it loaded (replay read from a copy)
     assert snapshot(lineage.manager.directory) == before
     assert {p: p.stat().st_mtime_ns for p in lineage.manager.directory.rglob("*") if p.is_file()} == stamps
 
 
-def test_state_without_its_keys_falls_back(lineage, tmp_path, caplog):
+def test_state_without_its_keys_falls_back(lineage, tmp_path, caplog, said):
     """fault: the newest state.pt a valid torch file without 'config' (manifest rewritten to match) |
     recovered: a warning naming the key, the previous checkpoint loads"""
     newest = lineage.manager.checkpoints()[-1]
@@ -189,9 +204,10 @@ def test_state_without_its_keys_falls_back(lineage, tmp_path, caplog):
             replay_buffer=components.replay_buffer, required_keys=("config", "models")
         )
     assert path.name == "step_00000002" and "['config']" in caplog.text
+    said(caplog.records[0].getMessage())
 
 
-def test_flipped_byte_falls_back_and_none_readable_is_a_checkpoint_error(lineage, tmp_path):
+def test_flipped_byte_falls_back_and_none_readable_is_a_checkpoint_error(lineage, tmp_path, said):
     """fault: one byte of each checkpoint's state.pt flipped (same size) | recovered: checksum mismatch, the
     previous one loads; with none readable, CheckpointError lists every checkpoint and its fault"""
     first, newest = lineage.manager.checkpoints()
@@ -201,11 +217,12 @@ def test_flipped_byte_falls_back_and_none_readable_is_a_checkpoint_error(lineage
         (folder / "state.pt").write_bytes(bytes(data))
         if folder is newest:
             assert lineage.manager.load_latest()[1].name == "step_00000002"
-    with pytest.raises(CheckpointError, match="(?s)no readable checkpoint.*checksum.*checksum"):
+    with pytest.raises(CheckpointError, match="(?s)no readable checkpoint.*checksum.*checksum") as error:
         lineage.manager.load_latest()
+    said(error.value)
 
 
-def test_full_disk_while_writing_keeps_the_previous_checkpoints(lineage, tmp_path, monkeypatch):
+def test_full_disk_while_writing_keeps_the_previous_checkpoints(lineage, tmp_path, monkeypatch, said):
     """fault: the disk fills up (OSError ENOSPC) while a checkpoint is written | recovered: CheckpointError
     saying to free space and resume, no half checkpoint, the last verified checkpoint continues exactly"""
 
@@ -213,8 +230,9 @@ def test_full_disk_while_writing_keeps_the_previous_checkpoints(lineage, tmp_pat
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
     monkeypatch.setattr(checkpoint_module, "write_manifest", full_disk)
-    with pytest.raises(CheckpointError, match="No space left on device.*free disk space"):
+    with pytest.raises(CheckpointError, match="No space left on device.*free disk space") as error:
         lineage.manager.save(6, lineage.state(lineage.live), replay_buffer=lineage.live.replay_buffer)
+    said(error.value)
     monkeypatch.undo()
     assert sorted(p.name for p in lineage.manager.directory.iterdir()) == ["step_00000002", "step_00000004"]
     path, losses = lineage.continue_from(tmp_path)
@@ -279,7 +297,7 @@ def test_sigkill_during_a_checkpoint_write(tmp_path):
     assert sorted(p.name for p in directory.iterdir()) == ["step_00000001", "step_00000003"]
 
 
-def test_nan_loss_is_skipped_then_stops_the_run(lineage, tmp_path, monkeypatch):
+def test_nan_loss_is_skipped_then_stops_the_run(lineage, tmp_path, monkeypatch, said):
     """fault: NaN injected in the world-model loss | recovered: the update is skipped (weights and counter
     unchanged), K in a row raise NonFiniteLossError naming the learning rates; the last checkpoint continues
     exactly"""
@@ -298,9 +316,10 @@ def test_nan_loss_is_skipped_then_stops_the_run(lineage, tmp_path, monkeypatch):
     metrics = components.stepper.step(None, components.replay_buffer.sample())
     assert metrics["nonfinite_skipped"] == 1 and components.stepper.updates == updates
     assert all(torch.equal(v, components.world_model.state_dict()[k]) for k, v in weights.items())
-    with pytest.raises(NonFiniteLossError, match="train.world_model_lr"):
+    with pytest.raises(NonFiniteLossError, match="train.world_model_lr") as error:
         for _ in range(components.stepper.max_nonfinite):
             components.stepper.step(None, components.replay_buffer.sample())
+    said(error.value)
     monkeypatch.undo()
     path, losses = lineage.continue_from(tmp_path)
     assert path.name == "step_00000004" and losses == lineage.after[4]
@@ -309,14 +328,15 @@ def test_nan_loss_is_skipped_then_stops_the_run(lineage, tmp_path, monkeypatch):
 # ---------------------------------------------------------------- whole runs
 
 
-def test_second_run_in_a_used_run_dir_is_refused_untouched(finished_run, tmp_path):
+def test_second_run_in_a_used_run_dir_is_refused_untouched(finished_run, tmp_path, said):
     """fault: a second run (another seed, shorter) started in a finished run's folder without resume |
     refused with one message naming resume=true and overwrite=true, not one file of the first run changed;
     overwrite=true replaces it"""
     run_dir = copy_of(finished_run, tmp_path)
     before = snapshot(run_dir)
-    with pytest.raises(ConfigError, match="holds another run.*resume=true.*overwrite=true"):
+    with pytest.raises(ConfigError, match="holds another run.*resume=true.*overwrite=true") as error:
         train(tiny_run(run_dir, train__seed=3, train__total_steps=20))
+    said(error.value)
     assert snapshot(run_dir) == before
     result = train(tiny_run(run_dir, train__seed=3, train__total_steps=20, overwrite=True))
     assert result.env_steps == 20
@@ -325,7 +345,7 @@ def test_second_run_in_a_used_run_dir_is_refused_untouched(finished_run, tmp_pat
     assert [p.name for p in CheckpointManager(run_dir / "checkpoints").checkpoints()][-1] == "step_00000004"
 
 
-def test_resume_with_another_algorithm_is_refused_before_writing(finished_run, tmp_path):
+def test_resume_with_another_algorithm_is_refused_before_writing(finished_run, tmp_path, said):
     """fault: resume=true with algo=dreamerv2 settings on an Iso-Dream run | refused with the differing
     settings listed with both values; run_config.json and the checkpoints untouched"""
     run_dir = copy_of(finished_run, tmp_path)
@@ -337,8 +357,9 @@ def test_resume_with_another_algorithm_is_refused_before_writing(finished_run, t
     cfg.algo.policy_input = "controllable"
     with pytest.raises(
         ConfigError, match=r"algo.free_branch: True -> False.*algo.name: 'isodream' -> 'dreamerv2'"
-    ):
+    ) as error:
         train(cfg)
+    said(error.value)
     assert snapshot(run_dir) == before
 
 
@@ -420,19 +441,21 @@ BAD_INPUTS = {
 
 
 @pytest.mark.parametrize("case", list(BAD_INPUTS), ids=list(BAD_INPUTS))
-def test_model_loss_refuses_bad_inputs(model_loss, case):
+def test_model_loss_refuses_bad_inputs(model_loss, case, said):
     """refused: IsoDreamModelLoss (through the world model) on a bad batch | a ValueError naming what is
     wrong and the fix (the range [0, 1] and how to get there for pixels)"""
     entries, message = BAD_INPUTS[case]
-    with pytest.raises(ValueError, match=message):
+    with pytest.raises(ValueError, match=message) as error:
         model_loss(model_batch(entries))
+    said(error.value)
 
 
-def test_one_step_window_is_refused_and_checks_can_be_skipped(model_loss):
+def test_one_step_window_is_refused_and_checks_can_be_skipped(model_loss, said):
     """refused: IsoDreamModelLoss on a window of T=1 (was an internal tensordict error) | a ValueError asking
     for 2 steps or more; IsoDreamWorldModel(check_inputs=False) skips the value checks"""
-    with pytest.raises(ValueError, match="at least 2 steps.*got T=1"):
+    with pytest.raises(ValueError, match="at least 2 steps.*got T=1") as error:
         model_loss(model_batch(time=1))
+    said(error.value)
     unchecked = IsoDreamModelLoss(
         IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=A), check_inputs=False)
     )
@@ -450,11 +473,12 @@ def test_one_step_window_is_refused_and_checks_can_be_skipped(model_loss):
     ],
     ids=["image_size=63", "seed='abc'", "highway vehicles_count='many'", "sprites num_distractors='x'"],
 )
-def test_make_env_refuses_bad_arguments_naming_them(name, kwargs, error, message):
+def test_make_env_refuses_bad_arguments_naming_them(name, kwargs, error, message, said):
     """refused: make_env with a bad argument | a ValueError/TypeError naming the argument and its value
     (any_image_size=True allows other sizes)"""
-    with pytest.raises(error, match=message):
+    with pytest.raises(error, match=message) as raised:
         make_env(name, **kwargs)
+    said(raised.value)
     assert make_env("sprites", image_size=32, any_image_size=True).reset()["pixels"].shape == (3, 32, 32)
 
 
@@ -483,7 +507,7 @@ def run_command(module: str, args: list[str], cwd: Path, **env) -> subprocess.Co
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="train.device=cuda is valid here")
 @pytest.mark.parametrize("case", list(CLI_ERRORS), ids=list(CLI_ERRORS))
-def test_train_cli_says_a_user_error_in_one_line(case, tmp_path):
+def test_train_cli_says_a_user_error_in_one_line(case, tmp_path, said):
     """refused: isodream-train with a user error | one line on stderr, exit status 2, no traceback, no
     run_config.json"""
     args, message = CLI_ERRORS[case]
@@ -491,11 +515,12 @@ def test_train_cli_says_a_user_error_in_one_line(case, tmp_path):
     assert out.returncode == 2, out.stderr[-2000:]
     lines = [line for line in out.stderr.splitlines() if line.startswith("isodream-train:")]
     assert len(lines) == 1 and "Traceback" not in out.stderr, out.stderr[-2000:]
-    assert __import__("re").search(message, lines[0]), lines[0]
+    assert re.search(message, lines[0]), lines[0]
+    said(lines[0][:200] + ("..." if len(lines[0]) > 200 else ""))
     assert not (tmp_path / "run" / "run_config.json").exists()
 
 
-def test_train_cli_refuses_a_used_run_dir_before_hydra_writes(finished_run, tmp_path):
+def test_train_cli_refuses_a_used_run_dir_before_hydra_writes(finished_run, tmp_path, said):
     """refused: isodream-train into a used run folder, then resume=true with algo=dreamerv2 | one line each
     (naming resume=true and overwrite=true; listing the differing settings), exit 2, the first run's files
     (Hydra's .hydra/ too) untouched; --debug shows the traceback"""
@@ -503,6 +528,7 @@ def test_train_cli_refuses_a_used_run_dir_before_hydra_writes(finished_run, tmp_
     before = snapshot(run_dir)
     out = run_command("isodream_rl.cli", ["size=tiny", "run_dir=run"], tmp_path)
     assert out.returncode == 2 and out.stderr.strip().splitlines()[-1].startswith("isodream-train: run holds")
+    said(out.stderr.strip().splitlines()[-1])
     assert "resume=true" in out.stderr and "overwrite=true" in out.stderr and "Traceback" not in out.stderr
     assert snapshot(run_dir) == before
     out = run_command(
@@ -534,11 +560,12 @@ def test_train_cli_refuses_a_used_run_dir_before_hydra_writes(finished_run, tmp_
     ],
     ids=["isodream-video eval --checkpoint", "isodream-video train --data-path", "isodream-eval RUN_DIR"],
 )
-def test_eval_and_video_cli_say_a_missing_path_in_one_line(module, args, message, tmp_path):
+def test_eval_and_video_cli_say_a_missing_path_in_one_line(module, args, message, tmp_path, said):
     """refused: a missing path | one line naming the path, exit status 2"""
     out = run_command(module, args, tmp_path)
     assert out.returncode == 2 and out.stderr.strip().splitlines() == [out.stderr.strip()], out.stderr[-2000:]
     assert out.stderr.startswith(message)
+    said(out.stderr.strip())
 
 
 def test_every_dmc_task_has_an_env_preset():
