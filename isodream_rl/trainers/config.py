@@ -199,7 +199,8 @@ class LoggingConfig:
     """Episodes of the evaluation after the last update, written with the task's reference policies (random,
     best constant action, scripted) and the normalised score to ``<run_dir>/summary.json``; 0 skips it."""
     video_context: int = 5
-    """Context frames of the open-loop prediction; the rest of the window is imagined."""
+    """Context frames of the open-loop prediction (>= 2: the world model filters windows of 2 steps or more); the
+    rest of the window is imagined."""
     video_length: int = 20
     """Frames per open-loop prediction (context included)."""
     project: str = "isodream-rl"
