@@ -39,6 +39,7 @@ _PREFIX = "step_"
 _STATE_FILE = "state.pt"
 _REPLAY_DIR = "replay"
 MANIFEST_FILE = "manifest.json"
+_LOADING = ".loading-"
 _CHUNK = 8 << 20
 
 
@@ -177,7 +178,8 @@ class CheckpointManager:
         final = self.directory / f"{_PREFIX}{step:08d}"
         tmp = final.with_name(final.name + ".tmp")
         self.directory.mkdir(parents=True, exist_ok=True)
-        for stale in self.directory.glob(f"{_PREFIX}*.tmp"):  # writes a killed process left behind
+        # writes and replay copies a killed process left behind
+        for stale in [*self.directory.glob(f"{_PREFIX}*.tmp"), *self.directory.glob(f"{_LOADING}*")]:
             shutil.rmtree(stale, ignore_errors=True)
         try:
             tmp.mkdir()
@@ -288,7 +290,7 @@ class CheckpointManager:
         source = Path(path) / _REPLAY_DIR
         if not source.exists():
             return
-        with tempfile.TemporaryDirectory(dir=self.directory, prefix=".loading-") as scratch:
+        with tempfile.TemporaryDirectory(dir=self.directory, prefix=_LOADING) as scratch:
             copy = Path(scratch) / _REPLAY_DIR
             try:
                 shutil.copytree(source, copy)
