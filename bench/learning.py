@@ -58,8 +58,10 @@ def run_command(algo: str, seed: int, run_dir: Path, args: argparse.Namespace) -
         f"run_dir={run_dir}",
         *args.override,
     ]
-    if (run_dir / "checkpoints").is_dir() and any((run_dir / "checkpoints").iterdir()):
+    if (run_dir / "checkpoints").is_dir() and any((run_dir / "checkpoints").glob("step_*[0-9]")):
         overrides.append("resume=true")
+    else:  # never started, or stopped before its first checkpoint: start over (the folder holds bench.log)
+        overrides.append("overwrite=true")
     return [sys.executable, "-m", "isodream_rl.cli", *overrides]
 
 

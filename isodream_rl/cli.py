@@ -9,6 +9,9 @@ Examples::
     isodream-train exp=world_model                   # the world model alone (isodream-demo)
     isodream-eval runs/walker --episodes 10 --video walker.gif
 
+A user error is one line on stderr and exit status 2; ``--debug`` (or ``HYDRA_FULL_ERROR=1``) shows the
+traceback (``isodream_rl/user_errors.py``).
+
 ``python -m isodream_rl.cli ...`` runs ``isodream-train``; ``python -m isodream_rl.cli eval ...`` runs
 ``isodream-eval``.
 """
@@ -28,12 +31,15 @@ import hydra  # noqa: E402
 from hydra.core.config_store import ConfigStore  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
+from isodream_rl.configs import register_dmc_envs  # noqa: E402
 from isodream_rl.trainers import run as run_module  # noqa: E402
 from isodream_rl.trainers.checkpoint import CheckpointError  # noqa: E402
 from isodream_rl.trainers.config import ConfigError, RunConfig  # noqa: E402
 from isodream_rl.trainers.stepper import NonFiniteLossError  # noqa: E402
+from isodream_rl.user_errors import report_user_errors, take_debug_flag  # noqa: E402
 
 ConfigStore.instance().store(name="run_schema", node=RunConfig)
+register_dmc_envs()  # env=dmc_<domain>_<task> for every dm_control suite task
 
 
 def _summary(result: run_module.RunResult) -> str:
@@ -72,20 +78,27 @@ def _log_to_stderr() -> None:
         package.propagate = False
 
 
+#: what isodream-train reports in one line (see isodream_rl/user_errors.py)
+TRAIN_ERRORS = (ConfigError, CheckpointError, NonFiniteLossError)
+
+
 @hydra.main(version_base="1.3", config_path="configs", config_name="config")
 def _train_main(dict_cfg: DictConfig) -> None:
     _log_to_stderr()
-    cfg: RunConfig = OmegaConf.to_object(dict_cfg)
-    try:
+    with report_user_errors("isodream-train", TRAIN_ERRORS):
+        cfg: RunConfig = OmegaConf.to_object(dict_cfg)
         result = run_module.train(cfg)
-    except (ConfigError, CheckpointError, NonFiniteLossError) as err:
-        print(f"isodream-train: {err}", file=sys.stderr)
-        sys.exit(2)
     print(_summary(result))
 
 
 def train() -> None:
-    """``isodream-train [hydra overrides]``: train or resume a run (see ``isodream-train --help``)."""
+    """``isodream-train [hydra overrides] [--debug]``: train or resume a run (see ``isodream-train --help``).
+
+    A user error (invalid setting, a run_dir holding another run, a resume with other settings, no readable
+    checkpoint) is one line on stderr and exit status 2; ``--debug`` (or ``HYDRA_FULL_ERROR=1``) shows the
+    traceback.
+    """
+    sys.argv = take_debug_flag(sys.argv)
     _train_main()
 
 
@@ -101,16 +114,15 @@ def evaluate(argv: list[str] | None = None) -> None:
     parser.add_argument("--episodes", type=int, default=5, help="episodes to run (default 5)")
     parser.add_argument("--video", default=None, help="write the first episode as a GIF here")
     parser.add_argument("--seed", type=int, default=0, help="env and policy seed (default 0)")
+    parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     args = parser.parse_args(argv)
+    take_debug_flag(["--debug"] if args.debug else [])
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
-    try:
+    with report_user_errors("isodream-eval", (CheckpointError, ConfigError, FileNotFoundError)):
         mean, std, returns = run_module.evaluate_checkpoint(
             args.run_dir, episodes=args.episodes, video=args.video, seed=args.seed
         )
-    except CheckpointError as err:
-        print(f"isodream-eval: {err}", file=sys.stderr)
-        sys.exit(2)
     print(f"return over {len(returns)} episodes: {mean:.2f} +- {std:.2f}")
     if args.video:
         print(f"video: {args.video}")

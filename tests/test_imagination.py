@@ -116,6 +116,7 @@ def test_imagination_starts_from_every_posterior_of_the_replay_batch():
     td = TensorDict(
         {
             "action": torch.zeros(batch, time, A),
+            "is_init": torch.zeros(batch, time, 1, dtype=torch.bool),
             ("next", "pixels"): torch.randint(0, 256, (batch, time, 3, 64, 64), dtype=torch.uint8),
             ("next", "reward"): torch.zeros(batch, time, 1),
         },

@@ -11,6 +11,7 @@ def _masks(bias: float) -> dict[str, float]:
     td = TensorDict(
         {
             "action": torch.zeros(2, 4, 2),
+            "is_init": torch.zeros(2, 4, 1, dtype=torch.bool),
             ("next", "pixels"): torch.randint(0, 256, (2, 4, 3, 64, 64), dtype=torch.uint8),
         },
         [2, 4],

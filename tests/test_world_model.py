@@ -437,6 +437,7 @@ def structured_batch(batch=2, time=8, seed=0):
     return TensorDict(
         {
             "action": torch.from_numpy(actions),
+            "is_init": torch.zeros(batch, time, 1, dtype=torch.bool),
             ("next", "pixels"): torch.from_numpy(frames).permute(0, 1, 4, 2, 3).contiguous(),
             ("next", "reward"): torch.from_numpy(actions[..., :1].copy()),
         },

@@ -28,7 +28,9 @@ per step, about 20 %, measured on sprites), and ``set_seed`` seeds the next rese
 from __future__ import annotations
 
 import functools
+import inspect
 import logging
+import numbers
 import os
 from typing import Any
 
@@ -304,22 +306,48 @@ def make_gym_env(name: str, **cfg: Any) -> gym.Env:
 
     Raises:
         ValueError: for an unknown name, listing the valid ones.
+        TypeError: a keyword of the wrong type for the built-in envs (e.g. ``vehicles_count='many'``), naming it.
     """
     _check_name(name)
     if name == "sprites":
         from isodream_rl.envs.sprites import SpritesEnv
 
-        return SpritesEnv(**cfg)
+        return SpritesEnv(**_checked_kwargs(SpritesEnv, name, cfg))
     if name == "highway":
         from isodream_rl.envs.highway import HighwayIsoEnv
 
-        return HighwayIsoEnv(**cfg)
+        return HighwayIsoEnv(**_checked_kwargs(HighwayIsoEnv, name, cfg))
     if name not in dmc_env_names():
         return RenderedPixels(gym.make(name, render_mode="rgb_array", **cfg))
     from isodream_rl.envs.dmc import DMCBackgroundEnv
 
     domain, task = dmc_env_names()[name]
-    return DMCBackgroundEnv(domain=domain, task=task, **cfg)
+    return DMCBackgroundEnv(domain=domain, task=task, **_checked_kwargs(DMCBackgroundEnv, name, cfg))
+
+
+def _checked_kwargs(env_class: type, name: str, cfg: dict[str, Any]) -> dict[str, Any]:
+    """``cfg``, once every keyword whose default is a number, a bool or a string is found to have that kind
+    of value; an env's own checks would otherwise fail inside numpy without naming the keyword.
+
+    Raises:
+        TypeError: naming the keyword, its value and the expected kind.
+    """
+    parameters = inspect.signature(env_class.__init__).parameters
+    for key, value in cfg.items():
+        parameter = parameters.get(key)
+        default = None if parameter is None else parameter.default
+        if isinstance(default, bool):
+            expected, ok = "a bool", isinstance(value, bool)
+        elif isinstance(default, numbers.Real):
+            expected = "a number"
+            ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
+        elif isinstance(default, str):
+            expected, ok = "a string", isinstance(value, str)
+        else:
+            continue
+        if not ok:
+            raise TypeError(f"make_env({name!r}): {key}={value!r} must be {expected} (default {default!r})")
+    return cfg
 
 
 def make_env(
@@ -328,6 +356,7 @@ def make_env(
     seed: int | None = None,
     device: torch.device | str = "cpu",
     return_masks: bool = False,
+    any_image_size: bool = False,
     **cfg: Any,
 ) -> TransformedEnv:
     """Builds a TorchRL env by name, with uint8 ``"pixels"`` ``[3, H, W]`` and float32 actions in [-1, 1].
@@ -340,6 +369,9 @@ def make_env(
         return_masks (bool, optional): add the ground-truth masks (bool ``[H, W]``) to every step:
             ``"mask_agent"``, ``"mask_distractors"``, ``"mask_target"`` (sprites) or ``"mask_background"``
             (DMC). Highway has none. Defaults to ``False``.
+        any_image_size (bool, optional): allow an ``image_size`` other than 64. The world model reads
+            ``[3, 64, 64]`` frames, so other sizes are refused unless set (for models of your own).
+            Defaults to ``False``.
         **cfg: passed to the env class, e.g. ``task="reach"`` (sprites), ``view="top_down"``,
             ``vehicles_count=20`` (highway), ``background="video_hard"`` (dmc).
 
@@ -347,8 +379,9 @@ def make_env(
         TransformedEnv: keys listed in this module's docstring.
 
     Raises:
-        ValueError: unknown name (the message lists the valid ones), or ``return_masks`` on an env without
-            ground-truth masks.
+        ValueError: unknown name (the message lists the valid ones), ``return_masks`` on an env without
+            ground-truth masks, or an ``image_size`` other than 64 without ``any_image_size``.
+        TypeError: ``seed`` not an int, or a keyword of the wrong type (named).
 
     Examples:
         >>> env = make_env("sprites", seed=0, task="reach", return_masks=True)
@@ -357,6 +390,14 @@ def make_env(
         (torch.Size([3, 3, 64, 64]), torch.Size([3, 64, 64]))
     """
     _check_name(name)
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, numbers.Integral)):
+        raise TypeError(f"make_env({name!r}): seed={seed!r} must be an int or None")
+    image_size = cfg.get("image_size", 64)
+    if image_size != 64 and not any_image_size:
+        raise ValueError(
+            f"make_env({name!r}): image_size={image_size!r}, but the world model reads [3, 64, 64] frames; "
+            "leave image_size at 64, or pass any_image_size=True for a model of your own"
+        )
     mask_keys = {"sprites": SPRITES_MASK_KEYS}.get(name, DMC_MASK_KEYS if name in dmc_env_names() else ())
     if return_masks and not mask_keys:
         raise ValueError(

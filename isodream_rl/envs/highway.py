@@ -12,6 +12,8 @@ trajectories, about 9x faster.
 
 from __future__ import annotations
 
+import numbers
+
 import gymnasium as gym
 import numpy as np
 from highway_env import utils
@@ -26,6 +28,11 @@ HIGHWAY_VIEWS = ("first_person", "top_down")
 
 SIMULATION_FREQUENCY = 20
 """Simulation ticks per second (dt = 0.05 s), as the authors' synchronous CARLA."""
+
+
+def _is_number(value) -> bool:
+    """A real number, not a bool or a string (whose comparisons would fail without naming the argument)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 class HighwayIsoEnv(gym.Env):
@@ -106,7 +113,7 @@ class HighwayIsoEnv(gym.Env):
             ("image_size", image_size, 8),
             ("stuck_check_ticks", stuck_check_ticks, 1),
         ):
-            if int(value) != value or value < low:
+            if not _is_number(value) or int(value) != value or value < low:
                 raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
         for name, value in (
             ("collision_weight", collision_weight),
@@ -114,9 +121,9 @@ class HighwayIsoEnv(gym.Env):
             ("vehicle_mass", vehicle_mass),
             ("stuck_speed", stuck_speed),
         ):
-            if not value >= 0:
-                raise ValueError(f"{name} must be >= 0, got {value!r}")
-        if not vehicles_density > 0:
+            if not _is_number(value) or not value >= 0:
+                raise ValueError(f"{name} must be a number >= 0, got {value!r}")
+        if not _is_number(vehicles_density) or not vehicles_density > 0:
             raise ValueError(f"vehicles_density must be > 0, got {vehicles_density!r}")
         self.view = view
         self.vehicles_count = int(vehicles_count)

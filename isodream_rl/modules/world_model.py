@@ -17,7 +17,7 @@ from tensordict.nn import TensorDictModuleBase
 from isodream_rl.modules.composition import MaskComposition
 from isodream_rl.modules.config import WorldModelConfig
 from isodream_rl.modules.decoder import ConvDecoder
-from isodream_rl.modules.encoder import IMAGE_SHAPE, BranchedEncoder, check_pixels
+from isodream_rl.modules.encoder import IMAGE_SHAPE, BranchedEncoder, check_pixel_values, check_pixels
 from isodream_rl.modules.heads import make_discount_head, make_reward_head
 from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
 from isodream_rl.modules.rssm import (
@@ -38,12 +38,16 @@ class IsoDreamWorldModel(TensorDictModuleBase):
     Args:
         config: a :class:`~isodream_rl.modules.config.WorldModelConfig`.
         device: where to create the parameters.
+        check_inputs: check every batch at the boundary (one min/max of the pixels, a finiteness check of the
+            actions): float pixels outside ``[0, 1]``, NaN/inf pixels or actions, a missing ``"is_init"`` and
+            windows shorter than 2 steps raise a ``ValueError`` saying what to fix. ``False`` skips the value
+            checks (shapes are always checked) for speed once the data pipeline is trusted.
 
-    Reads (``[B, T]`` batch):
+    Reads (``[B, T]`` batch, ``T >= 2``):
         ``("next", "pixels")`` uint8 ``[B, T, 3, 64, 64]`` (or float in ``[0, 1]``), ``"action"``
-        ``[B, T, A]``, and optionally ``"is_init"`` ``[B, T, 1]`` bool: where set, both branches' states and
-        the action fed to the transition are zeroed at that step (an episode starts inside the window).
-        Every window starts from zero states.
+        ``[B, T, A]``, and ``"is_init"`` ``[B, T, 1]`` bool: where set, both branches' states and the action
+        fed to the transition are zeroed at that step (an episode starts inside the window). Every window
+        starts from zero states.
 
     Writes (under ``"next"``, ``[B, T, ...]``):
         controllable branch ``state`` s_t, ``belief`` h_t, ``prior_state`` s~_t, ``prior_mean``,
@@ -61,15 +65,18 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         >>> from tensordict import TensorDict
         >>> from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
         >>> wm = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
-        >>> td = TensorDict({"action": torch.zeros(2, 5, 2),
+        >>> td = TensorDict({"action": torch.zeros(2, 5, 2), "is_init": torch.zeros(2, 5, 1, dtype=torch.bool),
         ...                  ("next", "pixels"): torch.zeros(2, 5, 3, 64, 64, dtype=torch.uint8)}, [2, 5])
         >>> wm(td)["next", "reco_pixels"].shape
         torch.Size([2, 5, 3, 64, 64])
     """
 
-    def __init__(self, config: WorldModelConfig, *, device: torch.device | str | None = None):
+    def __init__(
+        self, config: WorldModelConfig, *, device: torch.device | str | None = None, check_inputs: bool = True
+    ):
         super().__init__()
         self.config = cfg = config
+        self.check_inputs = check_inputs
         heads = (
             ("control",) + (("free",) if cfg.free_branch else ()) + (("static",) if cfg.static_branch else ())
         )
@@ -234,6 +241,21 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         is_init = tensordict.get("is_init", None)
         if is_init is not None and is_init.shape[-1:] != (1,):
             raise ValueError(f"'is_init' must have shape [B, T, 1], got {tuple(is_init.shape)}")
+        if self.check_inputs:
+            if tensordict.batch_size[1] < 2:
+                raise ValueError(
+                    f"IsoDreamWorldModel needs windows of at least 2 steps (the inverse-dynamics cell reads step "
+                    f"pairs; one step teaches no dynamics), got T={tensordict.batch_size[1]}: sample longer windows"
+                )
+            if is_init is None:
+                raise ValueError(
+                    "IsoDreamWorldModel needs 'is_init' [B, T, 1] bool (True where an episode starts; TorchRL's "
+                    "InitTracker writes it): without it windows never reset. Pass torch.zeros(B, T, 1, "
+                    "dtype=torch.bool) for windows inside one episode"
+                )
+            check_pixel_values(pixels, name="('next', 'pixels')")
+            if not bool(torch.isfinite(action).all()):
+                raise ValueError("'action' holds NaN or inf values: check the policy or the replay data")
         return pixels, action.float(), is_init
 
     def _rollout(self, control_proj, free_proj, action, is_init) -> dict[str, torch.Tensor]:

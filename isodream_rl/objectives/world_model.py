@@ -60,6 +60,11 @@ class IsoDreamModelLoss(LossModule):
             mapping of ``loss_*`` scalars, e.g.
             :class:`~isodream_rl.objectives.pyramid.PyramidImageTerm`.
 
+    Inputs are checked at the world model's boundary (:class:`~isodream_rl.modules.IsoDreamWorldModel`,
+    ``check_inputs``): float pixels outside ``[0, 1]``, NaN/inf pixels or actions, a missing ``is_init`` and
+    windows shorter than 2 steps raise a ``ValueError``; ``IsoDreamWorldModel(..., check_inputs=False)`` skips
+    these checks.
+
     Returns:
         ``(losses, model_output)``, like TorchRL's ``DreamerModelLoss``: ``losses`` holds
         ``loss_model_reco``, ``loss_model_reward``, ``loss_model_kl_control`` and, depending on the model
@@ -75,7 +80,7 @@ class IsoDreamModelLoss(LossModule):
         >>> from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
         >>> from isodream_rl.objectives import IsoDreamModelLoss
         >>> loss = IsoDreamModelLoss(IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2)))
-        >>> td = TensorDict({"action": torch.zeros(2, 5, 2),
+        >>> td = TensorDict({"action": torch.zeros(2, 5, 2), "is_init": torch.zeros(2, 5, 1, dtype=torch.bool),
         ...                  ("next", "pixels"): torch.zeros(2, 5, 3, 64, 64, dtype=torch.uint8),
         ...                  ("next", "reward"): torch.zeros(2, 5, 1)}, [2, 5])
         >>> losses, _ = loss(td)

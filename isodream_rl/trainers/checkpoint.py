@@ -1,18 +1,32 @@
-"""Atomic, rotating training checkpoints with a fallback when the newest one is unreadable.
+"""Atomic, verified, rotating training checkpoints with a fallback when the newest one is unreadable.
 
 Layout: ``<run_dir>/checkpoints/step_<updates:08d>/`` holds ``state.pt`` (models, optimisers, counters,
-RNG states, config) and ``replay/`` (the replay buffer, ``ReplayBuffer.dumps``). A checkpoint is written to
-``<name>.tmp`` first and renamed when complete, so a crash mid-write never leaves a half checkpoint under a
-final name. TorchRL's ``Trainer(save_trainer_file=...)`` writes one file in place and has no fallback, and
-its ``Checkpoint`` API does not save RNG states of numpy/python or skip unreadable versions, hence this module.
+RNG states, config), ``replay/`` (the replay buffer, ``ReplayBuffer.dumps``) and ``manifest.json``: the size and
+SHA-256 of every other file of the checkpoint, written last. A checkpoint is written to ``<name>.tmp`` first,
+verified, and renamed when complete, so a crash or a full disk mid-write never leaves a half checkpoint under a
+final name; older checkpoints are deleted only after the new one is verified.
+
+Loading checks the manifest (every file present, of its size and checksum, no file missing from it), then the
+keys the caller needs in ``state.pt``; any failure makes that checkpoint unreadable and the previous one is
+tried, with a warning. Loading never writes to a checkpoint: the replay data are copied before TorchRL's
+``loads`` opens them (it extends a short memmap file in place). The cost, measured on a 0.25 GB replay buffer
+(20k steps of 64x64 pixels, one busy core): ``dumps`` alone 0.3 s, with the manifest (SHA-256 at ~1.5 GB/s) and
+the flushes 0.8 s; verifying it at load 0.17 s. A full 100k-step buffer (1.2 GB) adds ~2.5 s per checkpoint.
+
+TorchRL's ``Trainer(save_trainer_file=...)`` writes one file in place and has no fallback, and its ``Checkpoint``
+API does not save RNG states of numpy/python or skip unreadable versions, hence this module.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import os
 import random
 import shutil
+import tempfile
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +38,9 @@ logger = logging.getLogger(__name__)
 _PREFIX = "step_"
 _STATE_FILE = "state.pt"
 _REPLAY_DIR = "replay"
+MANIFEST_FILE = "manifest.json"
+_LOADING = ".loading-"
+_CHUNK = 8 << 20
 
 
 class CheckpointError(RuntimeError):
@@ -40,6 +57,70 @@ def set_rng_state(state: dict[str, Any]) -> None:
     torch.set_rng_state(state["torch"])
     np.random.set_state(state["numpy"])
     random.setstate(state["python"])
+
+
+def file_digest(path: Path) -> str:
+    """The SHA-256 of a file, read in 8 MB chunks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(_CHUNK):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _files(folder: Path) -> list[Path]:
+    """The files under ``folder`` but the manifest, relative, sorted."""
+    return sorted(p.relative_to(folder) for p in folder.rglob("*") if p.is_file() and p.name != MANIFEST_FILE)
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_manifest(folder: Path) -> dict[str, dict[str, Any]]:
+    """Flush every file of ``folder`` to disk, then write ``manifest.json`` with their sizes and SHA-256 (last,
+    and flushed too); the manifest's entries."""
+    entries = {}
+    for relative in _files(folder):
+        path = folder / relative
+        _fsync(path)
+        entries[relative.as_posix()] = {"size": path.stat().st_size, "sha256": file_digest(path)}
+    manifest = folder / MANIFEST_FILE
+    manifest.write_text(json.dumps({"files": entries}, indent=1))
+    _fsync(manifest)
+    for directory in {folder, *(p.parent for p in folder.rglob("*") if p.is_file())}:
+        _fsync(directory)
+    return entries
+
+
+def verify(folder: Path, *, checksums: bool = True) -> None:
+    """Check ``folder`` against its manifest: every file listed, present, of its size and (``checksums``) its
+    SHA-256, and none unlisted.
+
+    Raises:
+        CheckpointError: naming the first difference.
+    """
+    manifest = folder / MANIFEST_FILE
+    try:
+        entries = json.loads(manifest.read_text())["files"]
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise CheckpointError(f"its manifest is unreadable ({type(err).__name__}: {err})") from err
+    found = {relative.as_posix() for relative in _files(folder)}
+    if found - set(entries):
+        raise CheckpointError(f"files not in its manifest: {sorted(found - set(entries))}")
+    for name, entry in entries.items():
+        path = folder / name
+        if name not in found:
+            raise CheckpointError(f"{name} is missing")
+        size = path.stat().st_size
+        if size != entry["size"]:
+            raise CheckpointError(f"{name} has {size} bytes, the manifest says {entry['size']} (truncated?)")
+        if checksums and file_digest(path) != entry["sha256"]:
+            raise CheckpointError(f"{name} does not match its checksum (corrupted)")
 
 
 class CheckpointManager:
@@ -70,12 +151,17 @@ class CheckpointManager:
         found = [
             p
             for p in self.directory.iterdir()
-            if p.is_dir() and p.name.startswith(_PREFIX) and not p.name.endswith(".tmp")
+            if p.is_dir() and p.name.startswith(_PREFIX) and p.name[len(_PREFIX) :].isdigit()
         ]
-        return sorted(found, key=lambda p: int(p.name[len(_PREFIX) :]))
+        return sorted(found, key=_step_of)
 
     def save(self, step: int, state: dict[str, Any], *, replay_buffer=None) -> Path:
-        """Write checkpoint ``step`` atomically and delete all but the newest ``keep``.
+        """Write checkpoint ``step`` atomically, verify it, then delete the checkpoints it supersedes.
+
+        Written to ``step_<step>.tmp``: ``state.pt``, the replay data, then the manifest, all flushed to disk;
+        the folder is renamed to its final name once its files match the manifest. Then the checkpoints above
+        ``step`` (left by a run that resumed from an earlier one, as the newer ones were unreadable) and all but
+        the newest ``keep`` are deleted.
 
         Args:
             step: the update counter, used in the folder name.
@@ -84,33 +170,91 @@ class CheckpointManager:
 
         Returns:
             the checkpoint folder.
+
+        Raises:
+            CheckpointError: the write failed (a full disk, an unwritable folder); the folder being written is
+                removed and the earlier checkpoints are kept.
         """
         final = self.directory / f"{_PREFIX}{step:08d}"
         tmp = final.with_name(final.name + ".tmp")
-        if tmp.exists():
-            shutil.rmtree(tmp)
-        tmp.mkdir(parents=True)
-        torch.save(state, tmp / _STATE_FILE)
-        if replay_buffer is not None:
-            replay_buffer.dumps(tmp / _REPLAY_DIR)
-        with open(tmp / _STATE_FILE, "rb") as f:
-            os.fsync(f.fileno())
-        if final.exists():
-            shutil.rmtree(final)
+        self.directory.mkdir(parents=True, exist_ok=True)
+        # writes and replay copies a killed process left behind
+        for stale in [*self.directory.glob(f"{_PREFIX}*.tmp"), *self.directory.glob(f"{_LOADING}*")]:
+            shutil.rmtree(stale, ignore_errors=True)
+        try:
+            tmp.mkdir()
+            torch.save(state, tmp / _STATE_FILE)
+            if replay_buffer is not None:
+                replay_buffer.dumps(tmp / _REPLAY_DIR)
+            write_manifest(tmp)
+            verify(tmp, checksums=False)
+        except BaseException as err:
+            shutil.rmtree(tmp, ignore_errors=True)
+            if isinstance(err, (OSError, CheckpointError)):
+                raise CheckpointError(
+                    f"writing checkpoint {final} failed ({type(err).__name__}: {err}); the earlier checkpoints "
+                    f"are kept: free disk space (or fix the folder's permissions) and continue with resume=true"
+                ) from err
+            raise
+        replaced = None
+        if final.exists():  # the same update saved again (e.g. a signal right after a periodic save)
+            replaced = final.with_name(final.name + ".old.tmp")
+            os.replace(final, replaced)
         os.replace(tmp, final)
-        for old in self.checkpoints()[: -self.keep]:
-            shutil.rmtree(old, ignore_errors=True)
+        _fsync(self.directory)
+        if replaced is not None:
+            shutil.rmtree(replaced, ignore_errors=True)
+        self._rotate(final)
         return final
 
-    def load_latest(self, *, replay_buffer=None) -> tuple[dict[str, Any], Path]:
+    def _rotate(self, newest: Path) -> None:
+        older = [p for p in self.checkpoints() if _step_of(p) < _step_of(newest)]
+        newer = [p for p in self.checkpoints() if _step_of(p) > _step_of(newest)]
+        for path in newer:
+            logger.warning(
+                "deleting %s: this run continued from an earlier checkpoint and wrote %s", path, newest
+            )
+            shutil.rmtree(path, ignore_errors=True)
+        for path in older[: max(0, len(older) - (self.keep - 1))]:
+            shutil.rmtree(path, ignore_errors=True)
+
+    def load(self, path: str | Path, *, required_keys: Sequence[str] = ()) -> dict[str, Any]:
+        """The state of checkpoint ``path`` after checking it against its manifest and for ``required_keys``.
+
+        A checkpoint without a manifest (written before there were manifests) is read unverified, with a
+        warning.
+
+        Raises:
+            CheckpointError: the checkpoint is unreadable: a file missing, truncated or corrupted, ``state.pt``
+                not a dict, or a required key missing.
+        """
+        path = Path(path)
+        if (path / MANIFEST_FILE).exists():
+            verify(path)
+        else:
+            logger.warning("checkpoint %s has no %s: read without verification", path, MANIFEST_FILE)
+        try:
+            state = torch.load(path / _STATE_FILE, map_location="cpu", weights_only=False)
+        except Exception as err:
+            raise CheckpointError(f"{_STATE_FILE} is unreadable ({type(err).__name__}: {err})") from err
+        if not isinstance(state, dict):
+            raise CheckpointError(f"{_STATE_FILE} holds a {type(state).__name__}, not a dict")
+        missing = [key for key in required_keys if key not in state]
+        if missing:
+            raise CheckpointError(f"{_STATE_FILE} has no {missing} (keys: {sorted(state)})")
+        return state
+
+    def load_latest(
+        self, *, replay_buffer=None, required_keys: Sequence[str] = ()
+    ) -> tuple[dict[str, Any], Path]:
         """Load the newest readable checkpoint, falling back to older ones.
 
-        An unreadable ``state.pt`` (truncated, corrupted) is reported with a warning naming the checkpoint and
-        the error, and the previous one is tried. Unreadable replay data of an otherwise readable checkpoint
-        raises :class:`CheckpointError` naming the folder to delete.
+        A checkpoint that fails :meth:`load` (a file missing, truncated or corrupted, a required key missing) is
+        reported with a warning naming it and the fault, and the previous one is tried.
 
         Args:
-            replay_buffer: filled with ``loads`` from the checkpoint's replay data when given.
+            replay_buffer: filled from the chosen checkpoint's replay data when given (:meth:`load_replay`).
+            required_keys: keys ``state.pt`` must hold.
 
         Returns:
             ``(state, path)``.
@@ -124,26 +268,39 @@ class CheckpointManager:
         failures = []
         for path in reversed(candidates):
             try:
-                state = torch.load(path / _STATE_FILE, map_location="cpu", weights_only=False)
-                if not isinstance(state, dict):
-                    raise TypeError(f"expected a dict, got {type(state).__name__}")
-            except Exception as err:  # any unreadable file: try the previous checkpoint
-                failures.append(f"{path.name}: {type(err).__name__}: {err}")
+                state = self.load(path, required_keys=required_keys)
+            except CheckpointError as err:
+                failures.append(f"{path.name}: {err}")
                 logger.warning(
-                    "checkpoint %s is unreadable (%s: %s); falling back to the previous one",
-                    path,
-                    type(err).__name__,
-                    err,
+                    "checkpoint %s is unreadable (%s); falling back to the previous one", path, err
                 )
                 continue
-            if replay_buffer is not None and (path / _REPLAY_DIR).exists():
-                # A half-loaded memmap storage cannot take a second attempt: stop with the fix instead.
-                try:
-                    replay_buffer.loads(path / _REPLAY_DIR)
-                except Exception as err:
-                    raise CheckpointError(
-                        f"the replay buffer of {path} is unreadable ({type(err).__name__}: {err}); delete "
-                        f"{path} to resume from the previous checkpoint"
-                    ) from err
+            if replay_buffer is not None:
+                self.load_replay(path, replay_buffer)
             return state, path
         raise CheckpointError(f"no readable checkpoint in {self.directory}:\n  " + "\n  ".join(failures))
+
+    def load_replay(self, path: str | Path, replay_buffer) -> None:
+        """Fill ``replay_buffer`` from the replay data of checkpoint ``path`` (verified by :meth:`load`), read
+        from a copy: TorchRL's ``loads`` may write to the files it opens.
+
+        Raises:
+            CheckpointError: the replay data do not load; a half-filled buffer cannot take a second attempt.
+        """
+        source = Path(path) / _REPLAY_DIR
+        if not source.exists():
+            return
+        with tempfile.TemporaryDirectory(dir=self.directory, prefix=_LOADING) as scratch:
+            copy = Path(scratch) / _REPLAY_DIR
+            try:
+                shutil.copytree(source, copy)
+                replay_buffer.loads(copy)
+            except Exception as err:
+                raise CheckpointError(
+                    f"the replay buffer of {path} is unreadable ({type(err).__name__}: {err}); delete "
+                    f"{path} to resume from the previous checkpoint"
+                ) from err
+
+
+def _step_of(path: Path) -> int:
+    return int(path.name[len(_PREFIX) :])

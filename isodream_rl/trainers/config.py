@@ -203,7 +203,8 @@ class LoggingConfig:
     """Episodes of the evaluation after the last update, written with the task's reference policies (random,
     best constant action, scripted) and the normalised score to ``<run_dir>/summary.json``; 0 skips it."""
     video_context: int = 5
-    """Context frames of the open-loop prediction; the rest of the window is imagined."""
+    """Context frames of the open-loop prediction (>= 2: the world model filters windows of 2 steps or more); the
+    rest of the window is imagined."""
     video_length: int = 20
     """Frames per open-loop prediction (context included)."""
     project: str = "isodream-rl"
@@ -245,9 +246,13 @@ class RunConfig:
     size_name: str = "small"
     """Name of the chosen ``size`` group (used in the default ``run_dir``)."""
     run_dir: str = "runs/default"
-    """Logs, checkpoints and pictures go here; ``resume=true`` needs the same ``run_dir``."""
+    """Logs, checkpoints and pictures go here; ``resume=true`` needs the same ``run_dir``. A folder that holds
+    another run's files is refused unless ``resume`` or ``overwrite`` is set (``trainers/run_dir.py``)."""
     resume: bool = False
     """Shortcut for ``checkpoint.resume``."""
+    overwrite: bool = False
+    """Delete the run already in ``run_dir`` (its checkpoints, logs, pictures, ``run_config.json`` and
+    ``summary.json``) before starting; without it, such a folder is refused."""
 
 
 def _choice(errors: list[str], name: str, value, valid) -> None:
@@ -258,6 +263,21 @@ def _choice(errors: list[str], name: str, value, valid) -> None:
 def _positive(errors: list[str], name: str, value, minimum: int | float = 1) -> None:
     if value < minimum:
         errors.append(f"{name}={value} must be >= {minimum}")
+
+
+def _device_error(device: str) -> str | None:
+    """Why ``train.device`` cannot be used on this machine, or ``None``."""
+    import torch
+
+    try:
+        kind = torch.device(device).type
+    except (RuntimeError, TypeError) as err:
+        return f"train.device={device!r} is not a torch device ({err})"
+    if kind == "cuda" and not torch.cuda.is_available():
+        return f"train.device={device!r} but this machine has no usable CUDA GPU: set train.device=cpu"
+    if kind == "mps" and not torch.backends.mps.is_available():
+        return f"train.device={device!r} but MPS is not available here: set train.device=cpu"
+    return None
 
 
 def validate_config(cfg: RunConfig) -> None:
@@ -271,6 +291,15 @@ def validate_config(cfg: RunConfig) -> None:
     """
     errors: list[str] = []
     _choice(errors, "mode", cfg.mode, MODES)
+    device_error = _device_error(cfg.train.device)
+    if device_error:
+        errors.append(device_error)
+    for name in ("world_model_lr", "actor_lr", "value_lr"):  # 0 freezes that part (tests use it)
+        if not getattr(cfg.train, name) >= 0:
+            errors.append(f"train.{name}={getattr(cfg.train, name)} must be >= 0")
+    for name in ("adam_eps", "grad_clip"):
+        if not getattr(cfg.train, name) > 0:
+            errors.append(f"train.{name}={getattr(cfg.train, name)} must be > 0")
     if cfg.mode == "world_model":
         errors += world_model_mode_errors(cfg)
         if errors:
@@ -356,9 +385,9 @@ def validate_config(cfg: RunConfig) -> None:
             f"train.prefill_steps={train.prefill_steps} is shorter than one replay window per env "
             f"(train.sequence_length * env.num_envs = {window_steps}): raise the prefill or shorten the window"
         )
-    if cfg.logging.video_context >= cfg.logging.video_length or cfg.logging.video_context < 1:
+    if cfg.logging.video_context >= cfg.logging.video_length or cfg.logging.video_context < 2:
         errors.append(
-            f"logging.video_context={cfg.logging.video_context} must be >= 1 and below "
+            f"logging.video_context={cfg.logging.video_context} must be >= 2 and below "
             f"logging.video_length={cfg.logging.video_length}"
         )
     if cfg.logging.video_length > train.sequence_length:
@@ -407,6 +436,21 @@ def validate_config(cfg: RunConfig) -> None:
         )
     if errors:
         raise ConfigError("invalid training configuration:\n  - " + "\n  - ".join(errors))
+
+
+def config_from_dict(data: dict) -> RunConfig:
+    """Rebuild a :class:`RunConfig` from ``dataclasses.asdict`` output (as stored in checkpoints and
+    ``run_config.json``); fields added since it was written take their defaults."""
+    import dataclasses
+
+    sections = {f.name: f.type for f in dataclasses.fields(RunConfig)}
+    kwargs = {}
+    for name, value in data.items():
+        if name not in sections:
+            continue
+        section_type = globals().get(str(sections[name]))
+        kwargs[name] = section_type(**value) if isinstance(value, dict) and section_type else value
+    return RunConfig(**kwargs)
 
 
 def world_model_overrides(cfg: RunConfig) -> dict[str, Any]:

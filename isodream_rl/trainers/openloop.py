@@ -40,7 +40,7 @@ def open_loop_prediction(
         world_model: the trained world model.
         window: a ``[B, T]`` replay window with ``("next", "pixels")`` uint8 ``[B, T, 3, 64, 64]`` and
             ``"action"`` ``[B, T, A]``.
-        context: observed steps, ``1 <= context < T``.
+        context: observed steps, ``2 <= context < T`` (the world model filters windows of 2 steps or more).
 
     Returns:
         ``[B, T]`` tensordict: ``pixels`` (truth, uint8), ``reco_pixels``, ``reco_control`` (and
@@ -48,8 +48,8 @@ def open_loop_prediction(
         and ``imagined`` ``[B, T]`` bool (``False`` on context steps).
     """
     batch, time = window.shape
-    if not 1 <= context < time:
-        raise ValueError(f"context must be in [1, {time - 1}] for a window of {time} steps, got {context}")
+    if not 2 <= context < time:
+        raise ValueError(f"context must be in [2, {time - 1}] for a window of {time} steps, got {context}")
     cfg = world_model.config
     was_training = world_model.training
     world_model.eval()

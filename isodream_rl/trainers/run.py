@@ -27,7 +27,7 @@ from isodream_rl.trainers.builders import (
 )
 from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager, rng_state, set_rng_state
 from isodream_rl.trainers.collectors import make_collector
-from isodream_rl.trainers.config import RunConfig, validate_config
+from isodream_rl.trainers.config import ConfigError, RunConfig, config_from_dict, validate_config
 from isodream_rl.trainers.evaluation import Evaluation, learning_summary, run_episodes, save_episode_gif
 from isodream_rl.trainers.hooks import (
     EpisodeReturns,
@@ -36,9 +36,13 @@ from isodream_rl.trainers.hooks import (
     StopOnSignal,
     Throughput,
 )
+from isodream_rl.trainers.run_dir import check_same_run, claim_run_dir, resuming, write_run_config
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
 
 logger = logging.getLogger(__name__)
+
+#: what ``state.pt`` of an RL run's checkpoint holds (a checkpoint without one of them is unreadable)
+STATE_KEYS = ("config", "models", "stepper", "counters", "hooks", "rng")
 
 
 @dataclass
@@ -65,8 +69,18 @@ def seed_everything(seed: int) -> None:
 
 
 def probe_action_dim(cfg: RunConfig) -> int:
-    """The width of the action of ``cfg``'s env (built once and closed)."""
-    env = env_factory(cfg)()
+    """The width of the action of ``cfg``'s env (built once and closed).
+
+    Raises:
+        ConfigError: the env cannot be built from ``env.name`` and ``env.kwargs`` (the message says why).
+    """
+    try:
+        env = env_factory(cfg)()
+    except (TypeError, ValueError, KeyError, ImportError) as err:
+        raise ConfigError(
+            f"invalid training configuration: env.name={cfg.env.name!r} with env.kwargs={dict(cfg.env.kwargs)} "
+            f"cannot be built: {err}"
+        ) from err
     try:
         return int(env.action_spec.shape[-1])
     finally:
@@ -148,20 +162,36 @@ class RunComponents:
 
 
 def begin_run(cfg: RunConfig) -> tuple[float, Path, Path, Path]:
-    """What every mode does first: check the config, set threads and seeds, create the run folder and write
-    ``run_config.json``.
+    """What every mode does first, before writing anything: check the config, check that the run folder is
+    free (or clear it with ``overwrite=true``, see :mod:`~isodream_rl.trainers.run_dir`), set threads and
+    seeds. ``run_config.json`` is written later (:func:`~isodream_rl.trainers.run_dir.write_run_config`), once
+    a resumed run's checkpoint is found to match the config.
 
     Returns:
         ``(start time from time.perf_counter, run_dir, pictures folder, logs folder)``.
+
+    Raises:
+        ConfigError: an invalid configuration, or a run folder that holds another run.
+        CheckpointError: ``resume`` without a checkpoint.
     """
     validate_config(cfg)
     started = time.perf_counter()
+    run_dir = claim_run_dir(cfg)
     torch.set_num_threads(cfg.train.threads)
     seed_everything(cfg.train.seed)
-    run_dir = Path(cfg.run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "run_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
     return started, run_dir, run_dir / "pictures", run_dir / "logs"
+
+
+def resume_state(cfg: RunConfig, checkpoints: CheckpointManager, *, required_keys) -> tuple[dict, Path]:
+    """The newest readable checkpoint of a resumed run, once its configuration is found to match ``cfg``.
+
+    Raises:
+        CheckpointError: no readable checkpoint.
+        ConfigError: the checkpoint's run had settings that change the models or the data (listed).
+    """
+    state, path = checkpoints.load_latest(required_keys=required_keys)
+    check_same_run(state["config"], cfg)
+    return state, path
 
 
 def make_components(cfg: RunConfig, *, action_dim: int, scratch_dir: Path):
@@ -197,22 +227,21 @@ def train(cfg: RunConfig) -> RunResult:
         return world_model_run.train(cfg)
     started, run_dir, pictures, logs = begin_run(cfg)
     train_cfg = cfg.train
+    checkpoints = CheckpointManager(run_dir / "checkpoints", keep=cfg.checkpoint.keep)
+    resumed_from, state = None, None
+    if resuming(cfg):
+        state, resumed_from = resume_state(cfg, checkpoints, required_keys=STATE_KEYS)
+    action_dim = probe_action_dim(cfg)
+    write_run_config(cfg)  # the run starts: the config matches its checkpoint, the env builds
 
     scratch = run_dir / "replay_scratch"
     # The memmap files of an earlier process of this run (killed, or finished) are stale: the replay data
     # that matters is in the checkpoints.
     shutil.rmtree(scratch, ignore_errors=True)
-    components = make_components(cfg, action_dim=probe_action_dim(cfg), scratch_dir=scratch)
+    components = make_components(cfg, action_dim=action_dim, scratch_dir=scratch)
     stepper, policy = components.stepper, components.behavior.policy
-    checkpoints = CheckpointManager(run_dir / "checkpoints", keep=cfg.checkpoint.keep)
-    resumed_from, state = None, None
-    if cfg.resume or cfg.checkpoint.resume:
-        if not checkpoints.checkpoints():
-            raise CheckpointError(
-                f"resume=true but there is no checkpoint in {checkpoints.directory}; start without resume or "
-                "point run_dir at the run to continue"
-            )
-        state, resumed_from = checkpoints.load_latest(replay_buffer=components.replay_buffer)
+    if state is not None:
+        checkpoints.load_replay(resumed_from, components.replay_buffer)
         components.load_models(state)
         stepper.load_state_dict(state["stepper"])
         components.preparation.load_state_dict(state["hooks"]["preparation"])
@@ -387,20 +416,6 @@ def _is_scalar(value) -> bool:
     return isinstance(value, (int, float)) or (isinstance(value, torch.Tensor) and value.numel() == 1)
 
 
-def config_from_dict(data: dict) -> RunConfig:
-    """Rebuild a :class:`RunConfig` from ``dataclasses.asdict`` output (as stored in checkpoints)."""
-    sections = {f.name: f.type for f in dataclasses.fields(RunConfig)}
-    from isodream_rl.trainers import config as config_module
-
-    kwargs = {}
-    for name, value in data.items():
-        if name not in sections:
-            continue
-        section_type = getattr(config_module, str(sections[name]), None)
-        kwargs[name] = section_type(**value) if isinstance(value, dict) and section_type else value
-    return RunConfig(**kwargs)
-
-
 def evaluate_checkpoint(
     run_dir: str | Path, *, episodes: int = 5, video: str | Path | None = None, seed: int = 0
 ) -> tuple[float, float, list[float]]:
@@ -414,7 +429,7 @@ def evaluate_checkpoint(
         raise CheckpointError(
             f"no checkpoint in {checkpoints.directory}: give the run_dir that isodream-train wrote"
         )
-    state, path = checkpoints.load_latest()
+    state, path = checkpoints.load_latest(required_keys=("config", "models"))
     cfg = config_from_dict(state["config"])
     if cfg.mode == "world_model":
         raise CheckpointError(f"{path} is of a mode=world_model run: it has no policy to evaluate")

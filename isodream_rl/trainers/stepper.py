@@ -176,7 +176,13 @@ class IsoDreamOptimizationStepper(OptimizationStepper):
             )
         batch = sub_batch.reshape(-1, self.sequence_length)
         if not self._metric_keys:
-            self._discover_keys(batch[:1, : min(2, self.sequence_length)].clone())
+            # on a forked generator: a resumed stepper discovers its keys again, and the updates that follow
+            # must draw the same numbers as those of the run it continues
+            device = batch.device
+            with torch.random.fork_rng(
+                devices=[device] if device is not None and device.type == "cuda" else []
+            ):
+                self._discover_keys(batch[:1, : min(2, self.sequence_length)].clone())
         metrics: dict[str, torch.Tensor] = {}
         finite = self._run(batch, metrics)
         for opt in self.optimizers.values():
@@ -210,7 +216,8 @@ class IsoDreamOptimizationStepper(OptimizationStepper):
         """The metric names of a full update, from the losses on a ``[1, 2]`` slice of the first batch.
 
         The Trainer averages the metrics of the updates of a batch key by key, starting from the first
-        update's keys, so every update must return the same keys, a skipped one included.
+        update's keys, so every update must return the same keys, a skipped one included. :meth:`step` runs it
+        on a forked random generator, so that it draws nothing from the run's.
         """
         losses, model_out = self.model_loss(batch)
         keys = [*losses.keys(), "grad_norm_world_model"]

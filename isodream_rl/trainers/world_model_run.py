@@ -46,9 +46,10 @@ from isodream_rl.trainers.builders import (
     make_world_model_loss,
 )
 from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager, rng_state, set_rng_state
-from isodream_rl.trainers.config import ConfigError, RunConfig
+from isodream_rl.trainers.config import ConfigError, RunConfig, config_from_dict
 from isodream_rl.trainers.hooks import StopOnSignal
-from isodream_rl.trainers.run import RunResult, begin_run, config_from_dict, probe_action_dim, write_summary
+from isodream_rl.trainers.run import RunResult, begin_run, probe_action_dim, resume_state, write_summary
+from isodream_rl.trainers.run_dir import resuming, write_run_config
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
 
 logger = logging.getLogger(__name__)
@@ -169,9 +170,12 @@ def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDream
     single = path.name.startswith("step_")
     manager = CheckpointManager(path.parent if single else path / "checkpoints")
     if single:
-        state = torch.load(path / "state.pt", map_location="cpu", weights_only=False)
+        try:
+            state = manager.load(path, required_keys=("config", "models"))
+        except CheckpointError as err:
+            raise CheckpointError(f"checkpoint {path} is unreadable: {err}") from err
     else:
-        state, path = manager.load_latest()
+        state, path = manager.load_latest(required_keys=("config", "models"))
     cfg = config_from_dict(state["config"])
     if cfg.algo.name == "torchrl_dreamer":
         raise CheckpointError(f"{path} holds TorchRL's Dreamer world model, not Iso-Dream's")
@@ -181,45 +185,8 @@ def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDream
     return model, cfg
 
 
-#: what a resumed run may change: its length, logging and checkpoint cadence, threads, device and precision
-_RESUMABLE = (
-    "run_dir",
-    "resume",
-    "world_model.updates",
-    "logging.",
-    "checkpoint.",
-    "train.threads",
-    "train.device",
-    "model.overrides.precision",
-)
-
-
-def _flat(tree: dict, prefix: str = "") -> dict:
-    flat = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            flat.update(_flat(value, f"{prefix}{key}."))
-        else:
-            flat[f"{prefix}{key}"] = value
-    return flat
-
-
-def _same_run(state: dict, cfg: RunConfig) -> None:
-    """Raise a ``ConfigError`` naming the settings where ``cfg`` differs from the checkpoint's run, but for
-    those a resumed run may change (``_RESUMABLE``): the episodes are made again from the settings, so a
-    changed scene or seed would continue the training on other data."""
-    saved = _flat(dataclasses.asdict(config_from_dict(state["config"])))
-    now = _flat(dataclasses.asdict(cfg))
-    differ = {
-        key: (saved.get(key), now.get(key))
-        for key in sorted(saved.keys() | now.keys())
-        if not key.startswith(_RESUMABLE) and saved.get(key) != now.get(key)
-    }
-    if differ:
-        raise ConfigError(
-            f"resume=true continues the run in {cfg.run_dir}, trained with other settings (saved, now): "
-            f"{differ}; keep them, or give another run_dir"
-        )
+#: what ``state.pt`` of a world-model run's checkpoint holds (a checkpoint without one of them is unreadable)
+STATE_KEYS = ("config", "models", "stepper", "counters", "rng")
 
 
 def train(cfg: RunConfig) -> RunResult:
@@ -232,6 +199,12 @@ def train(cfg: RunConfig) -> RunResult:
     """
     started, run_dir, pictures, logs = begin_run(cfg)
     wm, train_cfg = cfg.world_model, cfg.train
+    checkpoints = CheckpointManager(run_dir / "checkpoints", keep=cfg.checkpoint.keep)
+    # the episodes are made again from the settings: a changed scene or seed would continue on other data
+    state, resumed_from = (
+        resume_state(cfg, checkpoints, required_keys=STATE_KEYS) if resuming(cfg) else (None, None)
+    )
+    write_run_config(cfg)
     window, batch_size = train_cfg.sequence_length, train_cfg.batch_size
 
     logger.info("collecting %d random-action episodes of %d steps", wm.episodes, wm.episode_length)
@@ -257,16 +230,8 @@ def train(cfg: RunConfig) -> RunResult:
         grad_clip=train_cfg.grad_clip,
         max_nonfinite=train_cfg.max_nonfinite_updates,
     )
-    checkpoints = CheckpointManager(run_dir / "checkpoints", keep=cfg.checkpoint.keep)
-    resumed_from, wall_before = None, 0.0
-    if cfg.resume or cfg.checkpoint.resume:
-        if not checkpoints.checkpoints():
-            raise CheckpointError(
-                f"resume=true but there is no checkpoint in {checkpoints.directory}; start without resume or "
-                "point run_dir at the run to continue"
-            )
-        state, resumed_from = checkpoints.load_latest()
-        _same_run(state, cfg)
+    wall_before = 0.0
+    if state is not None:
         world_model.load_state_dict(state["models"]["world_model"])
         stepper.load_state_dict(state["stepper"])
         set_rng_state(state["rng"])

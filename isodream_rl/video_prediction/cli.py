@@ -21,6 +21,7 @@ from pathlib import Path
 import torch
 from torch.utils.data import DataLoader
 
+from isodream_rl.user_errors import report_user_errors, take_debug_flag
 from isodream_rl.video_prediction.metrics import FrameMetrics
 from isodream_rl.video_prediction.trainer import TrainConfig, build_split, evaluate, load_checkpoint, train
 
@@ -65,6 +66,7 @@ def _overrides(args: argparse.Namespace, names: typing.Iterable[str]) -> dict:
 
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="isodream-video", description=__doc__.split("\n")[0])
+    parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     sub = parser.add_subparsers(dest="command", required=True)
     train_p = sub.add_parser("train", help="train one variant (see TrainConfig for every option)")
     _add_config_arguments(train_p)
@@ -89,6 +91,10 @@ def _train(args: argparse.Namespace) -> dict:
 
 
 def _eval(args: argparse.Namespace) -> dict:
+    if not args.checkpoint.is_file():
+        raise FileNotFoundError(
+            f"--checkpoint {args.checkpoint}: no such file (isodream-video train writes one)"
+        )
     model, config, _ = load_checkpoint(args.checkpoint)
     config = replace(config, **_overrides(args, _EVAL_OVERRIDES))
     config.__post_init__()
@@ -119,9 +125,12 @@ def _eval(args: argparse.Namespace) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``isodream-video``."""
+    """Entry point of ``isodream-video``. A user error (a missing path, an invalid option, a file that is not a
+    checkpoint) is one line on stderr and exit status 2; ``--debug`` shows the traceback."""
     args = _parser().parse_args(argv)
-    result = _train(args) if args.command == "train" else _eval(args)
+    take_debug_flag(["--debug"] if args.debug else [])
+    with report_user_errors("isodream-video", (FileNotFoundError, KeyError, ValueError)):
+        result = _train(args) if args.command == "train" else _eval(args)
     print(json.dumps(result["metrics"], indent=2))
     return 0
 

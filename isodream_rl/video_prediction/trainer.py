@@ -166,7 +166,12 @@ def build_split(config: TrainConfig, split: str) -> VideoClips:
 
     ``"train"``: every window of ``train_frames``, new random balls on every draw. ``"test"``: one clip of
     ``test_frames`` per sequence, with balls fixed per clip (a seed disjoint from the training one).
+
+    Raises:
+        FileNotFoundError: ``data_path`` is not a folder.
     """
+    if config.data_path and not Path(config.data_path).is_dir():
+        raise FileNotFoundError(f"data_path={config.data_path!r}: no such folder")
     if split not in ("train", "test"):
         raise ValueError(f"split must be 'train' or 'test', got {split!r}")
     source = _sources(config, split)
@@ -259,9 +264,9 @@ def train(config: TrainConfig, *, progress: bool = True) -> dict:
     """
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
-    out_dir = Path(config.out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     train_set, test_set = build_split(config, "train"), build_split(config, "test")
+    out_dir = Path(config.out_dir)  # made once the data are found
+    out_dir.mkdir(parents=True, exist_ok=True)
     action_dim = train_set[0]["actions"].shape[-1]
     model = build_predictor(config, action_dim)
     loss_fn = VideoPredictionLoss(

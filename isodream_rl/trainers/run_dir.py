@@ -1,0 +1,172 @@
+"""Who owns a run folder: a new run never writes into another run's files, a resumed run continues its own.
+
+A run folder (``run_dir``) holds ``run_config.json``, ``checkpoints/``, ``logs/``, ``pictures/``,
+``summary.json`` and ``replay_scratch/`` (:data:`RUN_FILES`). Starting a run where any of them exists is
+refused unless ``resume=true`` (continue that run; its configuration must match, see :func:`check_same_run`) or
+``overwrite=true`` (delete them first). Both checks run before anything of the folder is written, and
+``run_config.json`` is written (:func:`write_run_config`) only once the run is known to start. Hydra's own
+records (``.hydra/``, ``<job>.log``) are not a run's files; ``isodream-train`` checks the folder before Hydra
+writes them (:class:`RunDirGuard`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+from hydra.experimental.callback import Callback
+from omegaconf import OmegaConf
+
+from isodream_rl.trainers.checkpoint import CheckpointError
+from isodream_rl.trainers.config import ConfigError, RunConfig, config_from_dict
+from isodream_rl.user_errors import report_user_errors
+
+#: the files and folders of a run (a folder holding one of them holds a run)
+RUN_FILES = ("run_config.json", "checkpoints", "logs", "pictures", "summary.json", "replay_scratch")
+
+#: the settings a resumed run may change: its length, logging, checkpoint cadence, threads, device, precision,
+#: fault tolerance and collector placement; every other one changes the models or the data
+RESUMABLE = (
+    "run_dir",
+    "resume",
+    "overwrite",
+    "train.total_steps",
+    "world_model.updates",
+    "logging.",
+    "checkpoint.",
+    "train.threads",
+    "train.device",
+    "train.max_nonfinite_updates",
+    "train.collector_backend",
+    "train.ray_address",
+    "train.collector_cpus",
+    "train.distributed_",
+    "train.slurm_kwargs",
+    "model.overrides.precision",
+)
+
+
+def resuming(cfg: RunConfig) -> bool:
+    """``resume=true`` or ``checkpoint.resume=true``."""
+    return bool(cfg.resume or cfg.checkpoint.resume)
+
+
+def existing_run_files(run_dir: str | Path) -> list[str]:
+    """The :data:`RUN_FILES` present in ``run_dir``."""
+    run_dir = Path(run_dir)
+    return [name for name in RUN_FILES if (run_dir / name).exists()]
+
+
+def claim_run_dir(cfg: RunConfig) -> Path:
+    """Check that ``cfg`` may write to its ``run_dir``, clearing it with ``overwrite=true``; the folder.
+
+    Raises:
+        ConfigError: the folder holds another run and neither ``resume`` nor ``overwrite`` is set, or both are
+            set. Nothing is written or deleted then.
+        CheckpointError: ``resume`` and no checkpoint there.
+    """
+    run_dir = Path(cfg.run_dir)
+    if resuming(cfg) and cfg.overwrite:
+        raise ConfigError("resume=true and overwrite=true contradict each other: set one of them")
+    found = existing_run_files(run_dir)
+    if resuming(cfg):
+        if "checkpoints" not in found or not any((run_dir / "checkpoints").glob("step_*")):
+            raise CheckpointError(
+                f"resume=true but there is no checkpoint in {run_dir / 'checkpoints'}; start without resume or "
+                "point run_dir at the run to continue"
+            )
+    elif found:
+        if not cfg.overwrite:
+            raise ConfigError(_another_run(run_dir, found))
+        for name in found:
+            path = run_dir / name
+            shutil.rmtree(path) if path.is_dir() else path.unlink()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    return run_dir
+
+
+def _another_run(run_dir: Path, found: list[str]) -> str:
+    return (
+        f"{run_dir} holds another run ({', '.join(found)}): continue it with resume=true, replace it with "
+        "overwrite=true, or give another run_dir"
+    )
+
+
+def write_run_config(cfg: RunConfig) -> Path:
+    """Write ``<run_dir>/run_config.json`` (the resolved configuration); the path."""
+    path = Path(cfg.run_dir) / "run_config.json"
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
+    tmp.replace(path)
+    return path
+
+
+def _flat(tree: dict, prefix: str = "") -> dict[str, Any]:
+    flat = {}
+    for key, value in tree.items():
+        if isinstance(value, dict) and value:
+            flat.update(_flat(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
+def differing_settings(saved: dict, cfg: RunConfig) -> dict[str, tuple[Any, Any]]:
+    """``{field: (saved, now)}`` for the settings outside :data:`RESUMABLE` where ``cfg`` differs from the
+    configuration ``saved`` in a checkpoint (``dataclasses.asdict`` of a :class:`RunConfig`)."""
+    before = _flat(dataclasses.asdict(config_from_dict(saved)))
+    now = _flat(dataclasses.asdict(cfg))
+    return {
+        key: (before.get(key), now.get(key))
+        for key in sorted(before.keys() | now.keys())
+        if not key.startswith(RESUMABLE) and before.get(key) != now.get(key)
+    }
+
+
+def check_same_run(saved: dict, cfg: RunConfig) -> None:
+    """Refuse to resume with settings that change the models or the data.
+
+    Raises:
+        ConfigError: listing every such setting with its saved and its new value.
+    """
+    differ = differing_settings(saved, cfg)
+    if differ:
+        listed = ", ".join(f"{key}: {before!r} -> {now!r}" for key, (before, now) in differ.items())
+        raise ConfigError(
+            f"resume=true continues the run in {cfg.run_dir}, trained with other settings (saved -> now): "
+            f"{listed}; keep them, or start a new run in another run_dir"
+        )
+
+
+class RunDirGuard(Callback):
+    """A Hydra callback (``hydra.callbacks`` in ``configs/config.yaml``) that runs the refusals of
+    :func:`claim_run_dir` and :func:`check_same_run` before Hydra writes ``.hydra/`` into the run folder, so a
+    refused start leaves the folder as it was: a folder holding another run without ``resume``/``overwrite``,
+    and a resume whose settings differ from the run's ``run_config.json``. The refusal is one line on stderr and
+    exit status 2 (the exception with ``--debug`` or ``HYDRA_FULL_ERROR=1``). ``overwrite=true`` clears the
+    folder later, in :func:`claim_run_dir`; the checkpoint's own configuration is checked again when it loads.
+    """
+
+    def on_run_start(self, config, **kwargs) -> None:
+        def setting(key: str):
+            return OmegaConf.select(config, key, default=None)
+
+        if setting("overwrite"):
+            return
+        run_dir = Path(str(setting("run_dir")))
+        with report_user_errors("isodream-train", (ConfigError,)):
+            if not (setting("resume") or setting("checkpoint.resume")):
+                found = existing_run_files(run_dir)
+                if found:
+                    raise ConfigError(_another_run(run_dir, found))
+                return
+            saved = run_dir / "run_config.json"
+            if saved.exists():
+                task = OmegaConf.masked_copy(config, [key for key in config if key != "hydra"])
+                check_same_run(
+                    json.loads(saved.read_text()),
+                    config_from_dict(OmegaConf.to_container(task, resolve=True)),
+                )

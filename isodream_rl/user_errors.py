@@ -1,0 +1,57 @@
+"""How the console commands report a user error: one line on stderr and exit status 2.
+
+``isodream-train``, ``isodream-eval`` and ``isodream-video`` run their work inside :func:`report_user_errors`:
+an error the user can fix (an invalid setting, a missing path, an unreadable checkpoint, a resume with other
+settings) is printed as ``<command>: <message>`` on one line, and the process exits with status 2. With
+``--debug`` (or ``HYDRA_FULL_ERROR=1`` in the environment) the exception propagates with its traceback.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+#: exit status of a user error (as argparse's)
+USER_ERROR = 2
+DEBUG_FLAG = "--debug"
+
+
+def debugging() -> bool:
+    """``HYDRA_FULL_ERROR=1`` is set (``--debug`` sets it too): show tracebacks."""
+    return os.environ.get("HYDRA_FULL_ERROR") == "1"
+
+
+def take_debug_flag(argv: list[str]) -> list[str]:
+    """``argv`` without ``--debug``; when it was there, set ``HYDRA_FULL_ERROR=1`` (Hydra reads it as well)."""
+    if DEBUG_FLAG in argv:
+        os.environ["HYDRA_FULL_ERROR"] = "1"
+    return [arg for arg in argv if arg != DEBUG_FLAG]
+
+
+def one_line(err: BaseException) -> str:
+    """The exception's message on one line (a multi-line list of problems joined with spaces)."""
+    lines = [line.strip().removeprefix("- ") for line in str(err).splitlines() if line.strip()]
+    # "invalid training configuration:" then one problem a line: "...: first; second"
+    text = (
+        lines[0] + " " + "; ".join(lines[1:])
+        if len(lines) > 1 and lines[0].endswith(":")
+        else " ".join(lines)
+    )
+    if isinstance(err, KeyError) and text.startswith(("'", '"')):
+        text = text[1:-1]
+    return text or type(err).__name__
+
+
+@contextmanager
+def report_user_errors(prog: str, errors: tuple[type[BaseException], ...]) -> Iterator[None]:
+    """Run the block; an exception of ``errors`` becomes ``<prog>: <message>`` on stderr and exit status 2
+    (re-raised when :func:`debugging`)."""
+    try:
+        yield
+    except errors as err:
+        if debugging():
+            raise
+        print(f"{prog}: {one_line(err)}", file=sys.stderr)
+        sys.exit(USER_ERROR)
