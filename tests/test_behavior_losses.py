@@ -50,18 +50,14 @@ def reference_lambda_returns(reward, next_value, discount, lmbda):
     return returns
 
 
-def build(
-    mode="attention", gradient="dynamics", attention_through_actor=False, distribution="tanh_normal", **wm_kwargs
-):
+def build(mode="attention", gradient="dynamics", attention_through_actor=False, **wm_kwargs):
     wm = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=A, **wm_kwargs))
     policy_input = PolicyInput.for_world_model(wm, mode=mode, window=3, width=8)
     imagination = IsoDreamImagination(wm, policy_input, horizon=L)
     value_loss = IsoDreamValueLoss(
         IsoDreamValue(in_features=policy_input.out_features, num_cells=8), imagination
     )
-    actor = IsoDreamActor(
-        in_features=policy_input.out_features, action_dim=A, num_cells=8, depth=2, distribution=distribution
-    )
+    actor = IsoDreamActor(in_features=policy_input.out_features, action_dim=A, num_cells=8, depth=2)
     actor_loss = IsoDreamActorLoss(
         actor,
         imagination,
@@ -160,29 +156,6 @@ def test_dynamics_gradient_reaches_the_actor_through_the_world_model_only():
     losses, _ = actor_loss(start_batch(wm))
     losses["loss_actor"].backward()
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in actor_loss.actor.parameters())
-
-
-@pytest.mark.parametrize("gradient", ["dynamics", "reinforce"])
-def test_bounded_normal_actor_keeps_actions_in_the_box_and_trains(gradient):
-    wm, actor_loss, _ = build(gradient=gradient, distribution="bounded_normal")
-    losses, imagined = actor_loss(start_batch(wm))
-    action = imagined["action"]
-    assert action.abs().max() <= 1.0 and (action.abs() == 1.0).any()  # clipped, not squashed
-    losses["loss_actor"].backward()
-    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in actor_loss.actor.parameters())
-
-
-def test_bounded_normal_entropy_has_a_floor_where_the_tanh_normal_saturates():
-    features = torch.zeros(1, 4)
-    for kind, floor in (("bounded_normal", True), ("tanh_normal", False)):
-        actor = IsoDreamActor(in_features=4, action_dim=A, num_cells=8, depth=2, distribution=kind)
-        with torch.no_grad():  # a mean far outside the box and the smallest std the net can give
-            actor.net[-1].bias.copy_(torch.tensor([50.0] * A + [-50.0] * A))
-        _, log_prob = actor.distribution(features.expand(4096, 4)).rsample_and_log_prob()
-        entropy = -log_prob.mean().item()
-        min_std_entropy = A * (0.5 * torch.log(torch.tensor(2 * torch.pi * torch.e * 0.1**2))).item()
-        assert (entropy >= min_std_entropy - 0.1) == floor, (kind, entropy)
-        assert actor.mode(features).abs().max() <= 1.0
 
 
 def test_reinforce_scores_detached_actions():

@@ -108,8 +108,6 @@ class SpritesEnv(gym.Env):
         progress_reward (float, optional): weight of the dense progress term (distance to the target gained
             this step, as a fraction of ``S``); 0 gives the sparse task. Defaults to 10.0 (about 0.5 per step
             at full speed straight at the target).
-        closeness_reward (float, optional): weight of a dense term ``closeness_reward * (1 - d_t / (sqrt(2) S))``
-            that depends on the state reached alone (``d_t`` measured before a respawn). Defaults to 0.
         target_style (str, optional): ``"disc"`` (filled, the default) or ``"ring"`` (two pixels wide).
         fixed_start (bool, optional): every episode starts with the agent a quarter of the frame from the
             top-left corner and the first target a quarter from the bottom-right one (later targets respawn
@@ -152,7 +150,6 @@ class SpritesEnv(gym.Env):
         reach_reward: float = 1.0,
         contact_penalty: float = 0.5,
         progress_reward: float = 10.0,
-        closeness_reward: float = 0.0,
         target_style: str = "disc",
         fixed_start: bool = False,
         render_mode: str | None = None,
@@ -195,8 +192,6 @@ class SpritesEnv(gym.Env):
             raise ValueError(f"target_style must be one of {TARGET_STYLES}, got {target_style!r}.")
         if not np.isfinite(progress_reward):
             raise ValueError(f"progress_reward must be a finite float, got {progress_reward!r}.")
-        if not np.isfinite(closeness_reward) or closeness_reward < 0:
-            raise ValueError(f"closeness_reward must be a finite float >= 0, got {closeness_reward!r}.")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}.")
         self.image_size = image_size
@@ -208,7 +203,6 @@ class SpritesEnv(gym.Env):
         self.reach_reward = reach_reward
         self.contact_penalty = contact_penalty
         self.progress_reward = float(progress_reward)
-        self.closeness_reward = float(closeness_reward)
         self.target_style = target_style
         self.fixed_start = bool(fixed_start)
         self.render_mode = render_mode
@@ -321,7 +315,6 @@ class SpritesEnv(gym.Env):
                 self.reach_reward * reached
                 - self.contact_penalty * touching
                 + self.progress_reward * progress
-                + self.closeness_reward * (1.0 - distance / (np.sqrt(2.0) * self.image_size))
             )
         obs, info = self._render_with_masks()
         info["reached"] = reached

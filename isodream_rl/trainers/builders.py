@@ -163,7 +163,6 @@ def make_behavior(cfg: RunConfig, world_model: IsoDreamWorldModel) -> Behavior:
         in_features=policy_input.out_features,
         action_dim=world_model.config.action_dim,
         num_cells=model.actor_units,
-        distribution=algo.actor_distribution,
         device=device,
     )
     actor_loss = IsoDreamActorLoss(

@@ -11,7 +11,6 @@ import importlib.util
 from dataclasses import dataclass, field
 from typing import Any
 
-from isodream_rl.modules.actor import ACTOR_DISTRIBUTIONS
 from isodream_rl.modules.config import PAPER_EXACT, SIZE_PRESETS
 from isodream_rl.objectives.world_model import FREE_BRANCH_MODES, LAMBDA_INVERSE
 from isodream_rl.trainers.world_model_config import MODES, WorldModelModeConfig, world_model_mode_errors
@@ -107,9 +106,6 @@ class AlgoConfig:
     """lambda of the lambda-returns."""
     actor_entropy: float = 1e-4
     """Entropy bonus of the actor loss."""
-    actor_distribution: str = "tanh_normal"
-    """The actor's distribution: ``tanh_normal`` (the paper's) or ``bounded_normal`` (DreamerV3's: mean in
-    (-1, 1), std in [0.1, 1], samples clipped), see :class:`~isodream_rl.modules.IsoDreamActor`."""
     exploration_noise: float = 0.0
     """Std of the Gaussian noise added to the acting policy's sampled actions during collection (clamped to
     [-1, 1]; 0 as the authors; DreamerV1 and TorchRL's Dreamer example use 0.3)."""
@@ -309,7 +305,6 @@ def validate_config(cfg: RunConfig) -> None:
     _choice(errors, "model.size", cfg.model.size, SIZE_PRESETS)
     _choice(errors, "algo.policy_input", algo.policy_input, POLICY_INPUTS)
     _choice(errors, "algo.free_branch_loss", algo.free_branch_loss, FREE_BRANCH_MODES)
-    _choice(errors, "algo.actor_distribution", algo.actor_distribution, ACTOR_DISTRIBUTIONS)
     _choice(errors, "train.collector_backend", train.collector_backend, COLLECTOR_BACKENDS)
     _choice(errors, "logging.backend", cfg.logging.backend, LOGGER_BACKENDS)
     _choice(errors, "train.distributed_launcher", train.distributed_launcher, DISTRIBUTED_LAUNCHERS)
