@@ -23,6 +23,25 @@ def load_bench(name: str):
 torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
 
 
+def tiny_run_config(run_dir, **changes):
+    """A sprites ``RunConfig`` at test sizes: tiny world model, 16-unit actor and value, windows of 2 x 6, 10 prefill
+    steps, one batch every 10 steps, 20 steps in all, horizon 3. ``changes`` override fields by
+    ``section__name`` (``train__total_steps=30``; a plain name sets a top-level field)."""
+    from isodream_rl.trainers import RunConfig
+
+    cfg = RunConfig(run_dir=str(run_dir), size_name="tiny")
+    cfg.model.size, cfg.model.actor_units, cfg.model.value_units, cfg.model.attention_dim = "tiny", 16, 16, 8
+    cfg.train.batch_size, cfg.train.sequence_length, cfg.train.buffer_size = 2, 6, 100
+    cfg.train.prefill_steps, cfg.train.frames_per_batch, cfg.train.total_steps = 10, 10, 20
+    cfg.train.threads = 1
+    cfg.algo.horizon, cfg.algo.attention_window = 3, 2
+    cfg.logging.video_length, cfg.logging.video_context = 6, 3
+    for key, value in changes.items():
+        section, _, name = key.rpartition("__")
+        setattr(getattr(cfg, section) if section else cfg, name, value)
+    return cfg
+
+
 @pytest.fixture(autouse=True)
 def _seed():
     torch.manual_seed(0)

@@ -43,6 +43,7 @@ from isodream_rl.trainers import (
 from isodream_rl.trainers import checkpoint as checkpoint_module
 from isodream_rl.trainers.checkpoint import set_rng_state, write_manifest
 from isodream_rl.trainers.hooks import ReplayPreparation
+from tests.conftest import tiny_run_config
 
 ROOT = Path(__file__).resolve().parents[1]
 A = 2  # sprites' action width
@@ -50,21 +51,16 @@ A = 2  # sprites' action width
 
 def tiny_run(run_dir, **changes) -> RunConfig:
     """A sprites run of 30 steps (prefill 10, an update every 5 steps), checkpoints every 2 updates."""
-    cfg = RunConfig(run_dir=str(run_dir), size_name="tiny")
-    cfg.model.size, cfg.model.actor_units, cfg.model.value_units, cfg.model.attention_dim = "tiny", 16, 16, 8
-    cfg.train.batch_size, cfg.train.sequence_length, cfg.train.buffer_size = 2, 6, 100
-    cfg.train.prefill_steps, cfg.train.frames_per_batch, cfg.train.total_steps = 10, 10, 30
-    cfg.train.threads = 1
-    cfg.algo.horizon, cfg.algo.attention_window = 3, 2
-    cfg.env.kwargs = {"task": "reach", "max_steps": 20}
-    cfg.logging.video_length, cfg.logging.video_context = 6, 3
-    cfg.logging.eval_every, cfg.logging.final_eval_episodes, cfg.logging.progress_bar = 0, 0, False
-    cfg.logging.log_every = 5
-    cfg.checkpoint.every_updates = 2
-    for key, value in changes.items():
-        section, _, name = key.rpartition("__")
-        setattr(getattr(cfg, section) if section else cfg, name, value)
-    return cfg
+    defaults = {
+        "train__total_steps": 30,
+        "env__kwargs": {"task": "reach", "max_steps": 20},
+        "logging__eval_every": 0,
+        "logging__final_eval_episodes": 0,
+        "logging__progress_bar": False,
+        "logging__log_every": 5,
+        "checkpoint__every_updates": 2,
+    }
+    return tiny_run_config(run_dir, **{**defaults, **changes})
 
 
 @pytest.fixture

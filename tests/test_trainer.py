@@ -16,18 +16,11 @@ from isodream_rl.trainers import (
 )
 from isodream_rl.trainers.hooks import ReplayPreparation
 from isodream_rl.trainers.openloop import open_loop_prediction, prediction_frames, save_gif
+from tests.conftest import tiny_run_config
 
 
 def tiny_config(tmp_path, **algo) -> RunConfig:
-    cfg = RunConfig(run_dir=str(tmp_path), size_name="tiny")
-    cfg.model.size, cfg.model.actor_units, cfg.model.value_units, cfg.model.attention_dim = "tiny", 16, 16, 8
-    cfg.train.batch_size, cfg.train.sequence_length, cfg.train.buffer_size = 2, 6, 100
-    cfg.train.prefill_steps, cfg.train.frames_per_batch, cfg.train.total_steps = 10, 10, 20
-    cfg.algo.horizon, cfg.algo.attention_window = 3, 2
-    cfg.logging.video_length, cfg.logging.video_context = 6, 3
-    for key, value in algo.items():
-        setattr(cfg.algo, key, value)
-    return cfg
+    return tiny_run_config(tmp_path, **{f"algo__{key}": value for key, value in algo.items()})
 
 
 def replay_batch(batch: int = 2, time: int = 6, action_dim: int = 2) -> TensorDict:

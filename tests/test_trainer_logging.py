@@ -3,6 +3,7 @@
 import pytest
 
 from isodream_rl.trainers import RunConfig, train
+from tests.conftest import tiny_run_config
 
 #: Losses, both KLs, mask means and throughput (docs/recipes/index.md, "Outputs").
 PROMISED = (
@@ -20,17 +21,16 @@ PROMISED = (
 
 
 def tiny_run(tmp_path, backend: str) -> RunConfig:
-    cfg = RunConfig(run_dir=str(tmp_path), size_name="tiny")
-    cfg.model.size, cfg.model.actor_units, cfg.model.value_units, cfg.model.attention_dim = "tiny", 16, 16, 8
-    cfg.train.batch_size, cfg.train.sequence_length, cfg.train.buffer_size = 2, 6, 200
-    cfg.train.prefill_steps, cfg.train.frames_per_batch, cfg.train.total_steps = 10, 10, 30
-    cfg.train.threads = 1
-    cfg.algo.horizon, cfg.algo.attention_window = 3, 2
-    cfg.logging.backend, cfg.logging.progress_bar = backend, False
-    cfg.logging.log_every, cfg.logging.eval_every = 10, 20
-    cfg.logging.video_length, cfg.logging.video_context = 6, 3
-    cfg.env.kwargs = {"max_steps": 20}
-    return cfg
+    return tiny_run_config(
+        tmp_path,
+        train__buffer_size=200,
+        train__total_steps=30,
+        logging__backend=backend,
+        logging__progress_bar=False,
+        logging__log_every=10,
+        logging__eval_every=20,
+        env__kwargs={"max_steps": 20},
+    )
 
 
 def test_tensorboard_event_file_holds_the_scalars_and_the_prediction(tmp_path):
