@@ -146,9 +146,10 @@ class TestObjective:
         out = loss(TensorDict({"pixels": frames, "action": actions}, [2]))
         assert out["loss_image"] > 0
 
-    def test_overfits_a_handful_of_sequences(self):
+    @pytest.mark.parametrize("precision", ["fp32", "bf16"])
+    def test_overfits_a_handful_of_sequences(self, precision):
         torch.manual_seed(0)
-        model = _model(num_layers=1)
+        model = _model(num_layers=1, precision=precision)
         # Three clips: a bright square moved by the action (controllable) on a black background.
         frames = torch.zeros(3, 5, 3, 16, 16)
         actions = torch.zeros(3, 5, 4)
