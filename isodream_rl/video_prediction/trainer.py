@@ -104,6 +104,8 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.dataset not in _DATASETS:
             raise ValueError(f"dataset must be one of {_DATASETS}, got {self.dataset!r}")
+        if self.precision not in ("fp32", "bf16"):
+            raise ValueError(f"precision must be 'fp32' or 'bf16', got {self.precision!r}")
         if self.dataset != "pusher" and not self.data_path:
             raise ValueError(f"dataset={self.dataset!r} needs data_path")
         if not self.context < self.train_frames <= self.sequence_length:
