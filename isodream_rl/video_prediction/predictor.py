@@ -87,6 +87,9 @@ class ThreeBranchPredictor(nn.Module):
     * the inverse-dynamics cell regresses ``a_t`` from action-branch features of ``x_{t+1}`` minus those
       of the branch input at ``t`` (training signal only).
 
+    ``config.channels_last`` and ``config.precision`` set how it runs (channels-last convolutions; bf16
+    autocast with fp32 memories and outputs), not what it computes.
+
     Frames ``0 .. context-1`` are observed; afterwards the model feeds back its own predictions (no
     scheduled sampling, as in the authors' code), so training back-propagates through the rollout.
 
@@ -129,7 +132,7 @@ class ThreeBranchPredictor(nn.Module):
             else None
         )
 
-    def autocast(self, device_type: str):
+    def autocast(self, device_type: str) -> contextlib.AbstractContextManager:
         """The autocast context of ``config.precision`` (bf16 for convolutions and linear layers), or a no-op."""
         if self.config.precision == "bf16":
             return torch.autocast(device_type=device_type, dtype=torch.bfloat16)
