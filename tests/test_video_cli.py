@@ -41,7 +41,8 @@ def test_train_then_eval_writes_checkpoint_logs_metrics_and_figures(bair_root, t
     out = tmp_path / "run"
     args = ["train", "--dataset", "bair", "--data-path", str(bair_root), "--sequence-length", "5",
             "--train-frames", "4", "--test-frames", "5", "--horizons", "2", "3", "--iterations", "2",
-            "--out-dir", str(out), "--result-json", str(out / "result.json"), "--no-progress", *TINY]  # fmt: skip
+            "--out-dir", str(out), "--result-json", str(out / "result.json"), "--no-progress",
+            "--precision", "bf16", *TINY]  # fmt: skip
     assert main(args) == 0
     result = json.loads((out / "result.json").read_text())
     assert result["iterations"] == 2 and set(result["metrics"]) >= {"psnr_2", "ssim_3", "psnr_uint8_3"}
@@ -51,6 +52,7 @@ def test_train_then_eval_writes_checkpoint_logs_metrics_and_figures(bair_root, t
 
     model, config, state = load_checkpoint(out / "checkpoint.pt")
     assert config.variant == "isodream" and state["iteration"] == 2
+    assert model.config.precision == "bf16" and model.config.channels_last
     eval_args = ["eval", "--checkpoint", str(out / "checkpoint.pt"), "--horizons", "3", "--no-balls",
                  "--json", str(tmp_path / "e.json"), "--showcase", str(tmp_path / "s.png"),
                  "--curves", str(tmp_path / "c.png")]  # fmt: skip
@@ -64,5 +66,7 @@ def test_config_rejects_inconsistent_protocol():
         TrainConfig(train_frames=40)
     with pytest.raises(ValueError, match="data_path"):
         TrainConfig(dataset="bair")
+    with pytest.raises(ValueError, match="precision"):
+        TrainConfig(precision="fp16")
     with pytest.raises(KeyError, match="unknown"):
         TrainConfig.from_dict({"colour": 1})

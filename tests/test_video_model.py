@@ -146,9 +146,10 @@ class TestObjective:
         out = loss(TensorDict({"pixels": frames, "action": actions}, [2]))
         assert out["loss_image"] > 0
 
-    def test_overfits_a_handful_of_sequences(self):
+    @pytest.mark.parametrize("precision", ["fp32", "bf16"])
+    def test_overfits_a_handful_of_sequences(self, precision):
         torch.manual_seed(0)
-        model = _model(num_layers=1)
+        model = _model(num_layers=1, precision=precision)
         # Three clips: a bright square moved by the action (controllable) on a black background.
         frames = torch.zeros(3, 5, 3, 16, 16)
         actions = torch.zeros(3, 5, 4)
@@ -167,3 +168,56 @@ class TestObjective:
             sum(terms.values()).backward()
             opt.step()
         assert loss(td)["loss_image"].item() < 0.3 * first
+
+
+class TestFastPath:
+    """The channels-last path equals the plain (contiguous, fp32) reference; bf16 stays close."""
+
+    @staticmethod
+    def _pair(variant, **fast):
+        plain = _model(variant, channels_last=False)
+        other = _model(variant, **fast)
+        other.load_state_dict(plain.state_dict())
+        return plain, other
+
+    @staticmethod
+    def _run(model, frames, actions):
+        model.zero_grad(set_to_none=True)
+        td = TensorDict({"frames": frames, "actions": actions}, [frames.shape[0]])
+        sum(VideoPredictionLoss(model, lambda_action=1.0)(td).values()).backward()
+        out = model(frames, actions, return_components=True)
+        grads = {n: p.grad for n, p in model.named_parameters() if p.grad is not None}
+        return out, grads
+
+    @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+    @pytest.mark.parametrize("variant", sorted(VARIANTS))
+    def test_channels_last_matches_the_plain_path(self, variant, dtype):
+        torch.manual_seed(0)
+        plain, fast = self._pair(variant, channels_last=True)
+        plain.to(dtype), fast.to(dtype)
+        frames, actions = (x.to(dtype) for x in _clip())
+        out_p, grads_p = self._run(plain, frames, actions)
+        out_f, grads_f = self._run(fast, frames, actions)
+        assert out_p.keys() == out_f.keys() and grads_p.keys() == grads_f.keys() and grads_p
+        tol = 1e-5 if dtype == torch.float32 else 1e-10
+        for key in out_p:
+            torch.testing.assert_close(out_f[key], out_p[key], atol=tol, rtol=tol)
+        # Gradients are sums over the rollout, with a different summation order per layout: the tolerance
+        # is relative to the largest gradient (the action loss, weighted 1 here, reaches ~10).
+        scale = max(1.0, max(g.abs().max().item() for g in grads_p.values()))
+        for name in grads_p:
+            torch.testing.assert_close(grads_f[name], grads_p[name], atol=tol * scale, rtol=tol)
+
+    def test_bf16_is_close_and_returns_fp32(self):
+        torch.manual_seed(0)
+        plain, fast = self._pair("isodream", precision="bf16")
+        frames, actions = _clip()
+        out_p, _ = self._run(plain, frames, actions)
+        out_f, grads_f = self._run(fast, frames, actions)
+        assert all(v.dtype == torch.float32 for v in out_f.values())
+        assert all(g.isfinite().all() for g in grads_f.values())
+        torch.testing.assert_close(out_f["frames"], out_p["frames"], atol=3e-2, rtol=0)
+
+    def test_unknown_precision_is_rejected(self):
+        with pytest.raises(ValueError, match="precision"):
+            variant_config("isodream", precision="fp16")

@@ -41,12 +41,21 @@ class PredictorConfig:
     ``"concat"``: the action embedding is added to the cell input (PredRNN's action-conditioned mode)."""
     forget_bias: float = 1.0
     """Added to the forget gates' pre-activations."""
+    channels_last: bool = True
+    """Run the convolutions on channels-last tensors (oneDNN's native layout on CPU). The outputs equal
+    the contiguous-layout path within float tolerance; ``False`` is that plain path, kept as the reference."""
+    precision: str = "fp32"
+    """``"bf16"`` runs the convolutions and linear layers under bf16 autocast (faster where the CPU has
+    native bf16, e.g. ``avx512_bf16``, and on GPUs); the ST-LSTM memories, the mask composition and the
+    losses stay fp32."""
 
     def __post_init__(self) -> None:
         if self.action_conditioning not in ("modulate", "concat"):
             raise ValueError(
                 f"action_conditioning must be 'modulate' or 'concat', got {self.action_conditioning!r}"
             )
+        if self.precision not in ("fp32", "bf16"):
+            raise ValueError(f"precision must be 'fp32' or 'bf16', got {self.precision!r}")
         if self.action_free_branch and not self.mask_composition:
             raise ValueError("the action-free branch needs mask_composition=True (eq. 4 merges the branches)")
         if self.num_layers < 1 or self.hidden_channels < 1:

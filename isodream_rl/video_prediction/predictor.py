@@ -6,6 +6,8 @@ Models", NeurIPS 2022 (https://arxiv.org/abs/2205.13817).
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -66,6 +68,11 @@ class _Branch(nn.Module):
         return x, new_states, m, decouple / len(self.cells)
 
 
+def _at_least_fp32(x: torch.Tensor) -> torch.Tensor:
+    """``x`` in fp32 if it is in a narrower float type (bf16 under autocast), else unchanged."""
+    return x.to(torch.promote_types(x.dtype, torch.float32))
+
+
 class ThreeBranchPredictor(nn.Module):
     """Action-conditioned video predictor with controllable, noncontrollable and static branches.
 
@@ -79,6 +86,9 @@ class ThreeBranchPredictor(nn.Module):
       logits and a zero logit for the static branch (so they are non-negative and sum to one);
     * the inverse-dynamics cell regresses ``a_t`` from action-branch features of ``x_{t+1}`` minus those
       of the branch input at ``t`` (training signal only).
+
+    ``config.channels_last`` and ``config.precision`` set how it runs (channels-last convolutions; bf16
+    autocast with fp32 memories and outputs), not what it computes.
 
     Frames ``0 .. context-1`` are observed; afterwards the model feeds back its own predictions (no
     scheduled sampling, as in the authors' code), so training back-propagates through the rollout.
@@ -122,8 +132,23 @@ class ThreeBranchPredictor(nn.Module):
             else None
         )
 
+    def autocast(self, device_type: str) -> contextlib.AbstractContextManager:
+        """The autocast context of ``config.precision`` (bf16 for convolutions and linear layers), or a no-op."""
+        if self.config.precision == "bf16":
+            return torch.autocast(device_type=device_type, dtype=torch.bfloat16)
+        return contextlib.nullcontext()
+
+    def _layout(self, images: torch.Tensor) -> torch.Tensor:
+        """``[N, C, H, W]`` images in the layout of ``config.channels_last``."""
+        if self.config.channels_last:
+            return images.contiguous(memory_format=torch.channels_last)
+        return images
+
     def _init_states(self, branch: _Branch, feat: torch.Tensor):
-        states = [cell.initial_state(feat) for cell in branch.cells]
+        # fp32 zeros even under autocast, so that the memories c and m accumulate in fp32.
+        states = [
+            tuple(self._layout(_at_least_fp32(s)) for s in cell.initial_state(feat)) for cell in branch.cells
+        ]
         return states, states[0][0].clone()
 
     def forward(
@@ -159,11 +184,21 @@ class ThreeBranchPredictor(nn.Module):
             raise ValueError(
                 f"actions have {actions.shape[-1]} dims, config.action_dim={self.config.action_dim}"
             )
-        batch, steps = frames.shape[:2]
+        steps = frames.shape[1]
         if not 1 <= context < steps:
             raise ValueError(f"context must be in [1, T-1] = [1, {steps - 1}], got {context}")
+        with self.autocast(frames.device.type):
+            out = self._rollout(frames, actions, context=context, return_components=return_components)
+        # Under bf16 autocast some outputs are bf16; callers (losses, metrics) get fp32.
+        return {k: _at_least_fp32(v) for k, v in out.items()}
+
+    def _rollout(
+        self, frames: torch.Tensor, actions: torch.Tensor, *, context: int, return_components: bool
+    ) -> dict[str, torch.Tensor]:
+        batch, steps = frames.shape[:2]
         # The observed frames are encoded in one batched call; the rollout encodes one frame per step.
-        observed = self.encoder(frames[:, :context].flatten(0, 1)).unflatten(0, (batch, context))
+        observed = self.encoder(self._layout(frames[:, :context].flatten(0, 1)))
+        observed = observed.unflatten(0, (batch, context))
         act = self.action_encoder(actions)
 
         ctrl_states, ctrl_m = self._init_states(self.control, observed[:, 0])
@@ -230,6 +265,6 @@ class ThreeBranchPredictor(nn.Module):
 
     def _inverse(self, frames: torch.Tensor, control_inputs: torch.Tensor) -> torch.Tensor:
         batch, steps = control_inputs.shape[:2]
-        targets = self.control.head(self.encoder(frames[:, 1 : steps + 1].flatten(0, 1)))
+        targets = self.control.head(self.encoder(self._layout(frames[:, 1 : steps + 1].flatten(0, 1))))
         delta = targets - control_inputs.flatten(0, 1)
         return self.inverse(delta).unflatten(0, (batch, steps))
