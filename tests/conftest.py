@@ -23,6 +23,22 @@ def load_bench(name: str):
 torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
 
 
+def cli_process(args, cwd):
+    """``python -m isodream_rl.cli *args`` started in ``cwd`` (one torch thread, one-line errors), text pipes."""
+    import subprocess
+    import sys
+
+    env = dict(os.environ, OMP_NUM_THREADS="1", HYDRA_FULL_ERROR="0")
+    return subprocess.Popen(
+        [sys.executable, "-m", "isodream_rl.cli", *args],
+        cwd=cwd,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
 def tiny_run_config(run_dir, **changes):
     """A sprites ``RunConfig`` at test sizes: tiny world model, 16-unit actor and value, windows of 2 x 6, 10 prefill
     steps, one batch every 10 steps, 20 steps in all, horizon 3. ``changes`` override fields by

@@ -1,16 +1,14 @@
 """Checkpoints: atomic rotation, fallback past a corrupted newest one, SIGKILL + resume, SIGTERM save."""
 
 import logging
-import os
 import signal
-import subprocess
-import sys
 import time
 
 import pytest
 import torch
 
 from isodream_rl.trainers import CheckpointError, CheckpointManager
+from tests.conftest import cli_process
 
 RUN = [
     "size=tiny",
@@ -55,19 +53,6 @@ class TestCheckpointManager:
             CheckpointManager(tmp_path, keep=1)
 
 
-def _cli(args, cwd, **kwargs):
-    env = dict(os.environ, OMP_NUM_THREADS="1")
-    return subprocess.Popen(
-        [sys.executable, "-m", "isodream_rl.cli", *args],
-        cwd=cwd,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        **kwargs,
-    )
-
-
 def _wait_for_checkpoints(directory, count, proc, timeout=240):
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -86,7 +71,7 @@ def _counters(path):
 
 
 def test_sigkill_then_resume_continues_from_the_last_readable_checkpoint(tmp_path):
-    proc = _cli([*RUN, "train.total_steps=100000"], tmp_path)
+    proc = cli_process([*RUN, "train.total_steps=100000"], tmp_path)
     try:
         found = _wait_for_checkpoints(tmp_path / "run" / "checkpoints", 2, proc)
     finally:
@@ -97,7 +82,7 @@ def test_sigkill_then_resume_continues_from_the_last_readable_checkpoint(tmp_pat
     env_steps, updates = _counters(previous)
     assert updates > 0
 
-    out = _cli([*RUN, f"train.total_steps={env_steps + 40}", "resume=true"], tmp_path)
+    out = cli_process([*RUN, f"train.total_steps={env_steps + 40}", "resume=true"], tmp_path)
     stdout, stderr = out.communicate(timeout=300)
     assert out.returncode == 0, stderr[-3000:]
     assert "falling back to the previous one" in stderr
@@ -107,7 +92,7 @@ def test_sigkill_then_resume_continues_from_the_last_readable_checkpoint(tmp_pat
 
 
 def test_sigterm_saves_a_checkpoint_and_stops_cleanly(tmp_path):
-    proc = _cli([*RUN, "train.total_steps=100000"], tmp_path)
+    proc = cli_process([*RUN, "train.total_steps=100000"], tmp_path)
     try:
         _wait_for_checkpoints(tmp_path / "run" / "checkpoints", 1, proc)
         proc.send_signal(signal.SIGTERM)

@@ -21,6 +21,7 @@ from isodream_rl.recipes.visualize import score_branches
 from isodream_rl.trainers import CheckpointError, CheckpointManager, ConfigError
 from isodream_rl.trainers import run as run_module
 from isodream_rl.trainers.world_model_run import collect_episodes, ramp_weight, schedule_value
+from tests.conftest import cli_process
 
 CONFIGS = Path(isodream_rl.cli.__file__).parent / "configs"
 # two updates of 2 windows x 8 steps on two short episodes, no probe: what every tiny run here shares
@@ -345,16 +346,8 @@ def test_isodream_demo_is_isodream_train_exp_world_model(tmp_path):
 
 
 def test_sigterm_saves_a_checkpoint_and_stops_before_the_summary(tmp_path):
-    env = dict(os.environ, OMP_NUM_THREADS="1", HYDRA_FULL_ERROR="0")
     args = [*TINY, "world_model.updates=100000", "logging.log_every=1", "run_dir=run"]
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "isodream_rl.cli", *args],
-        cwd=tmp_path,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    proc = cli_process(args, tmp_path)
     try:
         deadline = time.monotonic() + 50
         while not list((tmp_path / "run" / "logs").rglob("loss_model_reco.csv")):  # the first update is done
