@@ -13,9 +13,17 @@ process with one thread, round-robin, and reports iterations per second (median)
 
     python bench/video_prediction.py --speed --json docs/results/video_prediction_speed.json
 
-Each variant trains in its own process (``isodream-video train``) with one torch thread; ``--parallel``
-of them run at a time (the full model and ``no_action_free`` first, so the comparison that matters
-sees the same machine load). Each stops at ``--iterations`` or ``--max-minutes``, whichever comes first.
+Each run (variant x seed) trains in its own process (``isodream-video train --resume``) with one torch thread;
+``--parallel`` of them run at a time, seed by seed, the full model and ``no_action_free`` first. Every run
+trains the same ``--iterations`` (``--max-minutes`` per process only cuts a session short), draws a validation
+point every ``--val-every`` iterations (MSE / PSNR / SSIM over the predicted frames of the first test batches:
+the curve that shows whether training has flattened) and checkpoints every ``--checkpoint-every`` iterations.
+The bench is resumable: run the same command again and finished runs are skipped, interrupted ones continue
+from their last checkpoint; raising ``--iterations`` trains every run further (Adam's learning rate is
+constant). ``--collect-only`` writes the JSON and pictures from the runs on disk.
+
+    python bench/video_prediction.py --iterations 3000 --seeds 0 1 --out-dir runs/bench_video \
+        --json docs/results/video_prediction.json
 """
 
 from __future__ import annotations
@@ -58,9 +66,30 @@ def _parse() -> argparse.Namespace:
     p.add_argument("--frames", type=int, default=12, help="frames per training clip (--speed only)")
     p.add_argument("--out-dir", type=Path, default=Path("runs/bench_video"))
     p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
-    p.add_argument("--iterations", type=int, default=600)
-    p.add_argument("--max-minutes", type=float, default=18.0)
-    p.add_argument("--parallel", type=int, default=2)
+    p.add_argument("--iterations", type=int, default=3000, help="iterations of every run (equal budgets)")
+    p.add_argument(
+        "--max-minutes",
+        type=float,
+        default=0.0,
+        help="stop each process after this long (0: no limit); rerun to resume",
+    )
+    p.add_argument("--parallel", type=int, default=1, help="runs at a time (one thread each)")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    p.add_argument(
+        "--single-seed-variants",
+        nargs="*",
+        default=["no_inverse", "predrnn"],
+        help="variants trained with the first seed only",
+    )
+    p.add_argument(
+        "--data-seed", type=int, default=0, help="seed of the pusher set and the test balls (shared)"
+    )
+    p.add_argument("--val-every", type=int, default=250)
+    p.add_argument("--val-batches", type=int, default=4)
+    p.add_argument("--checkpoint-every", type=int, default=250)
+    p.add_argument(
+        "--collect-only", action="store_true", help="only write the JSON and pictures from the runs"
+    )
     p.add_argument("--batch-size", type=int, default=8)
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--hidden-channels", type=int, default=32)
@@ -69,7 +98,7 @@ def _parse() -> argparse.Namespace:
     p.add_argument("--action-embedding", type=int, default=32)
     p.add_argument("--train-sequences", type=int, default=1000)
     p.add_argument("--test-sequences", type=int, default=128)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="--speed only: seed of the weights and clips")
     p.add_argument(
         "--precision",
         choices=("fp32", "bf16"),
@@ -83,14 +112,41 @@ def _parse() -> argparse.Namespace:
     return args
 
 
-def _train_command(args: argparse.Namespace, variant: str) -> list[str]:
-    out = args.out_dir / variant
+def _runs(args: argparse.Namespace) -> list[tuple[str, int]]:
+    """``(variant, seed)`` in running order: seed by seed, every variant of a seed before the next seed;
+    ``--single-seed-variants`` run with the first seed only."""
+    return [
+        (variant, seed)
+        for i, seed in enumerate(args.seeds)
+        for variant in args.variants
+        if i == 0 or variant not in args.single_seed_variants
+    ]
+
+
+def _run_dir(args: argparse.Namespace, variant: str, seed: int) -> Path:
+    return args.out_dir / variant / f"seed_{seed}"
+
+
+def _finished(args: argparse.Namespace, variant: str, seed: int) -> dict | None:
+    """The run's result if it has trained ``--iterations`` already."""
+    path = _run_dir(args, variant, seed) / "result.json"
+    if not path.exists():
+        return None
+    result = json.loads(path.read_text())
+    return result if result["iterations"] >= args.iterations else None
+
+
+def _train_command(args: argparse.Namespace, variant: str, seed: int) -> list[str]:
+    out = _run_dir(args, variant, seed)
     return [
         sys.executable, "-m", "isodream_rl.video_prediction.cli", "train",
         "--variant", variant,
         "--iterations", str(args.iterations),
-        "--max-minutes", str(args.max_minutes),
+        *(["--max-minutes", str(args.max_minutes)] if args.max_minutes else []),
         "--eval-every", str(10**9),
+        "--val-every", str(args.val_every),
+        "--val-batches", str(args.val_batches),
+        "--checkpoint-every", str(args.checkpoint_every),
         "--batch-size", str(args.batch_size),
         "--lr", str(args.lr),
         "--hidden-channels", str(args.hidden_channels),
@@ -99,43 +155,113 @@ def _train_command(args: argparse.Namespace, variant: str) -> list[str]:
         "--action-embedding", str(args.action_embedding),
         "--train-sequences", str(args.train_sequences),
         "--test-sequences", str(args.test_sequences),
-        "--seed", str(args.seed),
+        "--seed", str(seed),
+        "--data-seed", str(args.data_seed),
         "--precision", args.precision,
         "--threads", "1",
         "--out-dir", str(out),
         "--result-json", str(out / "result.json"),
         "--no-progress",
+        "--resume",
     ]  # fmt: skip
 
 
-def _table(variants: dict) -> str:
+def _table(variants: dict, copy_last: dict) -> str:
     lines = [
-        "| variant | iterations | PSNR 10 | SSIM 10 | PSNR 28 | SSIM 28 | PSNR 28 (uint8) | SSIM 28 (uint8) |",
-        "|---|---|---|---|---|---|---|---|",
+        "| variant | seeds | iterations | PSNR 10 | SSIM 10 | PSNR 28 | SSIM 28 | PSNR 28 (uint8) | SSIM 28 (uint8) |"
+        " minutes per run |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
+
+    def cell(values: list[float], digits: int) -> str:
+        mean = sum(values) / len(values)
+        if len(values) == 1:
+            return f"{mean:.{digits}f}"
+        return f"{mean:.{digits}f} ({min(values):.{digits}f} to {max(values):.{digits}f})"
+
     for name, v in variants.items():
-        lines.append(
-            f"| {name} | {v['iterations']} | {v['psnr_10']:.2f} | {v['ssim_10']:.3f} | {v['psnr_28']:.2f} | "
-            f"{v['ssim_28']:.3f} | {v['psnr_uint8_28']:.2f} | {v['ssim_uint8_28']:.3f} |"
-        )
+        runs = v["seeds"]
+        row = [name, str(len(runs)), "/".join(str(r["iterations"]) for r in runs)]
+        for key, digits in (("psnr_10", 2), ("ssim_10", 3), ("psnr_28", 2), ("ssim_28", 3),
+                            ("psnr_uint8_28", 2), ("ssim_uint8_28", 3)):  # fmt: skip
+            row.append(cell([r[key] for r in runs], digits))
+        row.append(cell([r["train_minutes"] for r in runs], 1))
+        lines.append("| " + " | ".join(row) + " |")
+    lines.append(
+        f"| copy_last_frame | - | - | {copy_last['psnr_10']:.2f} | {copy_last['ssim_10']:.3f} | "
+        f"{copy_last['psnr_28']:.2f} | {copy_last['ssim_28']:.3f} | {copy_last['psnr_uint8_28']:.2f} | "
+        f"{copy_last['ssim_uint8_28']:.3f} | - |"
+    )
     return "\n".join(lines) + "\n"
 
 
-def _copy_last_frame(args: argparse.Namespace) -> dict[str, float]:
-    """Scores of repeating the last observed frame: the floor every variant should clear."""
+def _copy_last_frame(args: argparse.Namespace) -> tuple[dict[str, float], dict[str, list[float]]]:
+    """Scores of repeating the last observed frame, the floor every variant should clear: summary and curves."""
     from isodream_rl.video_prediction.metrics import FrameMetrics
     from isodream_rl.video_prediction.trainer import TrainConfig, build_split
 
     config = TrainConfig(
-        seed=args.seed, test_sequences=args.test_sequences, train_sequences=args.train_sequences
+        seed=args.data_seed, test_sequences=args.test_sequences, train_sequences=args.train_sequences
     )
     metrics = FrameMetrics()
     for clip in build_split(config, "test"):
         frames = clip["frames"][None]
         last = frames[:, config.context - 1 : config.context]
         metrics.update(last.expand_as(frames[:, config.context :]), frames[:, config.context :])
-    summary = FrameMetrics.summarize(metrics.compute(), config.horizons)
-    return {k: round(v, 4) for k, v in summary.items()}
+    curves = metrics.compute()
+    summary = FrameMetrics.summarize(curves, config.horizons)
+    return {k: round(v, 4) for k, v in summary.items()}, {
+        k: [round(float(x), 5) for x in v] for k, v in curves.items()
+    }
+
+
+def _aims(variants: dict, copy_last: dict) -> dict:
+    """The issue's aims, checked on every seed: above copy-last-frame at 28 frames, and the full model's
+    PSNR gain over ``no_action_free`` (seed by seed, same seeds)."""
+    out = {
+        "above_copy_last_frame": {
+            name: {key: all(r[key] > copy_last[key] for r in v["seeds"]) for key in ("psnr_28", "ssim_28")}
+            for name, v in variants.items()
+        }
+    }
+    if "isodream" in variants and "no_action_free" in variants:
+        full = {r["seed"]: r["psnr_28"] for r in variants["isodream"]["seeds"]}
+        ablation = {r["seed"]: r["psnr_28"] for r in variants["no_action_free"]["seeds"]}
+        gains = [round(full[k] - ablation[k], 3) for k in sorted(full) if k in ablation]
+        out["psnr_28_gain_over_no_action_free"] = {
+            "per_seed": gains,
+            "mean": round(sum(gains) / len(gains), 3) if gains else None,
+            "aim_db": 1.0,
+            "met": bool(gains) and min(gains) >= 1.0,
+        }
+    return out
+
+
+def _save_validation_curves(path: Path, history: dict) -> None:
+    """Validation MSE and PSNR (mean over the predicted frames) against training iterations, per run."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.2))
+    for variant, runs in history.items():
+        for run, points in runs.items():
+            steps = [p["iteration"] for p in points]
+            mse_key = max((k for k in points[0] if k.startswith("mse_")), key=lambda k: int(k.split("_")[1]))
+            psnr_key = mse_key.replace("mse", "psnr")
+            axes[0].plot(steps, [p[mse_key] for p in points], label=f"{variant} {run}")
+            axes[1].plot(steps, [p[psnr_key] for p in points], label=f"{variant} {run}")
+    axes[0].set_ylabel(f"validation MSE ({mse_key.split('_')[1]} frames)")
+    axes[1].set_ylabel(f"validation PSNR (dB, {psnr_key.split('_')[1]} frames)")
+    for ax in axes:
+        ax.set_xlabel("training iteration")
+        ax.grid(alpha=0.3)
+    axes[0].set_yscale("log")
+    axes[1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def _speed(args: argparse.Namespace) -> dict:
@@ -214,7 +340,8 @@ def _write_speed(args: argparse.Namespace) -> None:
         # The committed bench's training rate (two variants at a time on a loaded machine): context only,
         # since it was not measured side by side with the paths above.
         for name, v in json.loads(committed.read_text())["variants"].items():
-            reference[name] = round(v["iterations"] / v["train_minutes"], 2)
+            for run in v.get("seeds", [v]):
+                reference.setdefault(name, round(run["iterations"] / run["train_minutes"], 2))
     out = {
         "variants": results,
         "paths": SPEED_PATHS,
@@ -243,77 +370,111 @@ def _write_speed(args: argparse.Namespace) -> None:
     args.json.write_text(json.dumps(out, indent=2) + "\n")
 
 
+def _train_all(args: argparse.Namespace) -> None:
+    """Run every pending ``(variant, seed)``, ``--parallel`` at a time; finished runs are skipped."""
+    from isodream_rl.data import load_pusher_dataset
+
+    # Generate / load the cached data set once, before the training processes race for it.
+    for split, n in (("train", args.train_sequences), ("test", args.test_sequences)):
+        load_pusher_dataset(n, 30, seed=args.data_seed, split=split, workers=2)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    start = time.monotonic()
+    pending = [run for run in _runs(args) if _finished(args, *run) is None]
+    running: list = []
+    while pending or running:
+        while pending and len(running) < args.parallel:
+            variant, seed = pending.pop(0)
+            out = _run_dir(args, variant, seed)
+            out.mkdir(parents=True, exist_ok=True)
+            log = open(out / "train.log", "a")  # noqa: SIM115 - closed below
+            proc = subprocess.Popen(_train_command(args, variant, seed), stdout=log, stderr=log, env=env)
+            running.append((variant, seed, proc, log))
+        time.sleep(1.0)
+        for item in list(running):
+            variant, seed, proc, log = item
+            if proc.poll() is None:
+                continue
+            running.remove(item)
+            log.close()
+            if proc.returncode != 0:
+                raise RuntimeError(
+                    f"training {variant} seed {seed} failed; see {_run_dir(args, variant, seed)}/train.log"
+                )
+            print(f"{variant} seed {seed} stopped at {(time.monotonic() - start) / 60:.1f} min", flush=True)
+
+
+def _collect(args: argparse.Namespace) -> dict:
+    variants, curves, history = {}, {}, {}
+    for variant, seed in _runs(args):
+        result = _finished(args, variant, seed)
+        if result is None:
+            raise RuntimeError(
+                f"{variant} seed {seed} has not trained {args.iterations} iterations yet; run the bench again"
+            )
+        runs = variants.setdefault(variant, {"seeds": []})["seeds"]
+        runs.append(
+            {
+                "seed": seed,
+                **{k: round(v, 4) for k, v in result["metrics"].items()},
+                "iterations": result["iterations"],
+                "train_minutes": round(result["train_seconds"] / 60, 2),
+            }
+        )
+        curves.setdefault(variant, {})[f"seed_{seed}"] = result["curves"]
+        history.setdefault(variant, {})[f"seed_{seed}"] = result["history"]
+    copy_summary, copy_curves = _copy_last_frame(args)
+    skip = ("json", "out_dir", "variants", "speed", "speed_repeats", "frames", "seed", "collect_only")
+    config = {k: v for k, v in vars(args).items() if k not in skip}
+    config.update(
+        dataset="pusher (local BAIR-like, 64x64) + 3 bouncing balls (fixed on test)",
+        train="2 -> 10 frames",
+        test="2 -> 28 frames, one clip per test sequence",
+        validation=f"the first {args.val_batches} test batches, every {args.val_every} iterations",
+        threads_per_process=1,
+    )
+    return {
+        "variants": variants,
+        "copy_last_frame": copy_summary,
+        "aims": _aims(variants, copy_summary),
+        "config": config,
+        "curves": {**curves, "copy_last_frame": copy_curves},
+        "history": history,
+        "cpu": cpu_name(),
+        "cpu_native_bf16": _native_bf16(),
+        "commit": git_commit(),
+        "command": " ".join(["python", *sys.argv]),
+    }
+
+
 def main() -> int:
     args = _parse()
     if args.speed:
         _write_speed(args)
         return 0
     args.out_dir.mkdir(parents=True, exist_ok=True)
-    # Generate / load the cached data set once, before the training processes race for it.
-    from isodream_rl.data import load_pusher_dataset
-
-    for split, n in (("train", args.train_sequences), ("test", args.test_sequences)):
-        load_pusher_dataset(n, 30, seed=args.seed, split=split, workers=2)
-
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    start = time.monotonic()
-    pending = list(args.variants)
-    for i in range(0, len(pending), args.parallel):
-        group = pending[i : i + args.parallel]
-        procs = []
-        for variant in group:
-            (args.out_dir / variant).mkdir(parents=True, exist_ok=True)
-            log = open(args.out_dir / variant / "train.log", "w")  # noqa: SIM115 - closed below
-            procs.append(
-                (
-                    variant,
-                    subprocess.Popen(_train_command(args, variant), stdout=log, stderr=log, env=env),
-                    log,
-                )
-            )
-        for variant, proc, log in procs:
-            if proc.wait() != 0:
-                raise RuntimeError(f"training {variant} failed; see {args.out_dir / variant / 'train.log'}")
-            log.close()
-            print(f"{variant} done at {(time.monotonic() - start) / 60:.1f} min", flush=True)
-
-    variants, curves = {}, {}
-    for variant in args.variants:
-        result = json.loads((args.out_dir / variant / "result.json").read_text())
-        variants[variant] = {
-            **{k: round(v, 4) for k, v in result["metrics"].items()},
-            "iterations": result["iterations"],
-            "train_minutes": round(result["train_seconds"] / 60, 2),
-        }
-        curves[variant] = result["curves"]
-    skip = ("json", "out_dir", "variants", "speed", "speed_repeats", "frames")
-    config = {k: v for k, v in vars(args).items() if k not in skip}
-    config.update(
-        dataset="pusher (local BAIR-like, 64x64) + 3 bouncing balls (fixed on test)",
-        train="2 -> 10 frames",
-        test="2 -> 28 frames, one clip per test sequence",
-        threads_per_process=1,
-        total_minutes=round((time.monotonic() - start) / 60, 2),
-    )
-    config["copy_last_frame"] = _copy_last_frame(args)
-    if "isodream" in variants and "no_action_free" in variants:
-        gap = variants["isodream"]["psnr_28"] - variants["no_action_free"]["psnr_28"]
-        config["psnr_28_gain_over_no_action_free"] = round(gap, 3)
-    out = {"variants": variants, "config": config, "curves": curves}
+    if not args.collect_only:
+        _train_all(args)
+    out = _collect(args)
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(out, indent=2))
-    args.json.with_suffix(".md").write_text(_table(variants))
+    args.json.write_text(json.dumps(out, indent=2) + "\n")
+    table = _table(out["variants"], out["copy_last_frame"])
+    args.json.with_suffix(".md").write_text(table)
 
     from isodream_rl.video_prediction.showcase import save_metric_curves, save_showcase, showcase_rows
     from isodream_rl.video_prediction.trainer import build_split, load_checkpoint
 
-    save_metric_curves(args.json.with_name(args.json.stem + "_curves.png"), curves)
-    if "isodream" in variants:
-        model, config_, _ = load_checkpoint(args.out_dir / "isodream" / "checkpoint.pt")
+    first = f"seed_{args.seeds[0]}"
+    save_metric_curves(
+        args.json.with_name(args.json.stem + "_curves.png"),
+        {name: runs[first] if name != "copy_last_frame" else runs for name, runs in out["curves"].items()},
+    )
+    _save_validation_curves(args.json.with_name(args.json.stem + "_validation.png"), out["history"])
+    if "isodream" in out["variants"]:
+        model, config_, _ = load_checkpoint(_run_dir(args, "isodream", args.seeds[0]) / "checkpoint.pt")
         clip = build_split(config_, "test")[0]
         rows = showcase_rows(model, clip["frames"], clip["actions"], context=config_.context)
         save_showcase(args.json.with_name(args.json.stem + "_showcase.png"), rows)
-    print(_table(variants))
+    print(table)
     return 0
 
 

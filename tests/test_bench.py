@@ -30,3 +30,43 @@ def test_world_model_speed_writes_both_times_their_ratio_and_the_flops(bench, tm
     assert set(out["profile_ms"]) == {n for n in ms if n.endswith("_cl")}
     assert out["config"]["batch_size"] == 2 and out["config"]["time"] == 4
     assert {"cpu_avx512_bf16", "cpu_amx"} <= set(out["config"])
+
+
+def test_video_prediction_bench_trains_equal_budgets_resumes_and_checks_the_aims(tmp_path, monkeypatch):
+    """Tiny runs through the whole bench: seeds, the single-seed variants, JSON shape, pictures, and a second
+    call with more iterations that resumes every run instead of starting over."""
+    import json
+    import sys
+
+    bench = load_bench("video_prediction")
+    monkeypatch.setenv("ISODREAM_DATA_DIR", str(tmp_path / "data"))
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    out = tmp_path / "video.json"
+
+    def run(iterations: int) -> dict:
+        argv = ["video_prediction.py", "--json", str(out), "--out-dir", str(tmp_path / "runs"),
+                "--variants", "isodream", "predrnn", "--seeds", "0", "1", "--iterations", str(iterations),
+                "--val-every", "1", "--val-batches", "1", "--checkpoint-every", "1", "--train-sequences", "2",
+                "--test-sequences", "2", "--batch-size", "2", "--hidden-channels", "4", "--encoder-channels", "4",
+                "4", "--action-embedding", "4", "--precision", "fp32"]  # fmt: skip
+        monkeypatch.setattr(sys, "argv", argv)
+        assert bench.main() == 0
+        return json.loads(out.read_text())
+
+    first = run(1)
+    assert [r["seed"] for r in first["variants"]["isodream"]["seeds"]] == [0, 1]
+    assert [r["seed"] for r in first["variants"]["predrnn"]["seeds"]] == [0]  # a single-seed variant
+    assert set(first["aims"]["above_copy_last_frame"]) == {"isodream", "predrnn"}
+    assert (
+        set(first["copy_last_frame"]) >= {"psnr_28", "ssim_28"}
+        and len(first["curves"]["copy_last_frame"]["psnr"]) == 28
+    )
+    for name in ("_curves.png", "_validation.png", "_showcase.png"):
+        assert out.with_name(out.stem + name).stat().st_size > 0
+    assert "copy_last_frame" in out.with_suffix(".md").read_text()
+
+    second = run(2)  # every run continues from its checkpoint: validation points 0, 1, then 2
+    for variant in ("isodream", "predrnn"):
+        assert all(r["iterations"] == 2 for r in second["variants"][variant]["seeds"])
+        assert [p["iteration"] for p in second["history"][variant]["seed_0"]] == [0, 1, 2]
+    assert second["history"]["isodream"]["seed_0"][:2] == first["history"]["isodream"]["seed_0"]

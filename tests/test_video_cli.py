@@ -70,3 +70,40 @@ def test_config_rejects_inconsistent_protocol():
         TrainConfig(precision="fp16")
     with pytest.raises(KeyError, match="unknown"):
         TrainConfig.from_dict({"colour": 1})
+
+
+def test_resumed_training_equals_uninterrupted_and_keeps_the_validation_curve(bair_root, tmp_path):
+    common = ["train", "--dataset", "bair", "--data-path", str(bair_root), "--sequence-length", "5",
+              "--train-frames", "4", "--test-frames", "5", "--horizons", "2", "3", "--no-progress",
+              "--val-every", "2", "--val-batches", "1", "--checkpoint-every", "2", "--logger", "", *TINY]  # fmt: skip
+    straight, split = tmp_path / "straight", tmp_path / "split"
+    assert main([*common, "--iterations", "4", "--out-dir", str(straight)]) == 0
+    assert (
+        main(
+            [*common, "--iterations", "2", "--out-dir", str(split), "--result-json", str(tmp_path / "a.json")]
+        )
+        == 0
+    )
+    assert main([*common, "--iterations", "4", "--out-dir", str(split), "--resume",
+                 "--result-json", str(tmp_path / "b.json")]) == 0  # fmt: skip
+    a, _, state_a = load_checkpoint(straight / "checkpoint.pt")
+    b, _, state_b = load_checkpoint(split / "checkpoint.pt")
+    assert state_a["iteration"] == state_b["iteration"] == 4
+    for (name, p), q in zip(a.state_dict().items(), b.state_dict().values()):
+        torch.testing.assert_close(p, q, rtol=0, atol=0, msg=name)
+    history = json.loads((tmp_path / "b.json").read_text())["history"]
+    assert [h["iteration"] for h in history] == [0, 2, 4] == [h["iteration"] for h in state_a["history"]]
+    assert all(set(h) >= {"mse_3", "psnr_3", "ssim_3"} for h in history)
+    assert history == state_a["history"]
+
+
+def test_resume_refuses_other_model_settings(bair_root, tmp_path, capsys):
+    common = ["train", "--dataset", "bair", "--data-path", str(bair_root), "--sequence-length", "5",
+              "--train-frames", "4", "--test-frames", "5", "--horizons", "2", "3", "--no-progress",
+              "--iterations", "1", "--out-dir", str(tmp_path / "run"), "--logger", "", *TINY]  # fmt: skip
+    assert main(common) == 0
+    with pytest.raises(SystemExit) as exit_info:
+        main([*common, "--resume", "--lr", "0.5"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "cannot resume" in err and "lr: 0.0001 -> 0.5" in err

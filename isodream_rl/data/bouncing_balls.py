@@ -118,6 +118,13 @@ class BouncingBalls:
         self.fixed = fixed
         self._rng = np.random.default_rng(seed)
 
+    def state_dict(self) -> dict:
+        """The state of the generator the non-fixed draws come from (restore with :meth:`load_state_dict`)."""
+        return {"rng": self._rng.bit_generator.state}
+
+    def load_state_dict(self, state: dict) -> None:
+        self._rng.bit_generator.state = state["rng"]
+
     def __call__(self, frames: np.ndarray, index: int) -> np.ndarray:
         rng = np.random.default_rng([self.seed, index]) if self.fixed else self._rng
         positions = ball_trajectories(

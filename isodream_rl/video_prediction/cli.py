@@ -3,6 +3,7 @@
 Examples::
 
     isodream-video train --variant isodream --iterations 80000 --out-dir runs/isodream
+    isodream-video train --variant isodream --iterations 80000 --out-dir runs/isodream --resume
     isodream-video train --dataset bair --data-path /data/softmotion30_44k --variant no_action_free
     isodream-video eval --checkpoint runs/isodream/checkpoint.pt --json eval.json --showcase fig.png
     isodream-video eval --checkpoint ckpt.pt --dataset robonet --data-path /data/robonet_hdf5 \\
@@ -72,6 +73,11 @@ def _parser() -> argparse.ArgumentParser:
     _add_config_arguments(train_p)
     train_p.add_argument("--result-json", type=Path, help="write iterations, metrics and curves here")
     train_p.add_argument("--no-progress", action="store_true", help="disable the tqdm bar")
+    train_p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue from <out-dir>/checkpoint.pt if it exists (same settings; --iterations may grow)",
+    )
     eval_p = sub.add_parser("eval", help="evaluate a checkpoint on the test split (per-frame PSNR/SSIM)")
     eval_p.add_argument("--checkpoint", type=Path, required=True)
     _add_config_arguments(eval_p, _EVAL_OVERRIDES)
@@ -83,7 +89,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def _train(args: argparse.Namespace) -> dict:
     config = TrainConfig.from_dict(_overrides(args, [f.name for f in fields(TrainConfig)]))
-    result = train(config, progress=not args.no_progress)
+    result = train(config, progress=not args.no_progress, resume=args.resume)
     result["config"] = {k: v for k, v in vars(config).items()}
     if args.result_json is not None:
         args.result_json.write_text(json.dumps(result, indent=2, default=list))

@@ -15,6 +15,7 @@ import torch
 import torch.nn.functional as F
 
 __all__ = [
+    "mse_per_sample",
     "psnr_per_sample",
     "ssim_per_sample",
     "uint8_psnr_per_sample",
@@ -28,6 +29,12 @@ def _check(pred: torch.Tensor, target: torch.Tensor) -> None:
         raise ValueError(
             f"expected pred and target [N, C, H, W] of equal shape, got {pred.shape}, {target.shape}"
         )
+
+
+def mse_per_sample(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean squared error per sample of ``[N, C, H, W]`` float frames in ``[0, 1]``, as ``[N]``."""
+    _check(pred, target)
+    return (pred.float() - target.float()).pow(2).flatten(1).mean(1)
 
 
 def psnr_per_sample(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -97,10 +104,11 @@ class FrameMetrics:
         >>> metrics = FrameMetrics()
         >>> metrics.update(torch.rand(2, 3, 3, 16, 16), torch.rand(2, 3, 3, 16, 16))
         >>> sorted(metrics.compute())
-        ['psnr', 'psnr_uint8', 'ssim', 'ssim_uint8']
+        ['mse', 'psnr', 'psnr_uint8', 'ssim', 'ssim_uint8']
     """
 
     _FUNCTIONS = {
+        "mse": mse_per_sample,
         "psnr": psnr_per_sample,
         "ssim": ssim_per_sample,
         "psnr_uint8": uint8_psnr_per_sample,

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import torch
 from tensordict import TensorDict
-from torch.utils.data import DataLoader
+from torch.utils.data import DataLoader, default_collate
 from tqdm.auto import tqdm
 
 from isodream_rl.data import (
@@ -35,6 +35,7 @@ __all__ = [
     "train",
     "save_checkpoint",
     "load_checkpoint",
+    "RESUMABLE",
 ]
 
 _DATASETS = ("pusher", "bair", "robonet")
@@ -62,7 +63,10 @@ class TrainConfig:
     balls: bool = True
     """Overlay bouncing balls (fixed per clip on the test split)."""
     seed: int = 0
-    """Seeds the model init, data order, training balls, test balls and the pusher set."""
+    """Seeds the model init, data order and training balls (and, unless ``data_seed`` is set, the data)."""
+    data_seed: int | None = None
+    """Seeds the pusher set and the test split's balls; ``None``: ``seed``. Runs of several seeds that should
+    share their data (the same test clips) set it to one value."""
     context: int = 2
     """Observed frames."""
     train_frames: int = 12
@@ -77,6 +81,13 @@ class TrainConfig:
     max_minutes: float | None = None
     """Stop training after this wall time even if ``iterations`` are not done."""
     eval_every: int = 5_000
+    """Iterations between evaluations on the whole test split."""
+    val_every: int = 250
+    """Iterations between validation points (the first ``val_batches`` test batches; ``0``: none)."""
+    val_batches: int = 4
+    """Test batches per validation point."""
+    checkpoint_every: int = 500
+    """Iterations between checkpoints (a resumed run continues from the last one)."""
     eval_batches: int | None = None
     """Batches of the test split per evaluation (``None``: all)."""
     log_every: int = 50
@@ -102,6 +113,11 @@ class TrainConfig:
     """Predicted-frame horizons summarised after evaluation (``psnr_10``, ``psnr_28``, ...)."""
 
     def __post_init__(self) -> None:
+        for name in ("checkpoint_every", "val_batches", "eval_every", "log_every", "iterations"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.val_every < 0:
+            raise ValueError(f"val_every must be >= 0 (0: no validation curve), got {self.val_every}")
         if self.dataset not in _DATASETS:
             raise ValueError(f"dataset must be one of {_DATASETS}, got {self.dataset!r}")
         if self.precision not in ("fp32", "bf16"):
@@ -155,7 +171,7 @@ def _sources(config: TrainConfig, split: str):
         arrays = load_pusher_dataset(
             count,
             config.sequence_length,
-            seed=config.seed,
+            seed=config.seed if config.data_seed is None else config.data_seed,
             split=split,
             cache_dir=config.cache_dir,
             workers=2,
@@ -189,7 +205,8 @@ def build_split(config: TrainConfig, split: str) -> VideoClips:
         return VideoClips(
             source, clip_length=config.train_frames, sequence_length=config.sequence_length, distractor=balls
         )
-    balls = BouncingBalls(seed=config.seed + 10_007, fixed=True) if config.balls else None
+    data_seed = config.seed if config.data_seed is None else config.data_seed
+    balls = BouncingBalls(seed=data_seed + 10_007, fixed=True) if config.balls else None
     return VideoClips(
         source,
         clip_length=config.test_frames,
@@ -262,14 +279,96 @@ def _make_logger(config: TrainConfig, out_dir: Path):
     return get_logger(config.logger, logger_name=str(out_dir / "logs"), experiment_name=config.variant)
 
 
-def train(config: TrainConfig, *, progress: bool = True) -> dict:
-    """Train one variant, evaluating and checkpointing every ``eval_every`` iterations and at the end.
+RESUMABLE = (
+    "iterations",
+    "max_minutes",
+    "eval_every",
+    "val_every",
+    "checkpoint_every",
+    "log_every",
+    "logger",
+    "device",
+    "threads",
+    "out_dir",
+)
+""":class:`TrainConfig` fields a resumed run may change; every other field must equal the checkpoint's."""
+
+
+class _EpochSampler:
+    """Shuffled mini-batches of indices, epoch after epoch, whose position can be saved and restored.
+
+    Each epoch is a permutation drawn from one seeded generator; the last incomplete batch is dropped.
+    :meth:`state_dict` holds the generator state at the start of the current epoch and the position in it,
+    so a restored sampler gives the same batches the uninterrupted one would.
+    """
+
+    def __init__(self, size: int, batch_size: int, *, seed: int) -> None:
+        if size < batch_size:
+            raise ValueError(f"the training split has {size} clips, fewer than batch_size={batch_size}")
+        self.size, self.batch_size = size, batch_size
+        self.generator = torch.Generator().manual_seed(seed)
+        self._new_epoch()
+
+    def _new_epoch(self) -> None:
+        self._epoch_state = self.generator.get_state()
+        self._order = torch.randperm(self.size, generator=self.generator)
+        self.position = 0
+
+    def next_batch(self) -> list[int]:
+        if self.position + self.batch_size > self.size:
+            self._new_epoch()
+        batch = self._order[self.position : self.position + self.batch_size].tolist()
+        self.position += self.batch_size
+        return batch
+
+    def state_dict(self) -> dict:
+        return {"epoch_state": self._epoch_state.clone(), "position": self.position}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.generator.set_state(state["epoch_state"])
+        self._new_epoch()
+        self.position = state["position"]
+
+
+def _check_resumable(saved: dict, config: TrainConfig, path: Path) -> None:
+    now = asdict(config)
+    differ = [
+        f"{k}: {saved.get(k)!r} -> {now[k]!r}"
+        for k in now
+        if k not in RESUMABLE and _plain(saved.get(k)) != _plain(now[k])
+    ]
+    if differ:
+        raise ValueError(
+            f"cannot resume {path}: settings that change the model or the data differ ({'; '.join(differ)}); "
+            f"use another --out-dir, or the saved settings"
+        )
+
+
+def _plain(value):
+    return list(value) if isinstance(value, tuple) else value
+
+
+def train(config: TrainConfig, *, progress: bool = True, resume: bool = False) -> dict:
+    """Train one variant; validate, checkpoint and evaluate on the way.
+
+    Every ``val_every`` iterations the model is scored on the first ``val_batches`` batches of the test split
+    (the validation curve: MSE, PSNR and SSIM over the predicted frames, logged as ``val/*`` and kept in the
+    result's ``history``); every ``checkpoint_every`` iterations ``<out_dir>/checkpoint.pt`` is rewritten
+    atomically with everything a resumed run needs (model, optimizer, the sampler's position, the random
+    states of the balls, the history); every ``eval_every`` iterations and at the end the whole test split is
+    evaluated. A resumed run (``resume=True`` with a checkpoint in ``out_dir``) continues to ``iterations``
+    and gives the same weights as an uninterrupted run; Adam's learning rate is constant, so ``iterations``
+    may be raised on resume to train longer.
 
     Writes ``<out_dir>/checkpoint.pt`` and TorchRL logger files under ``<out_dir>/logs``.
 
     Returns:
         ``{"iterations", "train_seconds", "metrics": {"psnr_10": .., ...}, "curves": {"psnr": [...], ..},
-        "checkpoint": path}``.
+        "history": [{"iteration", "mse", "psnr_28", ...}], "checkpoint": path}``.
+
+    Raises:
+        ValueError: ``resume=True`` and the checkpoint was written with settings outside :data:`RESUMABLE`
+            that differ from ``config``.
     """
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
@@ -285,22 +384,25 @@ def train(config: TrainConfig, *, progress: bool = True) -> dict:
         context=config.context,
     )
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
-    generator = torch.Generator().manual_seed(config.seed)
-    train_loader = DataLoader(
-        train_set, batch_size=config.batch_size, shuffle=True, drop_last=True, generator=generator
-    )
+    sampler = _EpochSampler(len(train_set), config.batch_size, seed=config.seed)
+    balls = train_set.distractor
     test_loader = DataLoader(test_set, batch_size=config.batch_size)
-    logger = _make_logger(config, out_dir)
     checkpoint = out_dir / "checkpoint.pt"
+    step, previous_seconds, history = 0, 0.0, []
+    if resume and checkpoint.exists():
+        state = torch.load(checkpoint, map_location=config.device, weights_only=False)
+        _check_resumable(state["train_config"], config, checkpoint)
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        sampler.load_state_dict(state["sampler"])
+        if balls is not None and state.get("balls_rng") is not None:
+            balls.load_state_dict(state["balls_rng"])
+        torch.set_rng_state(state["torch_rng"])
+        step, previous_seconds, history = state["iteration"], state["train_seconds"], state["history"]
+    logger = _make_logger(config, out_dir)
+    metrics: dict[str, float] | None = None
 
-    def run_eval(step: int) -> dict[str, torch.Tensor]:
-        curves = evaluate(
-            model, test_loader, context=config.context, device=config.device, max_batches=config.eval_batches
-        )
-        summary = FrameMetrics.summarize(curves, config.horizons)
-        if logger is not None:
-            for key, value in summary.items():
-                logger.log_scalar(f"eval/{key}", value, step=step)
+    def save(step: int) -> None:
         save_checkpoint(
             checkpoint,
             {
@@ -309,48 +411,79 @@ def train(config: TrainConfig, *, progress: bool = True) -> dict:
                 "iteration": step,
                 "train_config": asdict(config),
                 "predictor_config": model.config.to_dict(),
-                "metrics": summary,
+                "metrics": metrics,
+                "sampler": sampler.state_dict(),
+                "balls_rng": None if balls is None else balls.state_dict(),
+                "torch_rng": torch.get_rng_state(),
+                "train_seconds": previous_seconds + time.monotonic() - start,
+                "history": history,
             },
         )
+
+    def run_eval(step: int, *, max_batches: int | None, prefix: str) -> dict[str, torch.Tensor]:
+        curves = evaluate(
+            model, test_loader, context=config.context, device=config.device, max_batches=max_batches
+        )
+        summary = FrameMetrics.summarize(curves, config.horizons)
+        if logger is not None:
+            for key, value in summary.items():
+                logger.log_scalar(f"{prefix}/{key}", value, step=step)
         return curves
+
+    def validate(step: int) -> None:
+        summary = FrameMetrics.summarize(
+            run_eval(step, max_batches=config.val_batches, prefix="val"), config.horizons
+        )
+        history.append({"iteration": step, **{k: round(v, 5) for k, v in summary.items()}})
 
     start = time.monotonic()
     deadline = math.inf if config.max_minutes is None else start + 60 * config.max_minutes
-    step = 0
-    bar = tqdm(total=config.iterations, disable=not progress, desc=config.variant)
+    if step == 0 and config.val_every:
+        validate(0)
+    bar = tqdm(total=config.iterations, initial=step, disable=not progress, desc=config.variant)
     model.train()
     while step < config.iterations and time.monotonic() < deadline:
-        for batch in train_loader:
-            td = TensorDict(
-                {"frames": batch["frames"].to(config.device), "actions": batch["actions"].to(config.device)},
-                batch_size=[config.batch_size],
+        batch = default_collate([train_set[i] for i in sampler.next_batch()])
+        td = TensorDict(
+            {"frames": batch["frames"].to(config.device), "actions": batch["actions"].to(config.device)},
+            batch_size=[config.batch_size],
+        )
+        losses = loss_fn(td)
+        total = sum(losses.values())
+        optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+        optimizer.step()
+        step += 1
+        bar.update(1)
+        if step % config.log_every == 0 or step == 1:
+            bar.set_postfix(loss=f"{float(total.detach()):.4f}")
+            if logger is not None:
+                for key, value in losses.items():
+                    logger.log_scalar(f"train/{key}", float(value.detach()), step=step)
+                logger.log_scalar("train/grad_norm", float(grad_norm), step=step)
+                seconds = previous_seconds + time.monotonic() - start
+                logger.log_scalar("train/seconds", seconds, step=step)
+        if config.val_every and step % config.val_every == 0:
+            validate(step)
+        if step % config.eval_every == 0 and step < config.iterations:
+            metrics = FrameMetrics.summarize(
+                run_eval(step, max_batches=config.eval_batches, prefix="eval"), config.horizons
             )
-            losses = loss_fn(td)
-            total = sum(losses.values())
-            optimizer.zero_grad(set_to_none=True)
-            total.backward()
-            grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
-            step += 1
-            bar.update(1)
-            if step % config.log_every == 0 or step == 1:
-                bar.set_postfix(loss=f"{float(total.detach()):.4f}")
-                if logger is not None:
-                    for key, value in losses.items():
-                        logger.log_scalar(f"train/{key}", float(value.detach()), step=step)
-                    logger.log_scalar("train/grad_norm", float(grad_norm), step=step)
-                    logger.log_scalar("train/iterations_per_s", step / (time.monotonic() - start), step=step)
-            optimizer.step()
-            if step % config.eval_every == 0 and step < config.iterations:
-                run_eval(step)
-            if step >= config.iterations or time.monotonic() >= deadline:
-                break
+        if step % config.checkpoint_every == 0:
+            save(step)
     bar.close()
-    train_seconds = time.monotonic() - start
-    curves = run_eval(step)
+    train_seconds = previous_seconds + time.monotonic() - start
+    if config.val_every and (not history or history[-1]["iteration"] != step):
+        validate(step)
+    curves = run_eval(step, max_batches=config.eval_batches, prefix="eval")
+    metrics = FrameMetrics.summarize(curves, config.horizons)
+    save(step)
     return {
         "iterations": step,
         "train_seconds": train_seconds,
-        "metrics": FrameMetrics.summarize(curves, config.horizons),
+        "metrics": metrics,
         "curves": {k: [round(float(x), 5) for x in v] for k, v in curves.items()},
+        "history": history,
         "checkpoint": str(checkpoint),
     }
