@@ -88,3 +88,21 @@ def test_clips_are_float_windows_of_every_sequence():
         ArraySequences({"frames": frames, "actions": actions}), clip_length=6, sequence_length=6, stride=6
     )
     assert len(one_per_sequence) == 2
+
+
+def test_pusher_renders_headless_whatever_mujoco_gl_was_at_import():
+    """``mujoco.Renderer`` would take GLFW (no display here) when mujoco was imported with ``MUJOCO_GL`` unset,
+    as ``import torchrl.envs`` does; the pusher picks a headless backend itself, in the workers too."""
+    import os
+    import subprocess
+    import sys
+
+    code = (
+        "import torchrl.envs, mujoco\n"
+        "from isodream_rl.data.pusher import generate_pusher_sequences\n"
+        "a = generate_pusher_sequences(2, 3, seed=1, workers=2)\n"
+        "assert a['frames'].shape == (2, 3, 64, 64, 3) and a['frames'].std() > 0\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "MUJOCO_GL"}
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]

@@ -76,10 +76,15 @@ def default_cache_dir() -> Path:
 def _build(image_size: int):
     import mujoco
 
+    from isodream_rl.envs.mujoco_render import OffscreenRenderer
+
     objects = "".join(_OBJECT.format(i=i, x=0.1 * i - 0.1, y=0.0) for i in range(3))
     xml = _MJCF.format(size=image_size, objects=objects)
     model = mujoco.MjModel.from_xml_string(xml)
-    return model, mujoco.MjData(model), mujoco.Renderer(model, image_size, image_size)
+    # Picks a headless GL backend itself: ``mujoco.Renderer`` takes the one fixed when mujoco was first imported
+    # (GLFW, which needs a display, if ``MUJOCO_GL`` was unset then).
+    renderer = OffscreenRenderer(model, width=image_size, height=image_size)
+    return model, mujoco.MjData(model), renderer
 
 
 def _one_sequence(model, data, renderer, num_frames: int, rng: np.random.Generator):
@@ -108,14 +113,15 @@ def _one_sequence(model, data, renderer, num_frames: int, rng: np.random.Generat
     data.mocap_pos[0] = [eef[0], eef[1], 0.035]
     mujoco.mj_forward(model, data)
 
-    frames = np.empty((num_frames, renderer.height, renderer.width, 3), dtype=np.uint8)
+    camera = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "oblique")
+    size = model.vis.global_.offwidth
+    frames = np.empty((num_frames, size, size, 3), dtype=np.uint8)
     actions = np.zeros((num_frames, 4), dtype=np.float32)
     eef_pos = np.empty((num_frames, 3), dtype=np.float32)
     move = rng.normal(size=2) * 0.5
     goal = eef
     for t in range(num_frames):
-        renderer.update_scene(data, camera="oblique")
-        frames[t] = renderer.render()
+        frames[t] = renderer.render(data, camera_id=camera)
         eef_pos[t] = data.mocap_pos[0]
         # A goal (an object, half of the time) redrawn every few frames plus OU noise: the pusher keeps
         # a heading for several frames and often runs into objects, as BAIR's arm does.
