@@ -13,6 +13,11 @@ process with one thread, round-robin, and reports iterations per second (median)
 
     python bench/video_prediction.py --speed --json docs/results/video_prediction_speed.json
 
+``--paper-scale`` counts the FLOPs of an iteration at the bench's and at the paper's sizes and estimates what the
+paper's 80k iterations cost on this CPU and on a GPU:
+
+    python bench/video_prediction.py --paper-scale --json docs/results/video_prediction_paper_scale.json
+
 Each run (variant x seed) trains in its own process (``isodream-video train --resume``) with one torch thread;
 ``--parallel`` of them run at a time, seed by seed, the full model and ``no_action_free`` first. Every run
 trains the same ``--iterations`` (``--max-minutes`` per process only cuts a session short), draws a validation
@@ -62,8 +67,14 @@ def _parse() -> argparse.Namespace:
         "--json", type=Path, help="default: video_prediction.json (video_prediction_speed.json with --speed)"
     )
     p.add_argument("--speed", action="store_true", help="time the plain and fast paths instead of training")
+    p.add_argument(
+        "--paper-scale",
+        action="store_true",
+        help="count the FLOPs of a training iteration at the paper's sizes and estimate the cost of its 80k "
+        "iterations (no training)",
+    )
     p.add_argument("--speed-repeats", type=int, default=8, help="timed iterations per path and variant")
-    p.add_argument("--frames", type=int, default=12, help="frames per training clip (--speed only)")
+    p.add_argument("--frames", type=int, default=12, help="frames per training clip (--speed, --paper-scale)")
     p.add_argument("--out-dir", type=Path, default=Path("runs/bench_video"))
     p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
     p.add_argument("--iterations", type=int, default=3000, help="iterations of every run (equal budgets)")
@@ -108,7 +119,13 @@ def _parse() -> argparse.Namespace:
     )
     args = p.parse_args()
     if args.json is None:
-        args.json = Path("video_prediction_speed.json" if args.speed else "video_prediction.json")
+        args.json = Path(
+            "video_prediction_speed.json"
+            if args.speed
+            else "video_prediction_paper_scale.json"
+            if args.paper_scale
+            else "video_prediction.json"
+        )
     return args
 
 
@@ -331,6 +348,82 @@ def _speed(args: argparse.Namespace) -> dict:
     return results
 
 
+PAPER_SIZES = {"hidden_channels": 64, "kernel_size": 5, "encoder_channels": (32, 64), "action_embedding": 64}
+"""The paper's BAIR model (Appendix D): batch 8, 2 + 10 training frames, Adam 1e-4, 80k iterations."""
+PAPER_ITERATIONS = 80_000
+
+
+def _iteration_gflop(variant: str, sizes: dict, *, batch_size: int, frames: int) -> float:
+    """FLOPs of one training iteration's forward + backward (``torch.utils.flop_counter``), in GFLOP."""
+    import torch
+    from tensordict import TensorDict
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from isodream_rl.video_prediction.config import variant_config
+    from isodream_rl.video_prediction.objective import VideoPredictionLoss
+    from isodream_rl.video_prediction.predictor import ThreeBranchPredictor
+
+    model = ThreeBranchPredictor(config=variant_config(variant, **sizes))
+    batch = TensorDict(
+        {"frames": torch.rand(batch_size, frames, 3, 64, 64), "actions": torch.randn(batch_size, frames, 4)},
+        batch_size=[batch_size],
+    )
+    with FlopCounterMode(display=False) as counter:
+        sum(VideoPredictionLoss(model)(batch).values()).backward()
+    return counter.get_total_flops() / 1e9
+
+
+def _write_paper_scale(args: argparse.Namespace) -> None:
+    """GFLOP per iteration at the bench's and the paper's sizes, and what 80k paper-size iterations cost: on this
+    CPU at the throughput ``--speed`` measured (``video_prediction_speed.json``), and on a GPU at a few sustained
+    throughputs (assumptions, stated as such: no GPU was measured)."""
+    import torch
+
+    torch.set_num_threads(1)
+    speed_path = Path(__file__).resolve().parents[1] / "docs" / "results" / "video_prediction_speed.json"
+    speed = json.loads(speed_path.read_text()) if speed_path.exists() else None
+    bench_sizes = {
+        "hidden_channels": args.hidden_channels,
+        "kernel_size": args.kernel_size,
+        "encoder_channels": tuple(args.encoder_channels),
+        "action_embedding": args.action_embedding,
+    }
+    variants = {}
+    for variant in args.variants:
+        bench = _iteration_gflop(variant, bench_sizes, batch_size=args.batch_size, frames=args.frames)
+        paper = _iteration_gflop(variant, PAPER_SIZES, batch_size=8, frames=12)
+        row = {
+            "gflop_per_iteration_bench_sizes": round(bench, 2),
+            "gflop_per_iteration_paper_sizes": round(paper, 2),
+            "paper_iterations": PAPER_ITERATIONS,
+            "paper_pflop_total": round(paper * PAPER_ITERATIONS / 1e6, 2),
+            "gpu_hours_at_sustained_tflop_per_s": {
+                str(t): round(paper * PAPER_ITERATIONS / (t * 1e3) / 3600, 2) for t in (10, 30, 100)
+            },
+        }
+        if speed is not None and variant in speed["variants"]:
+            for path, rate in speed["variants"][variant]["achieved_gflop_per_s"].items():
+                row.setdefault("cpu_one_thread_hours_at_measured_gflop_per_s", {})[path] = round(
+                    paper * PAPER_ITERATIONS / rate / 3600, 1
+                )
+        variants[variant] = row
+        print(variant, row, flush=True)
+    out = {
+        "variants": variants,
+        "paper_sizes": {**PAPER_SIZES, "batch_size": 8, "frames": 12, "num_layers": 2},
+        "bench_sizes": {**bench_sizes, "batch_size": args.batch_size, "frames": args.frames, "num_layers": 2},
+        "note": "GPU hours are FLOPs / an assumed sustained throughput (10, 30, 100 TFLOP/s); no GPU was measured. "
+        "CPU hours use the GFLOP/s this CPU sustained at the bench's sizes (video_prediction_speed.json); "
+        "larger convolutions usually run at least as fast, so they are upper bounds for one thread.",
+        "speed_json_cpu": None if speed is None else speed["cpu"],
+        "cpu": cpu_name(),
+        "commit": git_commit(),
+        "command": " ".join(["python", *sys.argv]),
+    }
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(out, indent=2) + "\n")
+
+
 def _write_speed(args: argparse.Namespace) -> None:
     start = time.monotonic()
     results = _speed(args)
@@ -423,7 +516,17 @@ def _collect(args: argparse.Namespace) -> dict:
         curves.setdefault(variant, {})[f"seed_{seed}"] = result["curves"]
         history.setdefault(variant, {})[f"seed_{seed}"] = result["history"]
     copy_summary, copy_curves = _copy_last_frame(args)
-    skip = ("json", "out_dir", "variants", "speed", "speed_repeats", "frames", "seed", "collect_only")
+    skip = (
+        "json",
+        "out_dir",
+        "variants",
+        "speed",
+        "speed_repeats",
+        "frames",
+        "seed",
+        "collect_only",
+        "paper_scale",
+    )
     config = {k: v for k, v in vars(args).items() if k not in skip}
     config.update(
         dataset="pusher (local BAIR-like, 64x64) + 3 bouncing balls (fixed on test)",
@@ -450,6 +553,9 @@ def main() -> int:
     args = _parse()
     if args.speed:
         _write_speed(args)
+        return 0
+    if args.paper_scale:
+        _write_paper_scale(args)
         return 0
     args.out_dir.mkdir(parents=True, exist_ok=True)
     if not args.collect_only:
