@@ -185,8 +185,13 @@ class OffscreenRenderer:
         self._camera.fixedcamid = camera_id
         scene = self._scene
         mujoco.mjv_updateScene(
-            self._model, data, scene_option or self._default_option, None, self._camera,
-            mujoco.mjtCatBit.mjCAT_ALL, scene,
+            self._model,
+            data,
+            scene_option or self._default_option,
+            None,
+            self._camera,
+            mujoco.mjtCatBit.mjCAT_ALL,
+            scene,
         )
         flags = scene.flags.copy()
         scene.flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = True
