@@ -50,8 +50,8 @@ from isodream_rl.process_settings import single_threaded_llvmpipe
 logger = logging.getLogger(__name__)
 
 SPRITES_MASK_KEYS = ("mask_agent", "mask_distractors", "mask_target")
-DMC_MASK_KEYS = ("mask_background", "mask_agent", "mask_distractors")
-HIGHWAY_MASK_KEYS = ("mask_agent", "mask_vehicles", "mask_distractors")
+DMC_MASK_KEYS = ("mask_agent", "mask_distractors", "mask_background")
+HIGHWAY_MASK_KEYS = ("mask_agent", "mask_distractors", "mask_vehicles")
 _DONE_KEYS = ("done", "terminated", "truncated")
 
 
