@@ -158,3 +158,33 @@ def test_a_real_world_model_partitions_the_frame_between_its_branches(branches):
     }
     assert sum(scores[f"background_share_{b}"] for b in BRANCHES) == pytest.approx(1.0)
     assert all(0.0 <= scores[f"iou_{b}_vs_{c}"] <= 1.0 for b in BRANCHES for c in CLASSES)
+
+
+def test_rollout_windows_are_cut_from_an_episode_and_too_short_ones_give_nothing():
+    from isodream_rl.envs import make_env
+    from isodream_rl.trainers.evaluation import rollout_decomposition
+
+    model = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
+    rollout = make_env("sprites", seed=0, return_masks=True, max_steps=7).rollout(7)
+    assert set(rollout_decomposition(model, rollout, window=3)) >= {"iou_control_vs_agent", "reco_mse"}
+    assert rollout_decomposition(model, rollout, window=10)["iou_static_vs_background"] >= 0.0  # one of 7
+    assert rollout_decomposition(model, rollout[:1], window=3) == {}
+
+
+def test_the_rl_run_logs_the_decomposition_of_its_evaluations(tmp_path):
+    from isodream_rl.trainers import train
+    from tests.conftest import tiny_run_config
+
+    cfg = tiny_run_config(
+        tmp_path,
+        train__buffer_size=200,
+        train__total_steps=30,
+        logging__progress_bar=False,
+        logging__log_every=10,
+        logging__eval_every=20,
+        logging__final_eval_episodes=0,
+        env__kwargs={"max_steps": 20},
+    )
+    train(cfg)
+    logged = {p.stem for p in (tmp_path / "logs").rglob("*.csv") if p.parent.name == "decomposition"}
+    assert {"iou_control_vs_agent", "iou_free_vs_distractors", "background_share_static"} <= logged
