@@ -299,6 +299,10 @@ def test_stops_once_its_wall_clock_budget_is_spent_and_summarises(tmp_path):
     assert summary["stopped_by"] == "max_minutes" and 1 <= summary["updates"] < 100000
     assert latest_state(tmp_path)["stepper"]["updates"] == summary["updates"]
     assert "iou_control_vs_agent" in summary and summary["png"].endswith(f"{summary['updates']:08d}.png")
+    # resumed with a budget of its own (one it has spent already): scored as it is, not trained further
+    again = train(tmp_path, "world_model.updates=100000", "world_model.max_minutes=0.002", "resume=true")
+    assert again.summary["stopped_by"] == "max_minutes" and again.updates == summary["updates"]
+    assert again.summary["seconds"] > summary["seconds"]
     with pytest.raises(ConfigError, match="max_minutes"):
         train(tmp_path / "b", "world_model.max_minutes=-1")
 
