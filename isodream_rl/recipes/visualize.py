@@ -17,6 +17,8 @@ from isodream_rl.recipes.sprites_data import episode_windows, model_input
 #: Rows of :func:`branch_grid`: (label, key under "next" or root, kind).
 _ROWS = (
     ("ground truth", ("next", "pixels"), "uint8"),
+    ("true agent", ("next", "mask_agent"), "bool"),
+    ("true distractors", ("next", "mask_distractors"), "bool"),
     ("composite", ("next", "reco_pixels"), "image"),
     ("controllable", ("next", "reco_control"), "image"),
     ("mask s", ("next", "mask_control"), "mask"),
@@ -28,9 +30,11 @@ _ROWS = (
 
 
 def _to_uint8(x: torch.Tensor, kind: str) -> np.ndarray:
-    """``[3 or 1, H, W]`` -> ``[H, W, 3]`` uint8."""
+    """``[3 or 1, H, W]`` (``[H, W]`` for ``kind="bool"``) -> ``[H, W, 3]`` uint8."""
     x = x.detach().float().cpu()
-    if kind == "uint8":
+    if kind == "bool":
+        x = x[None]
+    elif kind == "uint8":
         x = x / 255.0
     elif kind == "image":
         x = x + 0.5
@@ -41,8 +45,9 @@ def _to_uint8(x: torch.Tensor, kind: str) -> np.ndarray:
 
 
 def branch_grid(output: TensorDictBase, *, sample: int = 0, steps: int = 10, scale: int = 2) -> Image.Image:
-    """A grid image: one row per quantity (ground truth, composite, each component and its mask), one column
-    per time step of window ``sample`` of a world-model output.
+    """A grid image: one row per quantity (ground truth, the ground-truth masks where the output holds them,
+    composite, each component and its mask), one column per time step of window ``sample`` of a world-model
+    output.
 
     Args:
         output: the ``[B, T]`` output tensordict of :class:`~isodream_rl.modules.IsoDreamWorldModel`.
@@ -103,7 +108,8 @@ def score_branches(
         device: where the world model runs.
 
     Returns:
-        ``(scores, output)``: the scores, and the world model's ``[N, window]`` output on CPU.
+        ``(scores, output)``: the scores, and the world model's ``[N, window]`` output on CPU (with the
+        ground-truth masks, where the data hold them, beside its input frames).
     """
     windows = episode_windows(data, window=window)
     out = world_model(model_input(windows).to(device)).cpu()
@@ -112,6 +118,8 @@ def score_branches(
         error = (out["next", "reco_pixels"].float() - preprocess_pixels(truth["pixels"])).pow(2)
         return {"reco_mse": float(error.mean())}, out
     scores = score_decomposition(out, windows)
+    for key in ("mask_agent", "mask_distractors"):  # beside the frames, for branch_grid
+        out["next", key] = truth[key]
     if "distractor_ids" in truth.keys():
         scores.update(_disc_scores(out, windows))
     return scores, out
