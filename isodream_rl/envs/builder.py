@@ -312,7 +312,8 @@ def _check_name(name: str) -> None:
 
 
 def make_gym_env(name: str, **cfg: Any) -> gym.Env:
-    """Builds the raw gymnasium env behind ``make_env(name, **cfg)`` (HWC uint8 frames, no guard).
+    """Builds the raw gymnasium env behind ``make_env(name, **cfg)`` (HWC uint8 frames, no guard). As there,
+    highway and DMC compute their ground-truth masks only when ``cfg`` asks (``masks=True``).
 
     Args:
         name (str): see ``env_names()``, or a registered gymnasium id (seen through ``RenderedPixels``).
@@ -324,6 +325,8 @@ def make_gym_env(name: str, **cfg: Any) -> gym.Env:
         TypeError: a keyword of the wrong type for the built-in envs (e.g. ``vehicles_count='many'``), naming it.
     """
     _check_name(name)
+    if name == "highway" or name in dmc_env_names():
+        cfg = {"masks": False, **cfg}  # a render pass per step: only when asked for
     if name == "sprites":
         from isodream_rl.envs.sprites import SpritesEnv
 
@@ -420,9 +423,8 @@ def make_env(
             f"return_masks=True needs ground-truth masks: 'sprites', 'highway' and 'dmc_*' have them, "
             f"{name!r} not."
         )
-    if name == "highway" or name in dmc_env_names():
-        # their masks cost a render pass: made only when asked for
-        cfg.setdefault("masks", bool(return_masks))
+    if return_masks and (name == "highway" or name in dmc_env_names()):
+        cfg.setdefault("masks", True)
     from isodream_rl.envs.reference import task_info_keys
 
     env = make_gym_env(name, **cfg)

@@ -102,7 +102,8 @@ class DMCBackgroundEnv(gymnasium.Env):
         shadows (bool): cast shadows. Defaults to ``True`` (the suite's look). ``False`` cuts the step time by
             a third to a half on llvmpipe (the shadow pass is about half of a render), but changes the picture.
         masks (bool): add the robot's mask and the distractors' to ``info`` (below; a segmentation pass per
-            agent step). Defaults to ``True``; ``make_env`` sets it to its ``return_masks``.
+            agent step). Defaults to ``True`` (``make_env`` and ``make_gym_env``: off unless
+            ``return_masks=True``).
 
     Observations are uint8 [image_size, image_size, 3] (HWC, RGB); actions are float32 in [-1, 1]^A,
     rescaled to the task's bounds (values outside are clipped). ``info["mask_background"]`` is a bool

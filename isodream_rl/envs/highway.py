@@ -72,7 +72,7 @@ class HighwayIsoEnv(gym.Env):
         stuck_check_ticks (int, optional): the stuck check runs every this many ticks. Defaults to 100.
         masks (bool, optional): put the ground-truth masks in ``info`` at every reset and step (below; one
             more drawing of the vehicles per frame, a segmentation pass in the first-person view). Defaults to
-            ``True``; ``make_env`` sets it to its ``return_masks``.
+            ``True`` (``make_env`` and ``make_gym_env``: off unless ``return_masks=True``).
 
     Ground truth (``masks=True``), bool ``[image_size, image_size]`` at the observation's resolution, exact to
     the pixel and disjoint:

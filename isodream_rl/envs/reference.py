@@ -203,8 +203,6 @@ def reference_returns(
     """
     from isodream_rl.envs.builder import make_gym_env
 
-    if name == "highway":
-        env_kwargs = {"masks": False, **env_kwargs}  # no policy here reads them
     env = make_gym_env(name, **env_kwargs)
     try:
         low, high = env.action_space.low, env.action_space.high
