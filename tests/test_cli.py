@@ -56,17 +56,54 @@ def test_every_env_algo_preset_composes_to_a_valid_config(env, algo):
     assert cfg.env.name == {"gym": "Pendulum-v1"}.get(env, env) and cfg.algo.name == algo
 
 
+#: The exp files whose runs a bench records (not docs/results/world_model_demo.json): the bench.
+BENCH_RECIPES = {"decomposition": "bench/decomposition.py"}
+
+
 @pytest.mark.parametrize("exp", EXPS)
 def test_every_exp_composes_to_a_valid_config_and_names_the_recorded_run_it_repeats(exp):
     cfg = composed(f"exp={exp}")
     validate_config(cfg)
-    assert cfg.mode == "world_model" and cfg.run_dir.startswith("runs/world_model")
     header = (CONFIGS / "exp" / f"{exp}.yaml").read_text()
+    if exp in BENCH_RECIPES:
+        assert cfg.mode == "world_model" and cfg.run_dir.startswith(f"runs/{exp}")
+        assert BENCH_RECIPES[exp] in header and (CONFIGS.parents[1] / BENCH_RECIPES[exp]).exists()
+        return
+    assert cfg.mode == "world_model" and cfg.run_dir.startswith("runs/world_model")
     recorded = json.loads((CONFIGS.parents[1] / "docs" / "results" / "world_model_demo.json").read_text())[
         "runs"
     ]
     runs = re.findall(r"runs? ([A-Z]+[0-9]+)\b", header)
     assert runs and all(any(key.endswith(f" {run}") for key in recorded) for run in runs), runs
+
+
+@pytest.mark.parametrize(
+    "scene",
+    [
+        ["env=sprites", "env.kwargs.task=none"],
+        ["env=dmc_walker_walk"],
+        ["env=dmc_cheetah_run"],
+        ["env=highway", "++env.kwargs.view=top_down"],
+    ],
+)
+@pytest.mark.parametrize("algo", ["isodream", "dreamerv2"])
+def test_the_decomposition_recipe_is_the_same_on_every_scene(scene, algo):
+    cfg = composed("exp=decomposition", *scene, f"algo={algo}")
+    validate_config(cfg)
+    assert cfg.algo.name == algo and cfg.run_dir == f"runs/decomposition-{cfg.env.name}-{algo}"
+    assert (cfg.algo.free_branch_loss, cfg.algo.reward_uses_free, cfg.algo.lambda_reward) == (
+        "kl",
+        False,
+        1.0,
+    )
+    assert (cfg.train.batch_size, cfg.train.sequence_length, cfg.train.world_model_lr) == (8, 16, 1e-3)
+    assert (cfg.model.size, cfg.world_model.max_minutes, cfg.world_model.probe_episodes) == ("small", 30.0, 0)
+    wm = cfg.world_model
+    assert (wm.episodes, wm.episode_length, wm.held_out_episodes, wm.action_hold) == (60, 96, 4, 8)
+    if cfg.env.name == "sprites":  # three discs, a new background per episode
+        assert "num_backgrounds" not in cfg.env.kwargs and "num_distractors" not in cfg.env.kwargs
+    if cfg.env.name.startswith("dmc_"):
+        assert cfg.env.kwargs["background"] == "video_easy"
 
 
 def test_domain_presets_follow_the_paper():

@@ -236,3 +236,28 @@ def test_bad_inputs_are_rejected_with_the_valid_choices(walker_envs):
     env.reset(seed=0)
     with pytest.raises(ValueError, match=r"shape \(6,\).*got \(2,\)"):
         env.step(np.zeros(2, np.float32))
+
+
+@pytest.mark.parametrize("domain,task", [("walker", "walk"), ("cheetah", "run")])
+def test_agent_mask_is_the_robot_and_distractors_are_the_video(domain, task):
+    env, plain = _make("video_easy", domain, task), _make("none", domain, task)
+    env.reset(seed=1)
+    plain.reset(seed=1)
+    model = env._env.physics.model
+    for action in _actions(env, 3, seed=4):
+        obs, *_, info = env.step(action)
+        obs_plain, *_ = plain.step(action)
+        seg = env._env.physics.render(64, 64, camera_id=env.camera_id, segmentation=True)
+        robot = (seg[..., 1] == 5) & (model.geom_bodyid[np.maximum(seg[..., 0], 0)] > 0)
+        agent, video = info["mask_agent"], info["mask_distractors"]
+        assert agent.dtype == bool and agent.shape == (64, 64)
+        np.testing.assert_array_equal(agent, robot)
+        np.testing.assert_array_equal(video, info["mask_background"])
+        assert 0.02 < agent.mean() < 0.5 and not (agent & video).any()
+        # the floor of video_easy is neither: it is drawn as in the plain task
+        floor = ~agent & ~video
+        assert floor.any() and (obs[floor] == obs_plain[floor]).all()
+    env.close()
+    plain.close()
+    _, info = _make("none", masks=False).reset(seed=0)
+    assert set(info) == {"mask_background"}

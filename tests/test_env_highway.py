@@ -294,3 +294,59 @@ def test_collision_prefilter_never_dismisses_a_pair_the_exact_check_finds_touchi
     )
     assert touching.any() and dismissed.any() and not touching.all()
     assert not (dismissed & touching).any()
+
+
+def _frame_without(env: HighwayIsoEnv, keep) -> np.ndarray:
+    """The current view drawn again with only the vehicles ``keep`` selects (the road state is restored)."""
+    vehicles = list(env.road.vehicles)
+    env.road.vehicles[:] = [v for v in vehicles if keep(v)]
+    try:
+        if env.view == "first_person":
+            return env._renderer.render(env.ego, [v for v in env.road.vehicles if v is not env.ego])
+        return env._renderer.render(env.road, env.ego)
+    finally:
+        env.road.vehicles[:] = vehicles
+
+
+@pytest.mark.parametrize("view", HIGHWAY_VIEWS)
+def test_masks_are_exactly_the_pixels_each_vehicle_group_is_drawn_on(view):
+    env = HighwayIsoEnv(view=view, vehicles_count=2)
+    obs, info = env.reset(seed=0)
+    assert {"mask_agent", "mask_vehicles", "mask_distractors"} <= set(info)
+    _place(env, env.ego, x=100.0, y=4.0, heading=0.0, speed=20.0)
+    _only_cruisers(env, (12.0, 4.0, 20.0), (20.0, 8.0, 20.0))
+    obs, *_, info = env.step(STRAIGHT)
+    agent, vehicles = info["mask_agent"], info["mask_vehicles"]
+    for mask in (agent, vehicles, info["mask_distractors"]):
+        assert mask.shape == obs.shape[:2] and mask.dtype == bool
+    np.testing.assert_array_equal(vehicles, info["mask_distractors"])
+    assert vehicles.sum() > 10 and not (agent & vehicles).any()
+    # the pixels that change when the other vehicles are left out are exactly mask_vehicles, and likewise
+    # for the ego (drawn in the top-down view only: the first-person camera rides on it)
+    without_others = _frame_without(env, lambda v: v is env.ego)
+    np.testing.assert_array_equal((obs != without_others).any(-1), vehicles)
+    without_ego = _frame_without(env, lambda v: v is not env.ego)
+    np.testing.assert_array_equal((obs != without_ego).any(-1), agent)
+    assert agent.sum() > 10 if view == "top_down" else not agent.any()
+    env.close()
+
+
+def test_a_vehicle_drawn_over_the_ego_hides_it_in_the_masks():
+    env = HighwayIsoEnv(view="top_down", vehicles_count=1)
+    env.reset(seed=0)
+    _place(env, env.ego, x=100.0, y=4.0, heading=0.0, speed=20.0)
+    _only_cruisers(env, (2.0, 4.5, 20.0))  # overlapping the ego, drawn after it
+    alone = env._renderer.masks(env.road, env.ego)
+    env.road.vehicles[:] = [env.ego]
+    ego_alone, _ = env._renderer.masks(env.road, env.ego)
+    agent, vehicles = alone
+    assert (ego_alone & vehicles).any() and not (agent & vehicles).any()
+    np.testing.assert_array_equal(agent | (ego_alone & vehicles), ego_alone)
+    env.close()
+
+
+def test_masks_can_be_switched_off():
+    env = HighwayIsoEnv(view="top_down", vehicles_count=2, masks=False)
+    _, info = env.reset(seed=0)
+    assert "mask_agent" not in info and "mask_agent" not in env.step(STRAIGHT)[-1]
+    env.close()

@@ -76,7 +76,8 @@ def test_dmc_background_mask_appears_in_the_step_output_when_requested():
     env = make_env("dmc_cheetah_run", seed=0, return_masks=True, video_source="procedural")
     td = env.rollout(2)
     assert td["next", "mask_background"].shape == (2, 64, 64)
-    assert td["next", "mask_background"].any()
+    assert td["next", "mask_background"].any() and td["next", "mask_agent"].any()
+    assert torch.equal(td["next", "mask_distractors"], td["next", "mask_background"])
 
 
 def test_pixels_are_the_seeded_gymnasium_frame_in_chw():
@@ -135,8 +136,21 @@ def test_unknown_env_name_lists_the_valid_ones():
 
 
 def test_return_masks_is_rejected_for_envs_without_ground_truth():
-    with pytest.raises(ValueError, match=r"'sprites' and 'dmc_\*' have them, 'highway' not"):
-        make_env("highway", return_masks=True)
+    with pytest.raises(ValueError, match=r"'sprites', 'highway' and 'dmc_\*' have them, 'Pendulum-v1' not"):
+        make_env("Pendulum-v1", return_masks=True)
+
+
+@pytest.mark.parametrize("view", ["top_down", "first_person"])
+def test_highway_masks_appear_in_the_step_output_when_requested(view):
+    env = make_env("highway", seed=0, return_masks=True, view=view, vehicles_count=10)
+    check_env_specs(env)
+    td = env.rollout(3)
+    for key in ("mask_agent", "mask_vehicles", "mask_distractors"):
+        assert td["next", key].shape == (3, 64, 64) and td["next", key].dtype == torch.bool
+    assert not (td["next", "mask_agent"] & td["next", "mask_vehicles"]).any()
+    assert td["next", "mask_agent"].any() == (view == "top_down")
+    plain = make_env("highway", seed=0, view=view, vehicles_count=10)
+    assert "mask_agent" not in plain.reset().keys() and plain.base_env.env.unwrapped.masks is False
 
 
 def test_wrong_action_shape_raises_a_clear_error():

@@ -79,8 +79,9 @@ def test_writes_pictures_scores_probe_checkpoint_and_logs_in_the_run_folder(tmp_
         "free_covers_distractor_2",
         "reco_error_distractor_0",
         "reco_error_agent",
-        "free_on_background",
-        "control_on_background",
+        "background_share_free",
+        "background_share_control",
+        "iou_static_vs_background",
     ):
         assert 0.0 <= saved[name] <= 3.0 and 0.0 <= saved[f"train_{name}"] <= 3.0, name
     # the final latent probe: every branch x sprite, an R^2 (at most 1), in the summary and the log
@@ -177,7 +178,9 @@ def test_the_single_branch_baseline_is_scored_by_disc_reconstruction_and_probed(
     )
     summary = result.summary
     assert summary["algo"] == "dreamerv2"
-    assert "iou_free_vs_distractors" not in summary and "free_covers_distractor_0" not in summary
+    # its one image is the control branch: it holds every pixel, the branches it lacks none
+    assert summary["iou_free_vs_distractors"] == 0.0 and summary["background_share_control"] == 1.0
+    assert "free_covers_distractor_0" not in summary
     # probed like the full model, on its one state
     assert {k for k in summary if k.startswith("probe_")} == {
         f"probe_r2_{b}_{n}"
@@ -267,10 +270,13 @@ def test_how_often_it_evaluates_does_not_change_the_training(tmp_path):
     )  # eval_every=0: after the last update only
 
 
-def test_any_env_of_the_env_group_trains_without_ground_truth(tmp_path):
+@pytest.mark.parametrize(
+    "env", [["env=highway", "++env.kwargs.view=top_down", "env.kwargs.vehicles_count=5"], ["env=gym"]]
+)
+def test_any_env_of_the_env_group_trains_and_is_scored_where_it_has_ground_truth(tmp_path, env):
     overrides = [
         "mode=world_model",
-        "env=highway",
+        *env,
         "size=tiny",
         "train.threads=1",
         "logging.progress_bar=false",
@@ -280,7 +286,25 @@ def test_any_env_of_the_env_group_trains_without_ground_truth(tmp_path):
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         result = run_module.train(OmegaConf.to_object(compose(config_name="config", overrides=overrides)))
     assert result.updates == 2 and set(result.summary) >= {"reco_mse", "train_reco_mse"}
-    assert not any(k.startswith(("iou_", "probe_")) for k in result.summary)
+    assert not any(k.startswith("probe_") for k in result.summary)
+    if env[0] == "env=highway":  # the ego and the other vehicles, scored like the sprites scene
+        assert 0.0 <= result.summary["iou_control_vs_agent"] <= 1.0
+        assert 0.0 <= result.summary["train_background_share_static"] <= 1.0
+    else:  # a gymnasium env has no ground truth
+        assert not any(k.startswith(("iou_", "background_share_")) for k in result.summary)
+
+
+def test_stops_once_its_wall_clock_budget_is_spent_and_summarises(tmp_path):
+    summary = train(tmp_path, "world_model.updates=100000", "world_model.max_minutes=0.001").summary
+    assert summary["stopped_by"] == "max_minutes" and 1 <= summary["updates"] < 100000
+    assert latest_state(tmp_path)["stepper"]["updates"] == summary["updates"]
+    assert "iou_control_vs_agent" in summary and summary["png"].endswith(f"{summary['updates']:08d}.png")
+    # resumed with a budget of its own (one it has spent already): scored as it is, not trained further
+    again = train(tmp_path, "world_model.updates=100000", "world_model.max_minutes=0.002", "resume=true")
+    assert again.summary["stopped_by"] == "max_minutes" and again.updates == summary["updates"]
+    assert again.summary["seconds"] > summary["seconds"]
+    with pytest.raises(ConfigError, match="max_minutes"):
+        train(tmp_path / "b", "world_model.max_minutes=-1")
 
 
 class _MasksFromTruth(torch.nn.Module):
@@ -300,6 +324,7 @@ class _MasksFromTruth(torch.nn.Module):
         out = td.clone()
         out["next", "mask_free"] = free
         out["next", "mask_control"] = nxt["mask_agent"].float()
+        out["next", "mask_static"] = (1.0 - free - out["next", "mask_control"]).clamp(min=0.0)
         out["next", "reco_pixels"] = nxt["pixels"].float() / 255.0 - 0.5
         return out
 
@@ -310,9 +335,10 @@ def test_scores_the_share_of_background_each_mask_holds():
     scores, _ = score_branches(_MasksFromTruth(truth), data, window=8)
     background = ~truth["next", "mask_agent"].bool() & ~truth["next", "mask_distractors"].bool()
     left = background[..., :32].sum() / background.sum()  # the background pixels in the left half
-    assert scores["control_on_background"] == 0.0
-    assert scores["free_on_background"] == pytest.approx(float(left), abs=1e-6)
-    assert 0.3 < scores["free_on_background"] < 0.7
+    assert scores["background_share_control"] == 0.0
+    assert scores["background_share_free"] == pytest.approx(float(left), abs=1e-6)
+    assert scores["background_share_static"] == pytest.approx(1.0 - float(left), abs=1e-6)
+    assert 0.3 < scores["background_share_free"] < 0.7
     assert all(scores[f"free_covers_distractor_{i}"] == 1.0 for i in range(3))
     assert scores["reco_error_agent"] == pytest.approx(0.0, abs=1e-6)
     assert scores["reco_mse"] == pytest.approx(0.0, abs=1e-6)

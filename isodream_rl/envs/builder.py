@@ -12,9 +12,12 @@
 - the info entries the task's success counts read (``isodream_rl.envs.reference.TASK_METRICS``), float32
   ``[]``: ``"reached"`` and ``"touching"`` for sprites, ``"distance"`` and ``"collision_impulse"`` for the
   highway;
-- with ``return_masks=True``, the env's ground-truth masks, bool ``[H, W]``: ``"mask_agent"``,
-  ``"mask_distractors"`` and ``"mask_target"`` for sprites, ``"mask_background"`` (the pixels showing the
-  video) for DMC.
+- with ``return_masks=True``, the env's ground-truth masks, bool ``[H, W]`` (:func:`ground_truth_mask_keys`).
+  Every env names its controllable thing ``"mask_agent"`` and its moving noncontrollable things
+  ``"mask_distractors"`` (the rest of the frame is background), the classes
+  :func:`isodream_rl.evaluation.decomposition_scores` scores against; sprites adds ``"mask_target"``, DMC
+  ``"mask_background"`` (the pixels showing the video, the same as its distractors), highway
+  ``"mask_vehicles"`` (the other vehicles, the same as its distractors).
 
 Any other registered gymnasium id with a ``Box`` action space works too: its ``rgb_array`` render, resized to
 64x64, is the observation (``RenderedPixels``), so ``make_env("Pendulum-v1")`` trains like the built-in envs.
@@ -47,7 +50,8 @@ from isodream_rl.process_settings import single_threaded_llvmpipe
 logger = logging.getLogger(__name__)
 
 SPRITES_MASK_KEYS = ("mask_agent", "mask_distractors", "mask_target")
-DMC_MASK_KEYS = ("mask_background",)
+DMC_MASK_KEYS = ("mask_agent", "mask_distractors", "mask_background")
+HIGHWAY_MASK_KEYS = ("mask_agent", "mask_distractors", "mask_vehicles")
 _DONE_KEYS = ("done", "terminated", "truncated")
 
 
@@ -288,6 +292,17 @@ def env_names() -> list[str]:
     return ["sprites", "highway", *dmc_env_names()]
 
 
+def ground_truth_mask_keys(name: str) -> tuple[str, ...]:
+    """The ground-truth masks ``make_env(name, return_masks=True)`` adds to every step (bool ``[H, W]``), or
+    ``()`` for an env without them (a gymnasium id): always ``"mask_agent"`` and ``"mask_distractors"``
+    first, then the env's own."""
+    if name == "sprites":
+        return SPRITES_MASK_KEYS
+    if name == "highway":
+        return HIGHWAY_MASK_KEYS
+    return DMC_MASK_KEYS if name in dmc_env_names() else ()
+
+
 def _check_name(name: str) -> None:
     if name not in ("sprites", "highway") and name not in dmc_env_names() and name not in gym.registry:
         raise ValueError(
@@ -297,7 +312,8 @@ def _check_name(name: str) -> None:
 
 
 def make_gym_env(name: str, **cfg: Any) -> gym.Env:
-    """Builds the raw gymnasium env behind ``make_env(name, **cfg)`` (HWC uint8 frames, no guard).
+    """Builds the raw gymnasium env behind ``make_env(name, **cfg)`` (HWC uint8 frames, no guard). As there,
+    highway and DMC compute their ground-truth masks only when ``cfg`` asks (``masks=True``).
 
     Args:
         name (str): see ``env_names()``, or a registered gymnasium id (seen through ``RenderedPixels``).
@@ -309,6 +325,8 @@ def make_gym_env(name: str, **cfg: Any) -> gym.Env:
         TypeError: a keyword of the wrong type for the built-in envs (e.g. ``vehicles_count='many'``), naming it.
     """
     _check_name(name)
+    if name == "highway" or name in dmc_env_names():
+        cfg = {"masks": False, **cfg}  # a render pass per step: only when asked for
     if name == "sprites":
         from isodream_rl.envs.sprites import SpritesEnv
 
@@ -367,8 +385,9 @@ def make_env(
         seed (int, optional): seeds the env; the same seed gives the same episodes under the same actions.
         device (torch.device or str, optional): device of the output tensors. Defaults to ``"cpu"``.
         return_masks (bool, optional): add the ground-truth masks (bool ``[H, W]``) to every step:
-            ``"mask_agent"``, ``"mask_distractors"``, ``"mask_target"`` (sprites) or ``"mask_background"``
-            (DMC). Highway has none. Defaults to ``False``.
+            :func:`ground_truth_mask_keys` (``"mask_agent"``, ``"mask_distractors"`` and the env's own).
+            Highway and DMC compute their masks only then (their ``masks`` keyword). Gymnasium ids have
+            none. Defaults to ``False``.
         any_image_size (bool, optional): allow an ``image_size`` other than 64. The world model reads
             ``[3, 64, 64]`` frames, so other sizes are refused unless set (for models of your own).
             Defaults to ``False``.
@@ -398,11 +417,14 @@ def make_env(
             f"make_env({name!r}): image_size={image_size!r}, but the world model reads [3, 64, 64] frames; "
             "leave image_size at 64, or pass any_image_size=True for a model of your own"
         )
-    mask_keys = {"sprites": SPRITES_MASK_KEYS}.get(name, DMC_MASK_KEYS if name in dmc_env_names() else ())
+    mask_keys = ground_truth_mask_keys(name)
     if return_masks and not mask_keys:
         raise ValueError(
-            f"return_masks=True needs ground-truth masks: 'sprites' and 'dmc_*' have them, {name!r} not."
+            f"return_masks=True needs ground-truth masks: 'sprites', 'highway' and 'dmc_*' have them, "
+            f"{name!r} not."
         )
+    if return_masks and (name == "highway" or name in dmc_env_names()):
+        cfg.setdefault("masks", True)
     from isodream_rl.envs.reference import task_info_keys
 
     env = make_gym_env(name, **cfg)
@@ -478,7 +500,9 @@ __all__ = [
     "RenderedPixels",
     "SPRITES_MASK_KEYS",
     "SimulatorFaultGuard",
+    "HIGHWAY_MASK_KEYS",
     "env_names",
+    "ground_truth_mask_keys",
     "make_env",
     "make_gym_env",
     "make_parallel_env",

@@ -101,10 +101,20 @@ class DMCBackgroundEnv(gymnasium.Env):
         max_sim_steps (int): simulator steps before truncation. Defaults to 1000.
         shadows (bool): cast shadows. Defaults to ``True`` (the suite's look). ``False`` cuts the step time by
             a third to a half on llvmpipe (the shadow pass is about half of a render), but changes the picture.
+        masks (bool): add the robot's mask and the distractors' to ``info`` (below; a segmentation pass per
+            agent step). Defaults to ``True`` (``make_env`` and ``make_gym_env``: off unless
+            ``return_masks=True``).
 
     Observations are uint8 [image_size, image_size, 3] (HWC, RGB); actions are float32 in [-1, 1]^A,
     rescaled to the task's bounds (values outside are clipped). ``info["mask_background"]`` is a bool
-    [image_size, image_size] array marking the pixels that show the video.
+    [image_size, image_size] array marking the pixels that show the video. With ``masks=True``, also bool
+    [image_size, image_size], exact to the pixel:
+
+    * ``info["mask_agent"]``: the robot, every geom of a body other than the world body, from MuJoCo's
+      segmentation pass of the same frame (not the complement of ``mask_background``: with ``"video_easy"``
+      the floor stays, and it is neither robot nor video);
+    * ``info["mask_distractors"]``: the moving noncontrollable pixels, ``mask_background`` under the name
+      every env uses (:func:`isodream_rl.evaluation.decomposition_scores`); all ``False`` for ``"none"``.
 
     Examples:
         >>> env = DMCBackgroundEnv(domain="walker", task="walk", video_source="procedural")
@@ -131,6 +141,7 @@ class DMCBackgroundEnv(gymnasium.Env):
         video_source: str = "natural",
         max_sim_steps: int = 1000,
         shadows: bool = True,
+        masks: bool = True,
     ) -> None:
         if (domain, task) not in suite.ALL_TASKS:
             raise ValueError(f"unknown DMC task {domain}-{task}; valid tasks: {', '.join(dmc_tasks())}")
@@ -152,6 +163,7 @@ class DMCBackgroundEnv(gymnasium.Env):
         self.action_repeat = action_repeat
         self.max_sim_steps = max_sim_steps
         self.render_mode = render_mode
+        self.masks = bool(masks)
 
         self._env = suite.load(domain, task, task_kwargs={"random": 0})
         physics = self._env.physics
@@ -219,7 +231,15 @@ class DMCBackgroundEnv(gymnasium.Env):
             mask = (obs == _KEY).all(axis=-1)
             obs[mask] = self._video.frame(self._agent_steps)[mask]
         self._last_obs = obs
-        return obs, {"mask_background": mask}
+        info = {"mask_background": mask}
+        if self.masks:
+            segmentation = self._camera.render(segmentation=True)  # [H, W, (object id, object type)]
+            model = self._env.physics.model
+            is_geom = segmentation[..., 1] == mujoco.mjtObj.mjOBJ_GEOM
+            body = model.geom_bodyid[np.where(is_geom, segmentation[..., 0], 0)]
+            info["mask_agent"] = is_geom & (body != 0)
+            info["mask_distractors"] = mask.copy()
+        return obs, info
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -232,7 +252,7 @@ class DMCBackgroundEnv(gymnasium.Env):
             options (dict, optional): unused, accepted for the gymnasium API.
 
         Returns:
-            ``(obs, info)``: uint8 [H, W, 3] and ``{"mask_background": bool [H, W]}``.
+            ``(obs, info)``: uint8 [H, W, 3] and the masks of the class docstring, bool [H, W] each.
         """
         super().reset(seed=seed)
         if seed is not None or not self._seeded:

@@ -70,6 +70,18 @@ class HighwayIsoEnv(gym.Env):
             vehicles). Defaults to 1.0.
         stuck_speed (float, optional): speed in m/s under which the ego counts as stuck. Defaults to 0.02.
         stuck_check_ticks (int, optional): the stuck check runs every this many ticks. Defaults to 100.
+        masks (bool, optional): put the ground-truth masks in ``info`` at every reset and step (below; one
+            more drawing of the vehicles per frame, a segmentation pass in the first-person view). Defaults to
+            ``True`` (``make_env`` and ``make_gym_env``: off unless ``return_masks=True``).
+
+    Ground truth (``masks=True``), bool ``[image_size, image_size]`` at the observation's resolution, exact to
+    the pixel and disjoint:
+
+    - ``info["mask_agent"]``: the visible pixels of the ego (top-down view); the first-person camera sits on
+      the ego's roof and the ego is not drawn, so there it is all ``False``;
+    - ``info["mask_vehicles"]``: the visible pixels of the other vehicles;
+    - ``info["mask_distractors"]``: the same pixels as ``mask_vehicles``, under the name every env uses for
+      its moving noncontrollable things (:func:`isodream_rl.evaluation.decomposition_scores`).
 
     Examples:
         >>> env = HighwayIsoEnv(vehicles_count=10)
@@ -100,6 +112,7 @@ class HighwayIsoEnv(gym.Env):
         vehicles_density: float = 1.0,
         stuck_speed: float = 0.02,
         stuck_check_ticks: int = 100,
+        masks: bool = True,
     ) -> None:
         if view not in HIGHWAY_VIEWS:
             raise ValueError(f"Unknown view {view!r}. Valid views: {', '.join(map(repr, HIGHWAY_VIEWS))}")
@@ -137,6 +150,7 @@ class HighwayIsoEnv(gym.Env):
         self.vehicle_mass = float(vehicle_mass)
         self.stuck_speed = float(stuck_speed)
         self.stuck_check_ticks = int(stuck_check_ticks)
+        self.masks = bool(masks)
         self.dt = 1.0 / SIMULATION_FREQUENCY
         self.metadata = {**self.metadata, "render_fps": SIMULATION_FREQUENCY / self.action_repeat}
         self.observation_space = gym.spaces.Box(0, 255, (self.image_size, self.image_size, 3), np.uint8)
@@ -200,7 +214,7 @@ class HighwayIsoEnv(gym.Env):
         self._last_obs = self._observe()
         info = self._info(progress=0.0, collision=0.0, steer=0.0, impulse=0.0, stuck=False)
         info["distance"] = 0.0
-        return self._last_obs, info
+        return self._last_obs, self._with_masks(info)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         """Applies [steer, throttle/brake] for ``action_repeat`` ticks (fewer if the episode ends sooner).
@@ -247,7 +261,7 @@ class HighwayIsoEnv(gym.Env):
             progress=progress, collision=collision, steer=steer_penalty, impulse=totals[3], stuck=stuck
         )
         info["distance"] = float(totals[0])
-        return self._last_obs, float(reward), bool(terminated), bool(truncated), info
+        return self._last_obs, float(reward), bool(terminated), bool(truncated), self._with_masks(info)
 
     def progress(self) -> float:
         """The progress term v_ego . u_lane * dt of the current state, in metres (the reward before penalties)."""
@@ -303,6 +317,18 @@ class HighwayIsoEnv(gym.Env):
             others = [v for v in self.road.vehicles if v is not self.ego]
             return self._renderer.render(self.ego, others)
         return self._renderer.render(self.road, self.ego)
+
+    def _with_masks(self, info: dict) -> dict:
+        """``info`` with the ground-truth masks of the last observation (see the class docstring)."""
+        if not self.masks:
+            return info
+        if self.view == "first_person":
+            vehicles = self._renderer.vehicle_mask()
+            agent = np.zeros_like(vehicles)
+        else:
+            agent, vehicles = self._renderer.masks(self.road, self.ego)
+        info.update(mask_agent=agent, mask_vehicles=vehicles, mask_distractors=vehicles.copy())
+        return info
 
     def _info(self, *, progress: float, collision: float, steer: float, impulse: float, stuck: bool) -> dict:
         return {

@@ -22,6 +22,7 @@ import numpy as np  # noqa: E402
 import pygame  # noqa: E402
 from highway_env.road.graphics import LaneGraphics, RoadGraphics, WorldSurface  # noqa: E402
 from highway_env.road.road import Road  # noqa: E402
+from highway_env.vehicle.graphics import VehicleGraphics  # noqa: E402
 from highway_env.vehicle.kinematics import Vehicle  # noqa: E402
 from PIL import Image  # noqa: E402
 
@@ -50,6 +51,7 @@ _GRASS = (71, 128, 51)
 _SKY_TOP = np.array([90.0, 140.0, 215.0])
 _SKY_HORIZON = np.array([215.0, 228.0, 240.0])
 _HIDDEN_GROUP = 3  # geom group of culled cars, switched off in the scene options
+_MASK_KEY = np.array([255, 0, 255], dtype=np.uint8)  # no highway-env vehicle paint: the top-down masks' key
 
 
 class FirstPersonRenderer:
@@ -168,6 +170,15 @@ class FirstPersonRenderer:
         frame = self._renderer.render(data, camera_id=self._camera, scene_option=self._scene_option)
         np.copyto(frame, self._sky, where=(frame == 0).all(axis=-1, keepdims=True))
         return frame
+
+    def vehicle_mask(self) -> np.ndarray:
+        """The pixels of the other vehicles in the last :meth:`render`'s frame, bool ``[image_size,
+        image_size]``, from MuJoCo's segmentation pass of the same scene (exact: no multisampling). The ego
+        carries the camera and is not drawn, so this view has no ego pixels."""
+        ids = self._renderer.render_geom_ids(
+            self._data, camera_id=self._camera, scene_option=self._scene_option
+        )
+        return np.isin(ids, self._car_geoms)
 
     def close(self) -> None:
         """Releases the GL context."""
@@ -331,6 +342,36 @@ class ChaseViewRenderer:
         for lane in lanes:
             _LaneGraphics.display(lane, surface)
         RoadGraphics.display_traffic(road, surface, offscreen=True)
+        return self._image()
+
+    def masks(self, road: Road, ego: Vehicle) -> tuple[np.ndarray, np.ndarray]:
+        """The visible pixels of the ego and of the other vehicles in :meth:`render`'s frame of the same state.
+
+        Each group is drawn again alone, with highway-env's own vehicle drawing, on a key colour no vehicle
+        has; vehicles are drawn in ``road.vehicles`` order, so one drawn after the ego hides it where they
+        overlap (a crash) and one drawn before is hidden by it.
+
+        Returns:
+            ``(mask_agent, mask_vehicles)``: bool ``[image_size, image_size]`` each, disjoint.
+        """
+        surface = self._surface
+        surface.move_display_window_to(ego.position)
+        vehicles = list(road.vehicles)
+        index = next((i for i, v in enumerate(vehicles) if v is ego), len(vehicles))
+        agent = self._footprint([ego])
+        after = self._footprint(vehicles[index + 1 :])
+        before = self._footprint(vehicles[:index])
+        return agent & ~after, after | (before & ~agent)
+
+    def _footprint(self, vehicles: Sequence[Vehicle]) -> np.ndarray:
+        """Pixels covered by ``vehicles`` drawn alone (bool ``[image_size, image_size]``)."""
+        surface = self._surface
+        surface.fill(_MASK_KEY)
+        for vehicle in vehicles:
+            VehicleGraphics.display(vehicle, surface, offscreen=True)
+        return (self._image() != _MASK_KEY).any(axis=-1)
+
+    def _image(self) -> np.ndarray:
         # surfarray is [x, y, rgb]; a counter-clockwise quarter turn makes +x (driving) point up and keeps the
         # driver's right (+y, screen down) on the right.
-        return np.ascontiguousarray(np.rot90(pygame.surfarray.array3d(surface).transpose(1, 0, 2)))
+        return np.ascontiguousarray(np.rot90(pygame.surfarray.array3d(self._surface).transpose(1, 0, 2)))

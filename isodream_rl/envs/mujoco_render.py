@@ -163,6 +163,52 @@ class OffscreenRenderer:
         mujoco.mjr_readPixels(self._pixels, None, self._rect, gl.mjr)
         return np.flipud(self._pixels).copy()  # OpenGL's first row is the bottom one
 
+    def render_geom_ids(
+        self, data: mujoco.MjData, *, camera_id: int, scene_option: mujoco.MjvOption | None = None
+    ) -> np.ndarray:
+        """The model geom drawn at each pixel of :meth:`render`'s image of the same state (MuJoCo's segmentation
+        pass: flat id colours, no lighting). Without multisampling both passes rasterise the same triangles,
+        so the two images agree pixel for pixel.
+
+        Args:
+            data (mujoco.MjData): state to draw, as for :meth:`render`.
+            camera_id (int): index of a camera of the model.
+            scene_option (mujoco.MjvOption, optional): visibility options (geom groups, ...).
+
+        Returns:
+            np.ndarray: int32 ``[height, width]``, the geom id at each pixel, ``-1`` where no geom is drawn.
+        """
+        if self._closed:
+            raise RuntimeError("render_geom_ids() called after close()")
+        gl = self._context()
+        gl.gl.make_current()
+        self._camera.fixedcamid = camera_id
+        scene = self._scene
+        mujoco.mjv_updateScene(
+            self._model,
+            data,
+            scene_option or self._default_option,
+            None,
+            self._camera,
+            mujoco.mjtCatBit.mjCAT_ALL,
+            scene,
+        )
+        flags = scene.flags.copy()
+        scene.flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = True
+        scene.flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = True
+        try:
+            mujoco.mjr_render(self._rect, scene, gl.mjr)
+            mujoco.mjr_readPixels(self._pixels, None, self._rect, gl.mjr)
+        finally:
+            np.copyto(scene.flags, flags)
+        rgb = np.flipud(self._pixels).astype(np.int64)
+        segment = rgb[..., 0] + (rgb[..., 1] << 8) + (rgb[..., 2] << 16)  # segid + 1, 0 where nothing
+        lookup = np.full(scene.ngeom + 2, -1, dtype=np.int32)
+        for geom in scene.geoms[: scene.ngeom]:
+            if geom.segid >= 0 and geom.objtype == mujoco.mjtObj.mjOBJ_GEOM:
+                lookup[geom.segid + 1] = geom.objid
+        return lookup[np.minimum(segment, scene.ngeom + 1)]
+
     def close(self) -> None:
         """Releases the GL resources; the renderer cannot render afterwards."""
         self._closed = True

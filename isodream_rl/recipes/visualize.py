@@ -10,12 +10,15 @@ from PIL import Image, ImageDraw
 from tensordict import TensorDictBase
 from torch import nn
 
+from isodream_rl.evaluation import branch_assignment, score_decomposition
 from isodream_rl.modules.encoder import preprocess_pixels
 from isodream_rl.recipes.sprites_data import episode_windows, model_input
 
 #: Rows of :func:`branch_grid`: (label, key under "next" or root, kind).
 _ROWS = (
     ("ground truth", ("next", "pixels"), "uint8"),
+    ("true agent", ("next", "mask_agent"), "bool"),
+    ("true distractors", ("next", "mask_distractors"), "bool"),
     ("composite", ("next", "reco_pixels"), "image"),
     ("controllable", ("next", "reco_control"), "image"),
     ("mask s", ("next", "mask_control"), "mask"),
@@ -27,9 +30,11 @@ _ROWS = (
 
 
 def _to_uint8(x: torch.Tensor, kind: str) -> np.ndarray:
-    """``[3 or 1, H, W]`` -> ``[H, W, 3]`` uint8."""
+    """``[3 or 1, H, W]`` (``[H, W]`` for ``kind="bool"``) -> ``[H, W, 3]`` uint8."""
     x = x.detach().float().cpu()
-    if kind == "uint8":
+    if kind == "bool":
+        x = x[None]
+    elif kind == "uint8":
         x = x / 255.0
     elif kind == "image":
         x = x + 0.5
@@ -40,8 +45,9 @@ def _to_uint8(x: torch.Tensor, kind: str) -> np.ndarray:
 
 
 def branch_grid(output: TensorDictBase, *, sample: int = 0, steps: int = 10, scale: int = 2) -> Image.Image:
-    """A grid image: one row per quantity (ground truth, composite, each component and its mask), one column
-    per time step of window ``sample`` of a world-model output.
+    """A grid image: one row per quantity (ground truth, the ground-truth masks where the output holds them,
+    composite, each component and its mask), one column per time step of window ``sample`` of a world-model
+    output.
 
     Args:
         output: the ``[B, T]`` output tensordict of :class:`~isodream_rl.modules.IsoDreamWorldModel`.
@@ -75,17 +81,6 @@ def save_png(image: Image.Image, path: str | Path) -> Path:
     return path
 
 
-def mask_iou(predicted: torch.Tensor, truth: torch.Tensor, *, threshold: float = 0.5) -> float:
-    """Intersection over union of ``predicted > threshold`` and the boolean ``truth`` over all pixels given.
-
-    ``predicted``: ``[*N, 1, H, W]`` or ``[*N, H, W]`` soft masks; ``truth``: ``[*N, H, W]`` bool.
-    """
-    pred = predicted.detach().reshape(truth.shape) > threshold
-    truth = truth.bool()
-    union = (pred | truth).sum().item()
-    return float((pred & truth).sum().item() / union) if union else float("nan")
-
-
 @torch.no_grad()
 def score_branches(
     world_model: nn.Module, data: TensorDictBase, *, window: int, device: torch.device | str = "cpu"
@@ -94,18 +89,17 @@ def score_branches(
     :func:`branch_grid`).
 
     ``reco_mse``: the composite's mean squared error per pixel and channel (``[-0.5, 0.5]`` range). Where the
-    data hold the sprites scene's ground truth (``"mask_agent"``, ``"mask_distractors"``, ``"distractor_ids"``
-    under ``"next"``, as :func:`~isodream_rl.recipes.sprites_data.collect_sprites_episodes` writes them):
+    data hold the ground truth (``"mask_agent"`` and ``"mask_distractors"`` under ``"next"``, any env of
+    ``make_env(..., return_masks=True)``), the scores of
+    :func:`~isodream_rl.evaluation.decomposition_scores` (each branch's pixels: the largest mask). On the
+    sprites scene (``"distractor_ids"``, as
+    :func:`~isodream_rl.recipes.sprites_data.collect_sprites_episodes` writes them), per disc as well:
 
-    * ``iou_{branch}_vs_{agent|distractors}``: :func:`mask_iou` of each dynamic branch's mask;
-    * ``free_covers_distractor_{i}``: the fraction of distractor ``i``'s visible pixels where the
-      noncontrollable mask is above 0.5 (which distractors the branch has taken, one by one);
+    * ``free_covers_distractor_{i}``: the fraction of distractor ``i``'s visible pixels the noncontrollable
+      branch holds (which distractors the branch has taken, one by one);
     * ``reco_error_distractor_{i}``: the composite's squared error on those pixels (summed over RGB), which
       tells a disc drawn by the wrong branch (low error) from a disc not drawn at all (the error of the disc
-      against the background, ~0.3-0.5); ``reco_error_agent`` the same on the agent's pixels;
-    * ``{branch}_on_background``: the fraction of the pixels of neither the agent nor a distractor where that
-      branch's mask is above 0.5 (a branch sharing the background with the static one, which the IoU counts
-      only against the objects' area).
+      against the background, ~0.3-0.5); ``reco_error_agent`` the same on the agent's pixels.
 
     Args:
         world_model: an :class:`~isodream_rl.modules.IsoDreamWorldModel` (or a module with its output keys).
@@ -114,36 +108,36 @@ def score_branches(
         device: where the world model runs.
 
     Returns:
-        ``(scores, output)``: the scores, and the world model's ``[N, window]`` output on CPU.
+        ``(scores, output)``: the scores, and the world model's ``[N, window]`` output on CPU (with the
+        ground-truth masks, where the data hold them, beside its input frames).
     """
     windows = episode_windows(data, window=window)
     out = world_model(model_input(windows).to(device)).cpu()
-    nxt, truth = out["next"], windows["next"]
-    target = preprocess_pixels(truth["pixels"])
-    error = (nxt["reco_pixels"].float() - target).pow(2)
-    scores = {"reco_mse": float(error.mean())}
-    if "mask_agent" not in truth.keys():
-        return scores, out
-    for branch in ("control", "free"):
-        if f"mask_{branch}" in nxt.keys():
-            for gt in ("agent", "distractors"):
-                scores[f"iou_{branch}_vs_{gt}"] = mask_iou(nxt[f"mask_{branch}"], truth[f"mask_{gt}"])
+    truth = windows["next"]
+    if not all(key in truth.keys() for key in ("mask_agent", "mask_distractors")):
+        error = (out["next", "reco_pixels"].float() - preprocess_pixels(truth["pixels"])).pow(2)
+        return {"reco_mse": float(error.mean())}, out
+    scores = score_decomposition(out, windows)
+    for key in ("mask_agent", "mask_distractors"):  # beside the frames, for branch_grid
+        out["next", key] = truth[key]
+    if "distractor_ids" in truth.keys():
+        scores.update(_disc_scores(out, windows))
+    return scores, out
+
+
+def _disc_scores(out: TensorDictBase, windows: TensorDictBase) -> dict[str, float]:
+    """The sprites scene's per-disc scores of :func:`score_branches`."""
+    truth = windows["next"]
     ids = truth["distractor_ids"]
-    error = error.sum(-3).reshape(ids.shape)
-    # where each dynamic branch's mask holds a pixel
-    held = {
-        b: nxt[f"mask_{b}"].reshape(ids.shape) > 0.5 for b in ("control", "free") if f"mask_{b}" in nxt.keys()
-    }
-    taken = held.get("free")
+    error = (out["next", "reco_pixels"].float() - preprocess_pixels(truth["pixels"])).pow(2).sum(-3)
+    taken = branch_assignment(out)["free"] if "mask_free" in out["next"].keys() else None
+    scores = {}
     for i in range(1, int(ids.max()) + 1):
         pixels = ids == i
         count = pixels.sum().clamp(min=1)
         if taken is not None:
             scores[f"free_covers_distractor_{i - 1}"] = float((taken & pixels).sum() / count)
         scores[f"reco_error_distractor_{i - 1}"] = float(error[pixels].sum() / count)
-    agent = truth["mask_agent"].reshape(ids.shape).bool()
+    agent = truth["mask_agent"]
     scores["reco_error_agent"] = float(error[agent].sum() / agent.sum().clamp(min=1))
-    background = ~agent & (ids == 0)
-    for branch, mask in held.items():
-        scores[f"{branch}_on_background"] = float((mask & background).sum() / background.sum().clamp(min=1))
-    return scores, out
+    return scores

@@ -9,12 +9,15 @@ from pathlib import Path
 import numpy as np
 import torch
 from PIL import Image
+from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.record.loggers import Logger
 from torchrl.trainers import TrainerHookBase
 
 from isodream_rl.envs.reference import TASK_METRICS
+from isodream_rl.evaluation import decomposition_scores
+from isodream_rl.evaluation.decomposition import TRUTH_KEYS
 from isodream_rl.trainers.openloop import open_loop_prediction, prediction_frames, prediction_video, save_gif
 
 #: Upper bound on evaluation episode length; every env here truncates well before (sprites 200, highway 250,
@@ -36,6 +39,8 @@ class EpisodeResults:
     returns: list[float]
     metrics: list[dict[str, float]] = field(default_factory=list)
     frames: list[torch.Tensor] = field(default_factory=list)
+    first_rollout: TensorDictBase | None = None
+    """The first episode's ``[T]`` rollout, when kept."""
 
     @property
     def mean(self) -> float:
@@ -55,7 +60,13 @@ class EpisodeResults:
 
 @torch.no_grad()
 def run_episodes(
-    policy, env: EnvBase, *, episodes: int, record: bool = False, task: str | None = None
+    policy,
+    env: EnvBase,
+    *,
+    episodes: int,
+    record: bool = False,
+    task: str | None = None,
+    keep_rollout: bool = False,
 ) -> EpisodeResults:
     """Run ``episodes`` episodes with the policy's mode action.
 
@@ -66,6 +77,7 @@ def run_episodes(
         record: keep the first episode's frames (uint8 ``[3, H, W]`` each).
         task: the env's name in ``TASK_METRICS`` (``"sprites"``, ``"highway"``) to count its successes from
             the info keys ``make_env`` exports; ``None`` counts none.
+        keep_rollout: keep the first episode's rollout (``EpisodeResults.first_rollout``).
 
     Returns:
         :class:`EpisodeResults`.
@@ -84,7 +96,30 @@ def run_episodes(
             )
             if record and episode == 0:
                 results.frames = list(rollout.get(("next", "pixels")).unbind(0))
+            if keep_rollout and episode == 0:
+                results.first_rollout = rollout
     return results
+
+
+def rollout_decomposition(
+    world_model, rollout: TensorDictBase, *, window: int, max_windows: int = 4
+) -> dict[str, float]:
+    """:func:`~isodream_rl.evaluation.decomposition_scores` of ``world_model`` on an episode's rollout with
+    ground-truth masks (``make_env(..., return_masks=True)``), cut into up to ``max_windows`` consecutive
+    windows of ``window`` steps (one shorter window if the episode is shorter; nothing below 2 steps).
+
+    Returns:
+        the scores, ``{}`` when the episode is too short.
+    """
+    steps = rollout.shape[0]
+    if steps < 2:
+        return {}
+    window = min(window, steps)
+    count = min(max_windows, steps // window)
+    keys = ["action", "is_init", ("next", "pixels"), *TRUTH_KEYS.values()]
+    windows = rollout[: count * window].select(*keys).reshape(count, window).clone()
+    windows["is_init"][:, 0] = True  # each window is filtered from zero states
+    return decomposition_scores(world_model, windows, device=next(world_model.parameters()).device)
 
 
 def log_prediction(logger: Logger, name: str, video: torch.Tensor, *, step: int) -> None:
@@ -147,6 +182,10 @@ class Evaluation(TrainerHookBase):
         context: observed frames of the open-loop prediction.
         length: frames of the open-loop prediction.
         logger: TorchRL logger for the video (TensorBoard, W&B), or ``None`` (the GIF is written either way).
+        decomposition: score ``world_model``'s branches against the ground truth on the first evaluation
+            episode (:func:`rollout_decomposition`, up to 4 windows of ``sequence_length``), logged as
+            ``eval/decomposition/<score>``; ``env_factory``'s env must then return the masks
+            (``make_env(..., return_masks=True)``).
     """
 
     def __init__(
@@ -165,12 +204,14 @@ class Evaluation(TrainerHookBase):
         context: int,
         length: int,
         logger=None,
+        decomposition: bool = False,
     ) -> None:
         self.policy, self.env_factory, self.env = policy, env_factory, None
         self.world_model, self.replay_buffer = world_model, replay_buffer
         self.sequence_length, self.pictures = sequence_length, Path(pictures)
         self.every, self.episodes, self.task, self.clock = every, episodes, task, clock
         self.context, self.length, self.logger = context, length, logger
+        self.decomposition = decomposition and world_model is not None
         self.last = 0
         self.last_gif: Path | None = None
         self._trainer = None
@@ -180,7 +221,9 @@ class Evaluation(TrainerHookBase):
         wall_s = None if self.clock is None else self.clock()
         if self.env is None:
             self.env = self.env_factory()
-        results = run_episodes(self.policy, self.env, episodes=self.episodes, task=self.task)
+        results = run_episodes(
+            self.policy, self.env, episodes=self.episodes, task=self.task, keep_rollout=self.decomposition
+        )
         if self.world_model is not None:
             window = self.replay_buffer.sample().reshape(-1, self.sequence_length)[:1, : self.length]
             prediction = open_loop_prediction(self.world_model, window, context=self.context)
@@ -190,6 +233,11 @@ class Evaluation(TrainerHookBase):
             if self.logger is not None:
                 log_prediction(self.logger, "openloop_prediction", prediction_video(prediction), step=step)
         out = results.summary()
+        if self.decomposition:
+            scores = rollout_decomposition(
+                self.world_model, results.first_rollout, window=self.sequence_length
+            )
+            out.update({f"eval/decomposition/{key}": value for key, value in scores.items()})
         if wall_s is not None:
             out["eval_wall_s"] = wall_s
         return out

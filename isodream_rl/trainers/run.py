@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import logging
 import random
@@ -15,6 +16,7 @@ import numpy as np
 import torch
 from torchrl.trainers import ReplayBufferTrainer, Trainer, UpdateWeights
 
+from isodream_rl.envs.builder import ground_truth_mask_keys
 from isodream_rl.trainers import trainer_state
 from isodream_rl.trainers.builders import (
     close_logger,
@@ -295,8 +297,17 @@ def train(cfg: RunConfig) -> RunResult:
     if cfg.env.num_envs > 1 or train_cfg.collector_backend != "sync":
         UpdateWeights(collector, update_weights_interval=1).register(trainer)
 
-    def eval_env():
-        env = env_factory(cfg, eval_mode=True)()
+    # the decomposition scores of the evaluations, where the env renders the ground truth and the world model
+    # is Iso-Dream's (any of its variants)
+    decomposition = (
+        cfg.algo.name != "torchrl_dreamer"
+        and not cfg.env.factory
+        and bool(ground_truth_mask_keys(cfg.env.name))
+    )
+
+    def eval_env(masks: bool = False):
+        make = env_factory(cfg, eval_mode=True)
+        env = (functools.partial(make, return_masks=True) if masks else make)()
         env.append_transform(policy.make_tensordict_primer())
         return env
 
@@ -304,7 +315,7 @@ def train(cfg: RunConfig) -> RunResult:
     if cfg.logging.eval_every > 0:
         evaluation = Evaluation(
             policy=policy,
-            env_factory=eval_env,
+            env_factory=functools.partial(eval_env, masks=decomposition),
             world_model=components.world_model,
             replay_buffer=components.replay_buffer,
             sequence_length=train_cfg.sequence_length,
@@ -317,6 +328,7 @@ def train(cfg: RunConfig) -> RunResult:
             length=cfg.logging.video_length,
             # The CSV logger can only write videos as MP4 through torchcodec (not a dependency); the GIF suffices.
             logger=None if cfg.logging.backend == "csv" else log,
+            decomposition=decomposition,
         )
         if state is not None and state["hooks"]["evaluation"] is not None:
             evaluation.load_state_dict(state["hooks"]["evaluation"])

@@ -35,6 +35,7 @@ RESUMABLE = (
     "overwrite",
     "train.total_steps",
     "world_model.updates",
+    "world_model.max_minutes",
     "logging.",
     "checkpoint.",
     "train.threads",

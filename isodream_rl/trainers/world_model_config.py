@@ -24,6 +24,9 @@ class WorldModelModeConfig:
 
     updates: int = 3000
     """World-model updates to run (``train.batch_size`` windows of ``train.sequence_length`` steps each)."""
+    max_minutes: float = 0.0
+    """Wall-clock budget of the run in minutes, data collection included and summed over resumes: training
+    stops after the first update past it (scored, checkpointed and summarised as at ``updates``); 0: none."""
     episodes: int = 60
     """Random-action training episodes, collected once before the first update."""
     episode_length: int = 96
@@ -115,6 +118,8 @@ def world_model_mode_errors(cfg: Any) -> list[str]:
             errors.append(
                 f"world_model.static_mask_bias_schedule={schedule}: updates must be >= 0 and increasing"
             )
+    if not wm.max_minutes >= 0:
+        errors.append(f"world_model.max_minutes={wm.max_minutes} must be >= 0 (0: no time limit)")
     if wm.lambda_reco_pyramid < 0:
         errors.append(f"world_model.lambda_reco_pyramid={wm.lambda_reco_pyramid} must be >= 0")
     if wm.probe_episodes == 1:

@@ -5,9 +5,11 @@ actions (the sprites scene by default; any env of the ``env`` group), trains
 :class:`~isodream_rl.modules.IsoDreamWorldModel` with :class:`~isodream_rl.objectives.IsoDreamModelLoss`
 through the trainer's :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` (no actor, no value),
 and every ``logging.eval_every`` updates scores it on held-out episodes
-(:func:`~isodream_rl.recipes.visualize.score_branches`: mask IoU against the sprites scene's ground truth,
-each disc's coverage and reconstruction error) and draws ``pictures/branches_<updates>.png``. At the end, on
-sprites, it probes what each branch's state knows (:func:`~isodream_rl.recipes.latent_probe.probe`) and
+(:func:`~isodream_rl.recipes.visualize.score_branches`: on every env with ground-truth masks (sprites,
+highway, DMC), :func:`~isodream_rl.evaluation.decomposition_scores`, each branch against the agent, the
+distractors and the background; on sprites, each disc's coverage and reconstruction error too) and draws
+``pictures/branches_<updates>.png``. It stops after ``world_model.updates`` updates, or once its wall-clock
+passes ``world_model.max_minutes``. At the end, on sprites, it probes what each branch's state knows (:func:`~isodream_rl.recipes.latent_probe.probe`) and
 writes ``summary.json``. The run folder is an RL run's: ``logs/`` (the TorchRL logger),
 ``checkpoints/step_<updates>/`` (:class:`~isodream_rl.trainers.checkpoint.CheckpointManager`, which
 ``resume=true`` continues from), ``pictures/``.
@@ -21,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
+import math
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -30,6 +33,8 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from tqdm import tqdm
 
+from isodream_rl.envs.builder import ground_truth_mask_keys
+from isodream_rl.evaluation.decomposition import TRUTH_KEYS
 from isodream_rl.modules import IsoDreamWorldModel
 from isodream_rl.objectives.pyramid import PyramidImageTerm
 from isodream_rl.recipes.latent_probe import probe
@@ -55,6 +60,10 @@ from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
 logger = logging.getLogger(__name__)
 
 
+#: the ground-truth masks collected with the episodes of an env that has them
+TRUTH_MASKS = tuple(key for _, key in TRUTH_KEYS.values())
+
+
 def _is_sprites(cfg: RunConfig) -> bool:
     return cfg.env.name == "sprites" and not cfg.env.factory
 
@@ -72,7 +81,8 @@ def collect_episodes(cfg: RunConfig, *, episodes: int, seed: int) -> TensorDict:
     Sprites is stepped directly, with its ground-truth masks
     (:func:`~isodream_rl.recipes.sprites_data.collect_sprites_episodes`, 100x faster than through TorchRL);
     any other env of ``cfg.env`` is rolled out through TorchRL (an episode that ends early is reset, marked by
-    ``is_init``).
+    ``is_init``), with its ``("next", "mask_agent")`` and ``("next", "mask_distractors")`` where it has them
+    (:func:`~isodream_rl.envs.builder.ground_truth_mask_keys`).
 
     Raises:
         ConfigError: ``env.kwargs`` the sprites scene does not take.
@@ -86,7 +96,10 @@ def collect_episodes(cfg: RunConfig, *, episodes: int, seed: int) -> TensorDict:
             )
         except (TypeError, ValueError) as err:
             raise ConfigError(f"invalid training configuration:\n  - env.kwargs: {err}") from err
-    env = env_factory(cfg)()
+    # the classes decomposition_scores reads (the env's other masks are its own names for them)
+    masks = () if cfg.env.factory or not ground_truth_mask_keys(cfg.env.name) else TRUTH_MASKS
+    make = env_factory(cfg)
+    env = functools.partial(make, return_masks=True)() if masks else make()
     try:
         env.set_seed(seed)
         actions = held_random_actions(
@@ -97,7 +110,7 @@ def collect_episodes(cfg: RunConfig, *, episodes: int, seed: int) -> TensorDict:
             # a policy that reads nothing and hands out the episode's held actions in turn
             policy = TensorDictModule(functools.partial(next, iter(chunk)), in_keys=[], out_keys=["action"])
             rollout = env.rollout(steps, policy=policy, break_when_any_done=False)
-            rollouts.append(rollout.select(*REPLAY_KEYS, strict=False))
+            rollouts.append(rollout.select(*REPLAY_KEYS, *(("next", key) for key in masks), strict=False))
     finally:
         env.close()
     data = torch.cat(rollouts)
@@ -241,6 +254,11 @@ def train(cfg: RunConfig) -> RunResult:
     env_steps = wm.episodes * wm.episode_length
     if first >= wm.updates:
         return RunResult(run_dir, resumed_from, logs, pictures, env_steps, first, resumed_from)
+    budget = wm.max_minutes * 60.0 if wm.max_minutes else math.inf
+
+    def wall_s() -> float:
+        """The run's wall-clock so far, data collection included, summed over resumes."""
+        return wall_before + time.perf_counter() - started
 
     def save() -> Path:
         return checkpoints.save(
@@ -249,10 +267,7 @@ def train(cfg: RunConfig) -> RunResult:
                 "config": dataclasses.asdict(cfg),
                 "models": {"world_model": world_model.state_dict()},
                 "stepper": stepper.state_dict(),
-                "counters": {
-                    "updates": stepper.updates,
-                    "wall_s": wall_before + time.perf_counter() - started,
-                },
+                "counters": {"updates": stepper.updates, "wall_s": wall_s()},
                 "rng": rng_state(),
             },
         )
@@ -282,8 +297,13 @@ def train(cfg: RunConfig) -> RunResult:
         disable=not cfg.logging.progress_bar,
     )
     clock = time.perf_counter()
+    # a resumed run whose budget was spent before its summary: scored and checkpointed as it is
+    out_of_time = wall_s() >= budget
+    if out_of_time:
+        scores, picture = evaluate(first)
+        last_checkpoint = save()
     with StopOnSignal() as signals:
-        for update in bar:
+        for update in [] if out_of_time else bar:
             # the bias holds the schedule's offset of the previous update (a resumed model too): move it on
             change = schedule_value(schedule, update) - schedule_value(schedule, update - 1)
             if change:
@@ -294,21 +314,25 @@ def train(cfg: RunConfig) -> RunResult:
                 )
             values = stepper.step(None, buffer.sample().to(train_cfg.device))
             done = update + 1
-            if update % cfg.logging.log_every == 0 or done == wm.updates:
+            out_of_time = wall_s() >= budget
+            last = done == wm.updates or out_of_time
+            if update % cfg.logging.log_every == 0 or last:
                 metrics = {key: float(value) for key, value in values.items()}
                 metrics["updates_per_s"] = (done - first) / (time.perf_counter() - clock)
                 for key, value in metrics.items():
                     log.log_scalar(key, value, step=update)
                 bar.set_postfix(loss=f"{metrics['loss_model_reco']:.1f}", mse=f"{metrics['reco_mse']:.4f}")
-            if (cfg.logging.eval_every and done % cfg.logging.eval_every == 0) or done == wm.updates:
+            if (cfg.logging.eval_every and done % cfg.logging.eval_every == 0) or last:
                 scores, picture = evaluate(done)
                 bar.write(
                     f"update {done}: "
                     + ", ".join(f"{k} {v:.3f}" for k, v in scores.items() if not k.startswith("train_"))
                 )
-            if done % cfg.checkpoint.every_updates == 0 or done == wm.updates or signals.received is not None:
+            if done % cfg.checkpoint.every_updates == 0 or last or signals.received is not None:
                 last_checkpoint = save()
-            if signals.received is not None:
+            if signals.received is not None or out_of_time:
+                if out_of_time:
+                    bar.write(f"update {done}: world_model.max_minutes={wm.max_minutes} spent, stopping")
                 break
     bar.close()
     summary = None
@@ -328,8 +352,10 @@ def train(cfg: RunConfig) -> RunResult:
         summary = {
             "mode": cfg.mode,
             "algo": cfg.algo.name,
-            "updates": wm.updates,
-            "seconds": round(wall_before + time.perf_counter() - started, 1),
+            "env": cfg.env.name,
+            "updates": stepper.updates,
+            "stopped_by": "max_minutes" if out_of_time else "updates",
+            "seconds": round(wall_s(), 1),
             "precision": world_model.config.precision,
             "size": cfg.model.size,
             "seed": train_cfg.seed,

@@ -1,0 +1,242 @@
+"""The decomposition recipe on four scenes: how each world model's branches split a scene into the agent,
+the distractors and the background, scored against the ground truth.
+
+Every (scene, algorithm, seed) is one ``isodream-train exp=decomposition`` run (the world model alone on
+random-action episodes, :mod:`isodream_rl.trainers.world_model_run`) in its own folder under ``--runs``,
+stopped by its wall-clock budget (``--minutes``, the run's ``world_model.max_minutes``: data collection
+included). The scenes differ only by the env:
+
+* ``sprites``: three discs, a new background per episode;
+* ``dmc_walker_walk``, ``dmc_cheetah_run``: the robot before a ``video_easy`` background video;
+* ``highway``: the top-down view, the ego among the other vehicles.
+
+Finished runs (a ``summary.json``) are read back, not retrained; an interrupted one resumes from its newest
+checkpoint (``resume=true``). ``--parallel`` runs share the machine at one torch thread each.
+
+Writes ``--json`` (default ``docs/results/decomposition.json``)::
+
+    {"scenes": {scene: {algo: [{"seed": s, "iou_control_vs_agent": ..., "iou_free_vs_distractors": ...,
+                                 "updates": ..., "wall_minutes": ..., ...}, ...]}},
+     "minutes": ..., "commit": ..., "cpu": ..., "command": ..., "overrides": [...]}
+
+(each run's held-out scores of :func:`isodream_rl.evaluation.decomposition_scores`, its scores on as many
+training episodes with a ``train_`` prefix), one picture per scene, ``decomposition_<scene>.png`` beside the
+JSON (the final ground truth, composite, each branch and its mask over a held-out window of the first
+Iso-Dream seed), and a table (the JSON's path with ``.md``).
+
+    python bench/decomposition.py                                  # 4 scenes x 2 algos x 2 seeds x 30 min
+    python bench/decomposition.py --scenes sprites --algos isodream --seeds 0 --minutes 5 --runs /tmp/dec \\
+        --json /tmp/dec/decomposition.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import cpu_name, git_commit  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+#: The scenes and the ``isodream-train`` overrides that make each (the rest is ``exp=decomposition``).
+SCENES = {
+    "sprites": ["env=sprites", "env.kwargs.task=none"],
+    "dmc_walker_walk": ["env=dmc_walker_walk"],
+    "dmc_cheetah_run": ["env=dmc_cheetah_run"],
+    "highway": ["env=highway", "++env.kwargs.view=top_down"],
+}
+ALGOS = ("isodream", "dreamerv2")
+#: The summary's entries that are not scores.
+_NOT_SCORES = ("mode", "algo", "env", "updates", "stopped_by", "seconds", "precision", "size", "seed")
+#: The table's columns: (heading, score).
+_COLUMNS = (
+    ("control vs agent", "iou_control_vs_agent"),
+    ("noncontrollable vs distractors", "iou_free_vs_distractors"),
+    ("static vs background", "iou_static_vs_background"),
+    ("reconstruction MSE", "reco_mse"),
+)
+
+
+def run_dir(args: argparse.Namespace, scene: str, algo: str, seed: int) -> Path:
+    return args.runs / f"{scene}-{algo}-s{seed}"
+
+
+def run_command(args: argparse.Namespace, scene: str, algo: str, seed: int) -> list[str]:
+    """The ``isodream-train`` command of one run: resumed where it has a checkpoint, else started afresh."""
+    folder = run_dir(args, scene, algo, seed)
+    overrides = [
+        "exp=decomposition",
+        *SCENES[scene],
+        f"algo={algo}",
+        f"train.seed={seed}",
+        f"world_model.max_minutes={args.minutes}",
+        "logging.progress_bar=false",
+        f"run_dir={folder}",
+        *([f"size={args.size}"] if args.size else []),
+        *args.override,
+    ]
+    if any((folder / "checkpoints").glob("step_*[0-9]")):
+        overrides.append("resume=true")
+    else:  # never started, or stopped before its first checkpoint: start over (the folder holds bench.log)
+        overrides.append("overwrite=true")
+    return [sys.executable, "-m", "isodream_rl.cli", *overrides]
+
+
+def train_all(args: argparse.Namespace) -> None:
+    """Run every (scene, algo, seed) without a ``summary.json``, ``--parallel`` at a time, seed by seed (a
+    bench stopped early has every scene and algorithm on its first seeds)."""
+    pending = [
+        (scene, algo, seed)
+        for seed in args.seeds
+        for scene in args.scenes
+        for algo in args.algos
+        if not (run_dir(args, scene, algo, seed) / "summary.json").exists()
+    ]
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    running: list[tuple[tuple[str, str, int], subprocess.Popen]] = []
+    while pending or running:
+        while pending and len(running) < args.parallel:
+            run = pending.pop(0)
+            folder = run_dir(args, *run)
+            folder.mkdir(parents=True, exist_ok=True)
+            cmd = run_command(args, *run)
+            log = (folder / "bench.log").open("a")
+            print(f"[bench] start {' '.join(map(str, run))}: {' '.join(cmd[3:])}", flush=True)
+            running.append((run, subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=log, stderr=log)))
+        time.sleep(1)
+        for item in list(running):
+            run, proc = item
+            if proc.poll() is not None:
+                running.remove(item)
+                status = "done" if proc.returncode == 0 else f"FAILED (rc {proc.returncode}, see bench.log)"
+                print(f"[bench] {' '.join(map(str, run))}: {status}", flush=True)
+
+
+def collect(args: argparse.Namespace) -> dict:
+    """The finished runs' summaries as ``{scene: {algo: [one dict per seed]}}``."""
+    scenes: dict = {}
+    for scene in args.scenes:
+        scenes[scene] = {}
+        for algo in args.algos:
+            runs = []
+            for seed in args.seeds:
+                path = run_dir(args, scene, algo, seed) / "summary.json"
+                if not path.exists():
+                    print(f"[bench] {scene} {algo} seed {seed}: no summary.json, left out", flush=True)
+                    continue
+                summary = json.loads(path.read_text())
+                runs.append(
+                    {
+                        "seed": seed,
+                        **{k: v for k, v in summary.items() if k not in _NOT_SCORES and _is_number(v)},
+                        "updates": summary["updates"],
+                        "stopped_by": summary.get("stopped_by"),
+                        "wall_minutes": round(summary["seconds"] / 60.0, 3),
+                        "size": summary["size"],
+                        "picture": summary["png"],
+                    }
+                )
+            scenes[scene][algo] = runs
+    return scenes
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def copy_pictures(scenes: dict, folder: Path) -> dict[str, str]:
+    """``decomposition_<scene>.png`` in ``folder``: the final branch picture of the first Iso-Dream run of
+    each scene (of the first algorithm with a run if Iso-Dream has none)."""
+    written = {}
+    for scene, algos in scenes.items():
+        runs = algos.get("isodream") or next((r for r in algos.values() if r), [])
+        if runs and Path(runs[0]["picture"]).exists():
+            target = folder / f"decomposition_{scene}.png"
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(runs[0]["picture"], target)
+            written[scene] = target.name
+    return written
+
+
+def _fmt(values: list) -> str:
+    values = [v for v in values if v is not None and not (isinstance(v, float) and np.isnan(v))]
+    if not values:
+        return "n/a"
+    if len(values) == 1:
+        return f"{values[0]:.3f}"
+    return f"{np.mean(values):.3f} ({min(values):.3f} to {max(values):.3f})"
+
+
+def table(results: dict) -> str:
+    """One row per scene and algorithm: the mean (range) over seeds of each :data:`_COLUMNS` score."""
+    lines = [
+        "| scene | algo | seeds | " + " | ".join(h for h, _ in _COLUMNS) + " | updates | minutes |",
+        "|---|---|---|" + "---|" * len(_COLUMNS) + "---|---|",
+    ]
+    for scene, algos in results["scenes"].items():
+        for algo, runs in algos.items():
+            cells = [_fmt([r.get(key) for r in runs]) for _, key in _COLUMNS]
+            cells += [
+                _fmt([r["updates"] for r in runs]).replace(".000", ""),
+                _fmt([r["wall_minutes"] for r in runs]),
+            ]
+            lines.append(f"| {scene} | {algo} | {len(runs)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scenes", type=lambda s: s.split(","), default=list(SCENES))
+    parser.add_argument("--algos", type=lambda s: s.split(","), default=list(ALGOS))
+    parser.add_argument("--seeds", type=lambda s: [int(x) for x in s.split(",")], default=[0, 1])
+    parser.add_argument("--minutes", type=float, default=30.0, help="wall-clock budget per run")
+    parser.add_argument("--size", default="", help="the size group of isodream-train (default: the recipe's)")
+    parser.add_argument("--parallel", type=int, default=1, help="runs at a time (one torch thread each)")
+    parser.add_argument("--runs", type=Path, default=ROOT / "runs" / "bench_decomposition")
+    parser.add_argument("--json", type=Path, default=ROOT / "docs" / "results" / "decomposition.json")
+    parser.add_argument("--override", action="append", default=[], help="extra isodream-train override")
+    parser.add_argument("--collect-only", action="store_true", help="only read the finished runs")
+    args = parser.parse_args(argv)
+    for name, given, valid in (("scenes", args.scenes, SCENES), ("algos", args.algos, ALGOS)):
+        unknown = sorted(set(given) - set(valid))
+        if unknown:
+            parser.error(f"unknown {name} {unknown}; valid: {list(valid)}")
+    if args.parallel < 1 or not args.minutes > 0:
+        parser.error("--parallel must be >= 1 and --minutes > 0")
+    if not args.collect_only:
+        train_all(args)
+    scenes = collect(args)
+    results = {
+        "scenes": scenes,
+        "pictures": copy_pictures(scenes, args.json.parent),
+        "minutes": args.minutes,
+        "scene_overrides": {scene: SCENES[scene] for scene in args.scenes},
+        "overrides": args.override,
+        "commit": git_commit(),
+        "cpu": cpu_name(),
+        "threads_per_run": 1,
+        "parallel_runs": args.parallel,
+        "command": "python bench/decomposition.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+    }
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(results, indent=2))
+    args.json.with_suffix(".md").write_text(
+        f"# Decomposition: {args.minutes:g} minutes per run\n\n"
+        f"Made by `{results['command']}` at commit `{results['commit']}` on `{results['cpu']}`. IoU of each "
+        "branch's pixels (the largest mask) with its ground-truth class on held-out episodes, mean (range) "
+        "over seeds.\n\n" + table(results) + "\n"
+    )
+    print(table(results))
+    return results
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,24 @@
+"""Scores of a trained model against the ground truth the envs render.
+
+:func:`decomposition_scores`: how well a world model's branches (paper §3.1, eq. 4) split a scene into the
+controllable agent, the moving noncontrollable distractors and the static background, on windows with
+ground-truth masks (``make_env(..., return_masks=True)``, any env of ``isodream_rl.envs``).
+"""
+
+from isodream_rl.evaluation.decomposition import (
+    BRANCHES,
+    CLASSES,
+    branch_assignment,
+    check_windows,
+    decomposition_scores,
+    score_decomposition,
+)
+
+__all__ = [
+    "BRANCHES",
+    "CLASSES",
+    "branch_assignment",
+    "check_windows",
+    "decomposition_scores",
+    "score_decomposition",
+]

@@ -1,0 +1,196 @@
+"""Decomposition scores: each branch's mask against the ground-truth classes of the scene.
+
+Iso-Dream composes every frame from three branches (eq. 4): the controllable one (``mask_control``), the
+noncontrollable one (``mask_free``) and the static background (``mask_static``). Every env of
+``isodream_rl.envs`` renders the matching ground truth (``make_env(..., return_masks=True)``) with one
+vocabulary:
+
+* ``agent`` (``"mask_agent"``): what the action moves (the sprites agent, the DMC robot, the highway ego);
+* ``distractors`` (``"mask_distractors"``): what moves without it (the sprites discs, the DMC background
+  video, the other vehicles);
+* ``background``: every other pixel (the sprites background and target, the DMC floor, the road).
+
+A perfect Iso-Dream model gives ``control`` the agent, ``free`` the distractors and ``static`` the
+background.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from tensordict import TensorDictBase
+from torch import nn
+
+#: The world model's branches, in the order their masks are stacked.
+BRANCHES = ("control", "free", "static")
+#: The ground-truth classes; ``background`` is every pixel of neither of the other two.
+CLASSES = ("agent", "distractors", "background")
+#: Where the windows hold the ground truth of the classes with a mask of their own.
+TRUTH_KEYS = {"agent": ("next", "mask_agent"), "distractors": ("next", "mask_distractors")}
+_MODEL_KEYS = ("action", "is_init", ("next", "pixels"))
+
+
+def check_windows(windows: TensorDictBase) -> None:
+    """Refuse windows :func:`decomposition_scores` cannot score, saying what is wrong.
+
+    Args:
+        windows: ``[N, T]`` with ``"action"``, ``"is_init"``, ``("next", "pixels")`` uint8 ``[N, T, 3, H, W]``
+            and the ground truth ``("next", "mask_agent")``, ``("next", "mask_distractors")`` bool
+            ``[N, T, H, W]``.
+
+    Raises:
+        ValueError: not ``[N, T]``, a key missing, or a mask of another shape or not boolean.
+    """
+    if not isinstance(windows, TensorDictBase) or windows.batch_dims != 2:
+        shape = tuple(windows.batch_size) if isinstance(windows, TensorDictBase) else type(windows).__name__
+        raise ValueError(
+            f"decomposition scores need windows as a TensorDict of batch size [N, T], got {shape}; cut flat "
+            "episodes with isodream_rl.recipes.sprites_data.episode_windows"
+        )
+    keys = set(windows.keys(include_nested=True))
+    missing = [key for key in (*_MODEL_KEYS, *TRUTH_KEYS.values()) if key not in keys]
+    if missing:
+        raise ValueError(
+            f"the windows lack {missing}: the ground-truth masks come from make_env(..., return_masks=True) "
+            "(sprites, highway, dmc_*) or collect_sprites_episodes"
+        )
+    pixels = windows.get(("next", "pixels"))
+    if pixels.dim() != 5 or pixels.shape[2] != 3:
+        raise ValueError(f'("next", "pixels") must be [N, T, 3, H, W], got {list(pixels.shape)}')
+    expected = (*windows.batch_size, *pixels.shape[-2:])
+    for key in TRUTH_KEYS.values():
+        mask = windows.get(key)
+        if tuple(mask.shape) != expected:
+            raise ValueError(
+                f"{key} must be [N, T, H, W] = {list(expected)} like the pixels, got {list(mask.shape)}"
+            )
+        if mask.dtype != torch.bool:
+            raise ValueError(f"{key} must be a bool mask, got {mask.dtype}")
+
+
+def branch_assignment(output: TensorDictBase, *, threshold: float | None = None) -> dict[str, torch.Tensor]:
+    """Binary masks of the branches, bool ``[*N, H, W]`` each, keyed by :data:`BRANCHES`.
+
+    Args:
+        output: a world model's output with ``("next", "mask_<branch>")`` ``[*N, 1, H, W]`` for the branches it
+            has (``mask_control`` at least).
+        threshold: ``None`` (default): each pixel goes to the branch of the largest mask (the masks sum to one,
+            softmax or sigmoid, so this is the branch that draws most of it; ties go to the first of
+            :data:`BRANCHES`), so the branches partition the frame. A number: a branch holds the pixels where
+            its mask is above it (the masks may then overlap or leave pixels to none).
+
+    Returns:
+        one mask per branch of :data:`BRANCHES`; a branch the model does not have holds no pixel (the
+        single-branch DreamerV2 model: ``control`` everywhere).
+    """
+    nxt = output.get("next")
+    present = [b for b in BRANCHES if f"mask_{b}" in nxt.keys()]
+    if "control" not in present:
+        raise ValueError('the world model output has no ("next", "mask_control"): is it a world model\'s?')
+    masks = torch.stack([nxt.get(f"mask_{b}").float().squeeze(-3) for b in present])  # [B, *N, H, W]
+    if threshold is None:
+        winner = masks.argmax(0)
+        held = {b: winner == i for i, b in enumerate(present)}
+    else:
+        held = {b: masks[i] > threshold for i, b in enumerate(present)}
+    empty = torch.zeros_like(held["control"])
+    return {b: held.get(b, empty) for b in BRANCHES}
+
+
+def _ratio(numerator: torch.Tensor, denominator: torch.Tensor) -> float:
+    total = int(denominator)
+    return float(numerator) / total if total else math.nan
+
+
+def score_decomposition(
+    output: TensorDictBase, windows: TensorDictBase, *, threshold: float | None = None
+) -> dict[str, float]:
+    """The scores of :func:`decomposition_scores` from a world model's output on ``windows``.
+
+    Args:
+        output: the world model's ``[N, T]`` output on ``windows`` (``("next", "reco_pixels")`` and the masks).
+        windows: as :func:`check_windows` takes them.
+        threshold: how masks become pixels (:func:`branch_assignment`).
+
+    Returns:
+        the flat dict of :func:`decomposition_scores`.
+    """
+    check_windows(windows)
+    nxt = output.get("next")
+    truth = {name: windows.get(key).cpu() for name, key in TRUTH_KEYS.items()}
+    truth["background"] = ~truth["agent"] & ~truth["distractors"]
+    held = {
+        b: mask.cpu().reshape(truth["agent"].shape)
+        for b, mask in branch_assignment(output, threshold=threshold).items()
+    }
+    pixels = windows.get(("next", "pixels")).cpu()
+    target = pixels.float() / 255.0 - 0.5  # the world model's pixel range (preprocess_pixels)
+    error = (nxt.get("reco_pixels").float().cpu() - target).pow(2).mean(-3)  # [N, T, H, W], over RGB
+    scores = {"reco_mse": float(error.mean())}
+    for name in CLASSES:
+        scores[f"mse_{name}"] = _ratio(error[truth[name]].sum(), truth[name].sum())
+    for branch in BRANCHES:
+        for name in CLASSES:
+            union = (held[branch] | truth[name]).sum()
+            scores[f"iou_{branch}_vs_{name}"] = _ratio((held[branch] & truth[name]).sum(), union)
+    for branch in BRANCHES:
+        background = truth["background"]
+        scores[f"background_share_{branch}"] = _ratio((held[branch] & background).sum(), background.sum())
+    return scores
+
+
+@torch.no_grad()
+def decomposition_scores(
+    world_model: nn.Module,
+    windows: TensorDictBase,
+    *,
+    threshold: float | None = None,
+    device: torch.device | str = "cpu",
+) -> dict[str, float]:
+    """How a world model's branches split ``windows`` into the ground-truth agent, distractors and background.
+
+    The model filters each window from zero states (posterior states, as in training: its reconstruction of
+    frames it observes), and each pixel of each step goes to one branch (:func:`branch_assignment`: the
+    largest mask, by default).
+
+    The single-branch DreamerV2 baseline (``algo=dreamerv2``: the same
+    :class:`~isodream_rl.modules.IsoDreamWorldModel` with the other branches off) is scored the same way:
+    its one image is the ``control`` branch, which holds every pixel, so ``iou_control_vs_agent`` is the
+    agent's share of the frame, and the branches it lacks hold none (``iou_free_vs_distractors = 0``,
+    ``background_share_static = 0``).
+
+    Args:
+        world_model: an :class:`~isodream_rl.modules.IsoDreamWorldModel` (or a module with its output keys).
+        windows: ``[N, T]``: ``"action"`` ``[N, T, A]``, ``"is_init"`` ``[N, T, 1]``, ``("next", "pixels")``
+            uint8 ``[N, T, 3, H, W]`` and the ground truth ``("next", "mask_agent")``,
+            ``("next", "mask_distractors")`` bool ``[N, T, H, W]``; any other key is ignored.
+        threshold: ``None`` (default) for the largest mask, or a mask level (``0.5``); see
+            :func:`branch_assignment`.
+        device: where the world model runs.
+
+    Returns:
+        floats, ``nan`` where a ratio has nothing to count (a class absent from every window):
+
+        * ``iou_<branch>_vs_<class>`` for every branch of :data:`BRANCHES` and class of :data:`CLASSES`
+          (the diagonal: ``iou_control_vs_agent``, ``iou_free_vs_distractors``, ``iou_static_vs_background``);
+        * ``background_share_<branch>``: the fraction of the background's pixels that branch holds;
+        * ``mse_<class>``: the composite's squared error per pixel and channel on that class's pixels
+          (``[-0.5, 0.5]`` pixel range), and ``reco_mse`` on all of them.
+
+    Raises:
+        ValueError: windows without the ground truth or of the wrong shapes (:func:`check_windows`).
+
+    Examples:
+        >>> from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
+        >>> from isodream_rl.recipes.sprites_data import collect_sprites_episodes, episode_windows
+        >>> model = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
+        >>> windows = episode_windows(collect_sprites_episodes(episodes=1, steps=8), window=8)
+        >>> scores = decomposition_scores(model, windows)
+        >>> 0.0 <= scores["iou_control_vs_agent"] <= 1.0
+        True
+    """
+    check_windows(windows)
+    inputs = windows.select(*_MODEL_KEYS).to(device)
+    output = world_model(inputs)
+    return score_decomposition(output, windows, threshold=threshold)
