@@ -95,6 +95,12 @@ def _parse() -> argparse.Namespace:
     p.add_argument(
         "--data-seed", type=int, default=0, help="seed of the pusher set and the test balls (shared)"
     )
+    p.add_argument(
+        "--rgb-activation",
+        choices=("sigmoid", "linear"),
+        default="sigmoid",
+        help="branch outputs bounded by a sigmoid (default) or linear (the authors')",
+    )
     p.add_argument("--val-every", type=int, default=250)
     p.add_argument("--val-batches", type=int, default=4)
     p.add_argument("--checkpoint-every", type=int, default=250)
@@ -175,6 +181,7 @@ def _train_command(args: argparse.Namespace, variant: str, seed: int) -> list[st
         "--seed", str(seed),
         "--data-seed", str(args.data_seed),
         "--precision", args.precision,
+        "--rgb-activation", args.rgb_activation,
         "--threads", "1",
         "--out-dir", str(out),
         "--result-json", str(out / "result.json"),

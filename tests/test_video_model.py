@@ -221,3 +221,33 @@ class TestFastPath:
     def test_unknown_precision_is_rejected(self):
         with pytest.raises(ValueError, match="precision"):
             variant_config("isodream", precision="fp16")
+
+
+@pytest.mark.parametrize("variant", ["isodream", "predrnn"])
+def test_sigmoid_outputs_keep_a_long_rollout_in_range_and_linear_ones_do_not(variant):
+    """Decoders blown up 50x: with ``rgb_activation="sigmoid"`` (the default) every predicted frame of a 20-step
+    closed loop stays in [0, 1]; the authors' linear outputs leave it."""
+    frames, actions = torch.rand(2, 20, 3, 16, 16), torch.randn(2, 20, 4)
+    ranges = {}
+    for activation in ("sigmoid", "linear"):
+        torch.manual_seed(0)
+        model = ThreeBranchPredictor(config=variant_config(variant, rgb_activation=activation, **TINY))
+        with torch.no_grad():
+            for branch in (model.control, model.free):
+                if branch is not None:
+                    branch.decoder[-1].weight.mul_(50.0)
+            out = model(frames, actions, context=2)["frames"]
+        ranges[activation] = (float(out.min()), float(out.max()))
+    assert 0.0 <= ranges["sigmoid"][0] and ranges["sigmoid"][1] <= 1.0
+    assert ranges["linear"][0] < 0.0 or ranges["linear"][1] > 1.0
+
+
+def test_configs_saved_before_rgb_activation_load_as_linear():
+    from isodream_rl.video_prediction.config import PredictorConfig
+
+    saved = variant_config("isodream").to_dict()
+    del saved["rgb_activation"]
+    assert PredictorConfig.from_dict(saved).rgb_activation == "linear"
+    assert variant_config("isodream").rgb_activation == "sigmoid"
+    with pytest.raises(ValueError, match="rgb_activation"):
+        variant_config("isodream", rgb_activation="tanh")

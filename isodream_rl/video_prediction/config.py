@@ -41,6 +41,11 @@ class PredictorConfig:
     ``"concat"``: the action embedding is added to the cell input (PredRNN's action-conditioned mode)."""
     forget_bias: float = 1.0
     """Added to the forget gates' pre-activations."""
+    rgb_activation: str = "sigmoid"
+    """What bounds the RGB each branch decodes (PredRNN's frame too): ``"sigmoid"`` keeps it in ``[0, 1]``, so
+    every composed frame is a convex combination of values in ``[0, 1]`` and a rollout past the training horizon
+    cannot drift out of range; ``"linear"`` is the authors' unbounded output (they clip only for the metrics).
+    See ``docs/recipes/video_prediction.md`` for the measured difference."""
     channels_last: bool = True
     """Run the convolutions on channels-last tensors (oneDNN's native layout on CPU). The outputs equal
     the contiguous-layout path within float tolerance; ``False`` is that plain path, kept as the reference."""
@@ -56,6 +61,8 @@ class PredictorConfig:
             )
         if self.precision not in ("fp32", "bf16"):
             raise ValueError(f"precision must be 'fp32' or 'bf16', got {self.precision!r}")
+        if self.rgb_activation not in ("sigmoid", "linear"):
+            raise ValueError(f"rgb_activation must be 'sigmoid' or 'linear', got {self.rgb_activation!r}")
         if self.action_free_branch and not self.mask_composition:
             raise ValueError("the action-free branch needs mask_composition=True (eq. 4 merges the branches)")
         if self.num_layers < 1 or self.hidden_channels < 1:
@@ -68,7 +75,9 @@ class PredictorConfig:
 
     @classmethod
     def from_dict(cls, values: dict) -> PredictorConfig:
-        """Inverse of :meth:`to_dict` (accepts lists where tuples are expected, e.g. from JSON)."""
+        """Inverse of :meth:`to_dict` (accepts lists where tuples are expected, e.g. from JSON). A config saved
+        before ``rgb_activation`` existed had linear outputs."""
+        values = {"rgb_activation": "linear", **values}
         return cls(**{**values, "encoder_channels": tuple(values["encoder_channels"])})
 
 

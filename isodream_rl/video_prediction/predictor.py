@@ -220,16 +220,16 @@ class ThreeBranchPredictor(nn.Module):
             ctrl_out = self.control.decoder(top)
             free_part = None
             if not self.config.mask_composition:
-                prediction = ctrl_out
+                prediction = self._rgb(ctrl_out)
             else:
-                rgb_c, logits, rgb_f = ctrl_out[:, :-1], [ctrl_out[:, -1:]], None
+                rgb_c, logits, rgb_f = self._rgb(ctrl_out[:, :-1]), [ctrl_out[:, -1:]], None
                 if self.free is not None:
                     top_f, free_states, free_m, d = self.free.step(
                         self.free.head(free_feat), free_states, free_m, None
                     )
                     decouple = decouple + d
                     free_out = self.free.decoder(top_f)
-                    rgb_f = free_out[:, :-1]
+                    rgb_f = self._rgb(free_out[:, :-1])
                     logits.append(free_out[:, -1:])
                 masks = torch.softmax(torch.cat([*logits, torch.zeros_like(logits[0])], dim=1), dim=1)
                 prediction = masks[:, :1] * rgb_c + masks[:, -1:] * prev_frame
@@ -253,6 +253,10 @@ class ThreeBranchPredictor(nn.Module):
         if self.inverse is not None:
             result["action_pred"] = self._inverse(frames, torch.stack(outputs["control_inputs"], 1))
         return result
+
+    def _rgb(self, x: torch.Tensor) -> torch.Tensor:
+        """A branch's decoded RGB, bounded to ``[0, 1]`` unless ``config.rgb_activation == "linear"``."""
+        return torch.sigmoid(x) if self.config.rgb_activation == "sigmoid" else x
 
     @staticmethod
     def _record(outputs, rgb_c, masks, rgb_f) -> None:

@@ -98,6 +98,9 @@ class TrainConfig:
     action_embedding: int = 64
     lambda_action: float = 1e-4
     lambda_decouple: float = 0.1
+    rgb_activation: str = "sigmoid"
+    """``"sigmoid"``: branch outputs bounded to ``[0, 1]``; ``"linear"``: the authors' unbounded outputs
+    (:attr:`~isodream_rl.video_prediction.config.PredictorConfig.rgb_activation`)."""
     channels_last: bool = True
     """Channels-last convolutions (equal outputs, faster on CPU); ``--no-channels-last`` is the plain path."""
     precision: str = "fp32"
@@ -150,6 +153,7 @@ class TrainConfig:
             action_embedding=self.action_embedding,
             channels_last=self.channels_last,
             precision=self.precision,
+            rgb_activation=self.rgb_activation,
         )
 
     @classmethod
