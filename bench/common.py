@@ -36,6 +36,20 @@ def git_commit() -> str:
     return head.stdout.strip() + ("-dirty" if dirty.strip() else "")
 
 
+def provenance(script: str, argv: list[str] | None, *, parallel: int) -> dict:
+    """Where a bench result comes from: commit, CPU, one torch thread per run, runs at a time and the command
+    (``python bench/<script> <argv>``; ``argv=None`` reads ``sys.argv``)."""
+    import sys
+
+    return {
+        "commit": git_commit(),
+        "cpu": cpu_name(),
+        "threads_per_run": 1,
+        "parallel_runs": parallel,
+        "command": f"python bench/{script} " + " ".join(argv if argv is not None else sys.argv[1:]),
+    }
+
+
 def read_scalar(run_dir: Path, name: str) -> list[tuple[int, float]]:
     """``(env step, value)`` rows of an ``isodream-train`` run's CSV log of scalar ``name`` (empty if absent)."""
     path = Path(run_dir) / "logs" / "train" / "scalars" / f"{name}.csv"

@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import cpu_name, git_commit  # noqa: E402
+from common import provenance  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 #: The scenes and the ``isodream-train`` overrides that make each (the rest is ``exp=decomposition``).
@@ -220,11 +220,7 @@ def main(argv: list[str] | None = None) -> dict:
         "minutes": args.minutes,
         "scene_overrides": {scene: SCENES[scene] for scene in args.scenes},
         "overrides": args.override,
-        "commit": git_commit(),
-        "cpu": cpu_name(),
-        "threads_per_run": 1,
-        "parallel_runs": args.parallel,
-        "command": "python bench/decomposition.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        **provenance("decomposition.py", argv, parallel=args.parallel),
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(results, indent=2))

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import cpu_name, git_commit, read_scalar  # noqa: E402
+from common import provenance, read_scalar  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 ALGOS = ("isodream", "dreamerv2", "torchrl_dreamer")
@@ -228,11 +228,7 @@ def main(argv: list[str] | None = None) -> dict:
         **collect(args),
         "size": args.size,
         "overrides": args.override,
-        "commit": git_commit(),
-        "cpu": cpu_name(),
-        "threads_per_run": 1,
-        "parallel_runs": args.parallel,
-        "command": "python bench/learning.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        **provenance("learning.py", argv, parallel=args.parallel),
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(results, indent=2))

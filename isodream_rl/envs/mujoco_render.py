@@ -145,8 +145,17 @@ class OffscreenRenderer:
         Returns:
             np.ndarray: a new uint8 RGB image of shape [height, width, 3], top row first.
         """
+        gl = self._update_scene("render", data, camera_id, scene_option)
+        mujoco.mjr_render(self._rect, self._scene, gl.mjr)
+        mujoco.mjr_readPixels(self._pixels, None, self._rect, gl.mjr)
+        return np.flipud(self._pixels).copy()  # OpenGL's first row is the bottom one
+
+    def _update_scene(
+        self, caller: str, data: mujoco.MjData, camera_id: int, scene_option: mujoco.MjvOption | None
+    ) -> _GLResources:
+        """Makes this process's GL context current and fills the abstract scene of ``data`` from the camera."""
         if self._closed:
-            raise RuntimeError("render() called after close()")
+            raise RuntimeError(f"{caller}() called after close()")
         gl = self._context()
         gl.gl.make_current()  # another renderer in this thread (dm_control) may have made its own current
         self._camera.fixedcamid = camera_id
@@ -159,9 +168,7 @@ class OffscreenRenderer:
             mujoco.mjtCatBit.mjCAT_ALL,
             self._scene,
         )
-        mujoco.mjr_render(self._rect, self._scene, gl.mjr)
-        mujoco.mjr_readPixels(self._pixels, None, self._rect, gl.mjr)
-        return np.flipud(self._pixels).copy()  # OpenGL's first row is the bottom one
+        return gl
 
     def render_geom_ids(
         self, data: mujoco.MjData, *, camera_id: int, scene_option: mujoco.MjvOption | None = None
@@ -178,21 +185,8 @@ class OffscreenRenderer:
         Returns:
             np.ndarray: int32 ``[height, width]``, the geom id at each pixel, ``-1`` where no geom is drawn.
         """
-        if self._closed:
-            raise RuntimeError("render_geom_ids() called after close()")
-        gl = self._context()
-        gl.gl.make_current()
-        self._camera.fixedcamid = camera_id
+        gl = self._update_scene("render_geom_ids", data, camera_id, scene_option)
         scene = self._scene
-        mujoco.mjv_updateScene(
-            self._model,
-            data,
-            scene_option or self._default_option,
-            None,
-            self._camera,
-            mujoco.mjtCatBit.mjCAT_ALL,
-            scene,
-        )
         flags = scene.flags.copy()
         scene.flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = True
         scene.flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = True

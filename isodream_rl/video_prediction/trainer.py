@@ -395,6 +395,11 @@ def train(config: TrainConfig, *, progress: bool = True, resume: bool = False) -
     step, previous_seconds, history = 0, 0.0, []
     if resume and checkpoint.exists():
         state = torch.load(checkpoint, map_location=config.device, weights_only=False)
+        if "sampler" not in state:
+            raise ValueError(
+                f"cannot resume {checkpoint}: it was written before training could resume (no sampler state); "
+                "start a new --out-dir"
+            )
         _check_resumable(state["train_config"], config, checkpoint)
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
