@@ -329,7 +329,7 @@ class _EpochSampler:
         return {"epoch_state": self._epoch_state.clone(), "position": self.position}
 
     def load_state_dict(self, state: dict) -> None:
-        self.generator.set_state(state["epoch_state"])
+        self.generator.set_state(state["epoch_state"].cpu())
         self._new_epoch()
         self.position = state["position"]
 
@@ -406,7 +406,7 @@ def train(config: TrainConfig, *, progress: bool = True, resume: bool = False) -
         sampler.load_state_dict(state["sampler"])
         if balls is not None and state.get("balls_rng") is not None:
             balls.load_state_dict(state["balls_rng"])
-        torch.set_rng_state(state["torch_rng"])
+        torch.set_rng_state(state["torch_rng"].cpu())  # map_location may have moved it
         step, previous_seconds, history = state["iteration"], state["train_seconds"], state["history"]
     logger = _make_logger(config, out_dir)
     metrics: dict[str, float] | None = None
