@@ -27,7 +27,7 @@ The bench is resumable: run the same command again and finished runs are skipped
 from their last checkpoint; raising ``--iterations`` trains every run further (Adam's learning rate is
 constant). ``--collect-only`` writes the JSON and pictures from the runs on disk.
 
-    python bench/video_prediction.py --iterations 3000 --seeds 0 1 --out-dir runs/bench_video \
+    python bench/video_prediction.py --iterations 1000 --seeds 0 1 --parallel 2 --out-dir runs/bench_video \
         --json docs/results/video_prediction.json
 """
 
@@ -77,7 +77,7 @@ def _parse() -> argparse.Namespace:
     p.add_argument("--frames", type=int, default=12, help="frames per training clip (--speed, --paper-scale)")
     p.add_argument("--out-dir", type=Path, default=Path("runs/bench_video"))
     p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
-    p.add_argument("--iterations", type=int, default=3000, help="iterations of every run (equal budgets)")
+    p.add_argument("--iterations", type=int, default=1000, help="iterations of every run (equal budgets)")
     p.add_argument(
         "--max-minutes",
         type=float,
