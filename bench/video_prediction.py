@@ -291,8 +291,6 @@ def _save_validation_curves(path: Path, history: dict) -> None:
 def _speed(args: argparse.Namespace) -> dict:
     """Iterations per second of each of :data:`SPEED_PATHS` per variant, timed round-robin in this process."""
     import torch
-    from tensordict import TensorDict
-    from torch.utils.flop_counter import FlopCounterMode
 
     from isodream_rl.video_prediction.config import variant_config
     from isodream_rl.video_prediction.objective import VideoPredictionLoss
@@ -305,15 +303,7 @@ def _speed(args: argparse.Namespace) -> dict:
         encoder_channels=tuple(args.encoder_channels),
         action_embedding=args.action_embedding,
     )
-    generator = torch.Generator().manual_seed(args.seed)
-    # Random clips of the training shape: the model's cost does not depend on the pixels.
-    batch = TensorDict(
-        {
-            "frames": torch.rand(args.batch_size, args.frames, 3, 64, 64, generator=generator),
-            "actions": torch.randn(args.batch_size, args.frames, 4, generator=generator),
-        },
-        batch_size=[args.batch_size],
-    )
+    batch = _random_batch(args.batch_size, args.frames, seed=args.seed)
     results = {}
     for variant in args.variants:
         runs = {}
@@ -334,9 +324,7 @@ def _speed(args: argparse.Namespace) -> dict:
             return time.perf_counter() - start
 
         # FLOPs of one iteration's forward + backward (equal on every path; counted on the plain one).
-        with FlopCounterMode(display=False) as counter:
-            sum(runs["plain"][1](batch).values()).backward()
-        gflop = counter.get_total_flops() / 1e9
+        gflop = _iteration_gflop(runs["plain"][1], batch)
         seconds = {name: [] for name in runs}
         for repeat in range(args.speed_repeats + 1):  # the first round warms up (oneDNN kernels, allocator)
             for name, run in runs.items():
@@ -360,24 +348,38 @@ PAPER_SIZES = {"hidden_channels": 64, "kernel_size": 5, "encoder_channels": (32,
 PAPER_ITERATIONS = 80_000
 
 
-def _iteration_gflop(variant: str, sizes: dict, *, batch_size: int, frames: int) -> float:
-    """FLOPs of one training iteration's forward + backward (``torch.utils.flop_counter``), in GFLOP."""
+def _random_batch(batch_size: int, frames: int, *, seed: int = 0):
+    """Random clips of the training shape (64x64, 4-dim actions): the model's cost does not depend on the pixels."""
     import torch
     from tensordict import TensorDict
+
+    generator = torch.Generator().manual_seed(seed)
+    return TensorDict(
+        {
+            "frames": torch.rand(batch_size, frames, 3, 64, 64, generator=generator),
+            "actions": torch.randn(batch_size, frames, 4, generator=generator),
+        },
+        batch_size=[batch_size],
+    )
+
+
+def _iteration_gflop(loss_fn, batch) -> float:
+    """FLOPs of one training iteration's forward + backward (``torch.utils.flop_counter``), in GFLOP."""
     from torch.utils.flop_counter import FlopCounterMode
 
+    with FlopCounterMode(display=False) as counter:
+        sum(loss_fn(batch).values()).backward()
+    return counter.get_total_flops() / 1e9
+
+
+def _variant_gflop(variant: str, sizes: dict, *, batch_size: int, frames: int) -> float:
+    """:func:`_iteration_gflop` of a fresh ``variant`` model of ``sizes``."""
     from isodream_rl.video_prediction.config import variant_config
     from isodream_rl.video_prediction.objective import VideoPredictionLoss
     from isodream_rl.video_prediction.predictor import ThreeBranchPredictor
 
     model = ThreeBranchPredictor(config=variant_config(variant, **sizes))
-    batch = TensorDict(
-        {"frames": torch.rand(batch_size, frames, 3, 64, 64), "actions": torch.randn(batch_size, frames, 4)},
-        batch_size=[batch_size],
-    )
-    with FlopCounterMode(display=False) as counter:
-        sum(VideoPredictionLoss(model)(batch).values()).backward()
-    return counter.get_total_flops() / 1e9
+    return _iteration_gflop(VideoPredictionLoss(model), _random_batch(batch_size, frames))
 
 
 def _write_paper_scale(args: argparse.Namespace) -> None:
@@ -397,8 +399,8 @@ def _write_paper_scale(args: argparse.Namespace) -> None:
     }
     variants = {}
     for variant in args.variants:
-        bench = _iteration_gflop(variant, bench_sizes, batch_size=args.batch_size, frames=args.frames)
-        paper = _iteration_gflop(variant, PAPER_SIZES, batch_size=8, frames=12)
+        bench = _variant_gflop(variant, bench_sizes, batch_size=args.batch_size, frames=args.frames)
+        paper = _variant_gflop(variant, PAPER_SIZES, batch_size=8, frames=12)
         row = {
             "gflop_per_iteration_bench_sizes": round(bench, 2),
             "gflop_per_iteration_paper_sizes": round(paper, 2),
