@@ -3,6 +3,9 @@
 :func:`decomposition_scores`: how well a world model's branches (paper §3.1, eq. 4) split a scene into the
 controllable agent, the moving noncontrollable distractors and the static background, on windows with
 ground-truth masks (``make_env(..., return_masks=True)``, any env of ``isodream_rl.envs``).
+
+:class:`ExactSpritesModel` and :func:`train_behavior_on_exact_model`: the behavior learner trained on an exact,
+differentiable model of sprites ``reach`` instead of a learnt world model, with an optional early model error.
 """
 
 from isodream_rl.evaluation.decomposition import (
@@ -13,12 +16,20 @@ from isodream_rl.evaluation.decomposition import (
     decomposition_scores,
     score_decomposition,
 )
+from isodream_rl.evaluation.exact_sprites import (
+    ExactModelResult,
+    ExactSpritesModel,
+    train_behavior_on_exact_model,
+)
 
 __all__ = [
     "BRANCHES",
     "CLASSES",
+    "ExactModelResult",
+    "ExactSpritesModel",
     "branch_assignment",
     "check_windows",
     "decomposition_scores",
     "score_decomposition",
+    "train_behavior_on_exact_model",
 ]

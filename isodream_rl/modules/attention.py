@@ -195,7 +195,7 @@ class PolicyInput(nn.Module):
                 f"policy_input={mode!r} reads the noncontrollable branch, but the world model has "
                 "free_branch=False; use policy_input='controllable'"
             )
-        device = next(world_model.parameters()).device
+        device = next(iter(world_model.parameters()), torch.empty(0)).device
         return cls(mode=mode, feature_dim=cfg.state_dim + cfg.belief_dim, device=device, **kwargs)
 
     @property
