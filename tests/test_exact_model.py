@@ -10,8 +10,9 @@ import pytest
 import torch
 
 from isodream_rl.envs.sprites import SpritesEnv
-from isodream_rl.evaluation.exact_sprites import ExactSpritesModel, train_behavior_on_exact_model
+from isodream_rl.evaluation import ExactSpritesModel
 from isodream_rl.trainers import RunConfig
+from isodream_rl.trainers.exact_model import train_behavior_on_exact_model
 
 
 def bench_behavior_config() -> RunConfig:
@@ -38,7 +39,9 @@ def test_the_model_steps_like_the_env_until_the_first_reach():
             if rng.random() < 0.5:  # steer at the target half the time, so reaches happen
                 action = model.scripted_action(state)[0].numpy()
             _, reward, _, _, info = env.step(action.astype(np.float32))
-            next_state, model_reward, reached = model.step(state, torch.as_tensor(action, dtype=torch.float32)[None])
+            next_state, model_reward, reached = model.step(
+                state, torch.as_tensor(action, dtype=torch.float32)[None]
+            )
             assert model_reward.item() == pytest.approx(reward, abs=1e-4)
             assert reached.item() == info["reached"]
             assert next_state[0, :2].numpy() * 64 == pytest.approx(env._agent[::-1], abs=1e-3)

@@ -4,8 +4,8 @@
 controllable agent, the moving noncontrollable distractors and the static background, on windows with
 ground-truth masks (``make_env(..., return_masks=True)``, any env of ``isodream_rl.envs``).
 
-:class:`ExactSpritesModel` and :func:`train_behavior_on_exact_model`: the behavior learner trained on an exact,
-differentiable model of sprites ``reach`` instead of a learnt world model, with an optional early model error.
+:class:`ExactSpritesModel`: sprites ``reach`` as an exact, differentiable world model, to train the behavior
+learner without model error (:func:`isodream_rl.trainers.exact_model.train_behavior_on_exact_model`).
 """
 
 from isodream_rl.evaluation.decomposition import (
@@ -16,20 +16,14 @@ from isodream_rl.evaluation.decomposition import (
     decomposition_scores,
     score_decomposition,
 )
-from isodream_rl.evaluation.exact_sprites import (
-    ExactModelResult,
-    ExactSpritesModel,
-    train_behavior_on_exact_model,
-)
+from isodream_rl.evaluation.exact_sprites import ExactSpritesModel
 
 __all__ = [
     "BRANCHES",
     "CLASSES",
-    "ExactModelResult",
     "ExactSpritesModel",
     "branch_assignment",
     "check_windows",
     "decomposition_scores",
     "score_decomposition",
-    "train_behavior_on_exact_model",
 ]

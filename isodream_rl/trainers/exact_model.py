@@ -1,0 +1,155 @@
+"""Trains the behavior learner of a run on :class:`~isodream_rl.evaluation.ExactSpritesModel` (no model error).
+
+:func:`train_behavior_on_exact_model` builds the behavior of a :class:`~isodream_rl.trainers.RunConfig` with
+:func:`~isodream_rl.trainers.builders.make_behavior` (the actor, value, losses and their settings, as a real run
+has them) on the exact model of sprites ``reach`` and trains it the way
+:class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` does after its world-model step, optionally
+with an early fixed-direction reward error. It returns the curve of the deterministic policy's 200-step return
+beside the scripted controller and the best constant action. ``bench/exact_model.py`` compares learner settings
+with it; ``tests/test_exact_model.py`` holds the library's defaults to it.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from tensordict import TensorDict
+from torch import nn
+
+from isodream_rl.evaluation.exact_sprites import ExactSpritesModel, reference_returns
+from isodream_rl.trainers.builders import make_adam, make_behavior
+from isodream_rl.trainers.config import RunConfig
+
+
+@dataclass
+class ExactModelResult:
+    """The curve of :func:`train_behavior_on_exact_model` and the reference returns on the same starts."""
+
+    updates: list[int] = field(default_factory=list)
+    returns: list[float] = field(default_factory=list)
+    reaches: list[float] = field(default_factory=list)
+    cosine: list[float] = field(default_factory=list)
+    entropy: list[float] = field(default_factory=list)
+    grad_norm_actor: list[float] = field(default_factory=list)
+    mean_abs_action: list[float] = field(default_factory=list)
+    scripted_return: float = 0.0
+    constant_return: float = 0.0
+    wall_s: float = 0.0
+
+    def normalised(self, value: float) -> float:
+        """``(R - R_constant) / (R_scripted - R_constant)``."""
+        return (value - self.constant_return) / (self.scripted_return - self.constant_return)
+
+    def as_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+def train_behavior_on_exact_model(
+    cfg: RunConfig,
+    *,
+    updates: int = 750,
+    batch: int = 512,
+    reward_error: float = 0.0,
+    error_updates: int = 0,
+    error_direction: tuple[float, float] = (1.0, 0.0),
+    eval_every: int = 50,
+    eval_episodes: int = 16,
+    seed: int = 0,
+    model_kwargs: dict[str, Any] | None = None,
+    progress: bool = False,
+) -> ExactModelResult:
+    """Trains the behavior of ``cfg`` (a :class:`~isodream_rl.trainers.RunConfig`) on :class:`ExactSpritesModel`.
+
+    Each update imagines ``cfg.algo.horizon`` steps from ``batch`` random starts (the replay posteriors of a
+    real run: ``B * T = 512`` at ``size=bench``) and steps the actor and the value (+ policy input) optimisers on
+    the sum of their losses, clipped at ``cfg.train.grad_clip``, then the slow value target, as
+    :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` does after its world-model step. For the
+    first ``error_updates`` updates the model's reward carries ``reward_error`` along ``error_direction``.
+    Every ``eval_every`` updates (and after the last) the deterministic policy (the actor's mode) plays
+    ``eval_episodes`` episodes of 200 steps on the exact model.
+
+    Args:
+        cfg: the run's settings; ``cfg.algo.policy_input`` must be ``"controllable"`` (the model has no
+            noncontrollable branch). Its behavior settings, widths and learning rates are used as they are.
+        updates: behavior updates.
+        batch: start states per update.
+        reward_error, error_updates, error_direction: the early model error.
+        eval_every, eval_episodes: the evaluation schedule.
+        seed: seeds torch (the networks and the imagined actions) and the model's starts.
+        model_kwargs: extra :class:`ExactSpritesModel` arguments (``sprite_size`` ...).
+        progress: print one line per evaluation.
+    """
+    if cfg.algo.policy_input != "controllable":
+        raise ValueError(
+            f"the exact model has no noncontrollable branch: algo.policy_input must be 'controllable', got "
+            f"{cfg.algo.policy_input!r}"
+        )
+    torch.manual_seed(seed)
+    model = ExactSpritesModel(
+        reward_error=reward_error, error_direction=error_direction, seed=seed, **(model_kwargs or {})
+    )
+    behavior = make_behavior(cfg, model)
+    actor_loss, value_loss = behavior.actor_loss, behavior.value_loss
+    actor = actor_loss.actor
+    train = cfg.train
+    optimizers = {
+        "actor": make_adam(actor_loss.parameters(), lr=train.actor_lr, eps=train.adam_eps),
+        "value": make_adam(value_loss.parameters(), lr=train.value_lr, eps=train.adam_eps),
+    }
+    result = ExactModelResult()
+    result.scripted_return, result.constant_return = reference_returns(model, episodes=eval_episodes)
+
+    def policy(state, belief):
+        return actor.mode(torch.cat([state, belief], dim=-1))
+
+    def evaluate(step: int, metrics: TensorDict | None) -> None:
+        scores = model.episode_returns(policy, episodes=eval_episodes)
+        result.updates.append(step)
+        result.returns.append(scores["return"])
+        result.reaches.append(scores["reaches"])
+        result.cosine.append(scores["cosine"])
+        if metrics is not None:
+            result.entropy.append(float(metrics["actor_entropy"]))
+            result.grad_norm_actor.append(float(metrics["grad_norm_actor"]))
+            result.mean_abs_action.append(float(metrics["mean_abs_action"]))
+        if progress:
+            print(
+                f"update {step}: return {scores['return']:.1f} (scripted {result.scripted_return:.1f}), "
+                f"cosine {scores['cosine']:.2f}, entropy {result.entropy[-1] if result.entropy else math.nan:.2f}",
+                flush=True,
+            )
+
+    start_time = time.perf_counter()
+    evaluate(0, None)
+    for step in range(1, updates + 1):
+        model.reward_error = reward_error if step <= error_updates else 0.0
+        state, belief = model.initial_state(batch)
+        start = TensorDict({("next", "state"): state, ("next", "belief"): belief}, [batch])
+        actor_losses, imagined = actor_loss(start)
+        value_losses, _ = value_loss(imagined)
+        loss = sum(v for k, v in actor_losses.items() if k.startswith("loss")) + sum(
+            v for k, v in value_losses.items() if k.startswith("loss")
+        )
+        for opt in optimizers.values():
+            opt.zero_grad(set_to_none=True)
+        loss.backward()
+        norms = {
+            name: nn.utils.clip_grad_norm_(
+                [p for g in opt.param_groups for p in g["params"]], train.grad_clip
+            )
+            for name, opt in optimizers.items()
+        }
+        for opt in optimizers.values():
+            opt.step()
+        behavior.target_updater.step()
+        if step % eval_every == 0 or step == updates:
+            metrics = actor_losses.detach().clone()
+            metrics["grad_norm_actor"] = norms["actor"].detach()
+            metrics["mean_abs_action"] = imagined["action"].abs().mean()
+            evaluate(step, metrics)
+    result.wall_s = time.perf_counter() - start_time
+    return result
