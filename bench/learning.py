@@ -1,24 +1,37 @@
 """Learning curves of Iso-Dream, the DreamerV2 baseline and TorchRL's Dreamer at equal env steps.
 
-Every (algorithm, seed) is one ``isodream-train`` run in its own folder under ``--runs``; ``--parallel`` runs
-share the machine at one torch thread each. A run that was interrupted resumes from its newest checkpoint
-when the bench is started again (finished runs are read back, not retrained). Each run evaluates its
-deterministic policy every ``--eval-every`` env steps and at the end (``--eval-episodes`` episodes,
-``summary.json``), next to the task's reference policies (uniform random, best constant action, scripted).
+Every (algorithm, seed) is one ``isodream-train`` run in its own folder under ``--runs`` (default
+``~/isodream-runs/bench_learning``, outside the work tree); ``--parallel`` runs share the machine at one torch
+thread each. A run that was interrupted resumes from its newest checkpoint when the bench is started again
+(finished runs are read back, not retrained). Each run evaluates its deterministic policy every
+``--eval-every`` env steps and at the end (``--eval-episodes`` episodes, ``summary.json``), next to the task's
+reference policies (uniform random, best constant action, scripted).
 
-Writes ``--json`` (default ``docs/results/learning.json``)::
+Budget: a run makes one update every ``train.train_every`` env steps after ``train.prefill_steps`` random
+steps, so updates = (env_steps - prefill) / train_every; at ``size=bench`` (prefill 1000, train_every 5) the
+default 51000 env steps give every run 10000 updates.
+
+Writes ``--json`` (default ``docs/results/learning.json``) while the runs train (at most every
+``--write-every`` seconds and whenever a run ends, so a lost machine still leaves the curves so far) and once
+more at the end::
 
     {"env": ..., "env_kwargs": ..., "env_steps": N, "random_return": R, "constant_return": R,
      "scripted_return": R, "references": {...},
      "algos": {algo: {"final_per_seed": [...], "final_successes_per_seed": [...],
-                      "normalised_per_seed": [...], "wall_s_per_seed": [...],
-                      "curves": {seed: {"env_steps": [...], "eval_return": [...], "wall_s": [...]}}}},
+                      "normalised_per_seed": [...], "wall_s_per_seed": [...], "updates_per_seed": [...],
+                      "seeds": [...],
+                      "curves": {seed: {"env_steps": [...], "eval_return": [...], "wall_s": [...],
+                                        "updates": [...], "finished": bool}}}},
      "commit": ..., "cpu": ..., "command": ..., "overrides": [...]}
 
-plus a picture (``--png``: eval return against env steps, mean and range over seeds, the reference returns
-as lines) and a table (``--md``).
+The ``*_per_seed`` lists and ``seeds`` hold the finished runs (those with a ``summary.json``); ``curves`` also
+holds the unfinished ones (``"finished": false``: their evaluations so far, from the CSV logs). ``updates`` is
+the update count logged at each evaluation's env step (``None`` where none was logged at that step).
 
-    python bench/learning.py                       # the committed results (about 3 hours on 2 cores)
+At the end, also a picture (``--png``: eval return against env steps, mean and range over seeds and each
+seed's curve, the reference returns as lines) and a table (``--md``: finished seeds, and how many are not).
+
+    python bench/learning.py                       # seeds 0,1 at 51000 env steps (10000 updates per run)
     python bench/learning.py --algos dreamerv2 --seeds 0 --env-steps 2000 --runs /tmp/lb --json /tmp/lb.json
 """
 
@@ -30,6 +43,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +55,8 @@ ROOT = Path(__file__).resolve().parents[1]
 ALGOS = ("isodream", "dreamerv2", "torchrl_dreamer")
 #: The task's success count reported beside the return, per env.
 SUCCESS_KEY = {"sprites": "reaches", "highway": "distance"}
+#: Seconds between polls of the running runs.
+POLL_S = 5.0
 
 
 def run_command(algo: str, seed: int, run_dir: Path, args: argparse.Namespace) -> list[str]:
@@ -65,9 +81,10 @@ def run_command(algo: str, seed: int, run_dir: Path, args: argparse.Namespace) -
     return [sys.executable, "-m", "isodream_rl.cli", *overrides]
 
 
-def train_all(args: argparse.Namespace) -> None:
+def train_all(args: argparse.Namespace, on_progress: Callable[[], object] | None = None) -> None:
     """Run every (algo, seed) without a summary.json, ``--parallel`` at a time, seed by seed (so that a bench
-    stopped early still compares every algorithm on its first seeds)."""
+    stopped early still compares every algorithm on its first seeds). ``on_progress()`` (e.g. rewrite the
+    JSON) is called whenever a run ends and otherwise at most every ``--write-every`` seconds."""
     pending = [
         (algo, seed)
         for seed in args.seeds
@@ -76,6 +93,7 @@ def train_all(args: argparse.Namespace) -> None:
     ]
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     running: list[tuple[str, int, subprocess.Popen]] = []
+    last_progress = time.monotonic()
     while pending or running:
         while pending and len(running) < args.parallel:
             algo, seed = pending.pop(0)
@@ -85,19 +103,56 @@ def train_all(args: argparse.Namespace) -> None:
             log = (run_dir / "bench.log").open("a")
             print(f"[bench] start {algo} seed {seed}: {' '.join(cmd[2:])}", flush=True)
             running.append((algo, seed, subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=log, stderr=log)))
-        time.sleep(5)
+        time.sleep(POLL_S)
+        ended = False
         for item in list(running):
             algo, seed, proc = item
             if proc.poll() is not None:
                 running.remove(item)
+                ended = True
                 status = "done" if proc.returncode == 0 else f"FAILED (rc {proc.returncode})"
                 print(f"[bench] {algo} seed {seed}: {status}", flush=True)
+        if on_progress is not None and (ended or time.monotonic() - last_progress >= args.write_every):
+            last_progress = time.monotonic()
+            try:
+                on_progress()
+            except Exception as error:  # a failed interim write must not stop the runs
+                print(f"[bench] interim write failed: {error!r}", flush=True)
 
 
-def collect(args: argparse.Namespace) -> dict:
-    """Read the runs' logs and summaries into the JSON schema of the module docstring."""
+def _curve(run_dir: Path, summary: dict | None) -> dict | None:
+    """A run's evaluations from its CSV logs (then its final one from ``summary``, if finished); ``None`` for a
+    run without logs."""
+    returns = read_scalar(run_dir, "eval_return")
+    updates = read_scalar(run_dir, "updates")
+    if summary is None and not returns and not updates:
+        return None
+    walls = dict(read_scalar(run_dir, "eval_wall_s"))
+    steps = [s for s, _ in returns]
+    curve = {
+        "env_steps": steps,
+        "eval_return": [v for _, v in returns],
+        "wall_s": [walls.get(s) for s in steps],
+    }
+    if summary is not None:
+        curve["env_steps"].append(summary["env_steps"])
+        curve["eval_return"].append(summary["eval_return"])
+        curve["wall_s"].append(summary["wall_s"])
+    # the newest update count logged at or before each evaluation (the logs and the evaluations keep their own
+    # schedules); the final evaluation also reads summary.json's count
+    curve["updates"] = [max((u for s, u in updates if s <= step), default=None) for step in curve["env_steps"]]
+    if summary is not None and summary.get("updates") is not None:
+        curve["updates"][-1] = summary["updates"]
+    curve["finished"] = summary is not None
+    return curve
+
+
+def collect(args: argparse.Namespace, verbose: bool = True) -> dict:
+    """Read the runs' logs and summaries into the JSON schema of the module docstring (``env_kwargs`` from the
+    first run's ``run_config.json``)."""
     results: dict = {"algos": {}}
     references = None
+    env_kwargs = None
     success_key = SUCCESS_KEY.get(args.env)
     for algo in args.algos:
         entry = {
@@ -112,10 +167,21 @@ def collect(args: argparse.Namespace) -> dict:
         for seed in args.seeds:
             run_dir = args.runs / f"{algo}_s{seed}"
             summary_path = run_dir / "summary.json"
-            if not summary_path.exists():
-                print(f"[bench] {algo} seed {seed}: no summary.json, left out", flush=True)
+            summary = json.loads(summary_path.read_text()) if summary_path.exists() else None
+            curve = _curve(run_dir, summary)
+            if curve is None:
+                if verbose:
+                    print(f"[bench] {algo} seed {seed}: no logs, left out", flush=True)
                 continue
-            summary = json.loads(summary_path.read_text())
+            entry["curves"][str(seed)] = curve
+            if env_kwargs is None and (run_dir / "run_config.json").exists():
+                env_kwargs = (
+                    json.loads((run_dir / "run_config.json").read_text()).get("env", {}).get("kwargs")
+                )
+            if summary is None:
+                if verbose:
+                    print(f"[bench] {algo} seed {seed}: no summary.json, curve only (unfinished)", flush=True)
+                continue
             references = references or summary.get("references")
             entry["seeds"].append(seed)
             entry["final_per_seed"].append(summary["eval_return"])
@@ -124,22 +190,17 @@ def collect(args: argparse.Namespace) -> dict:
             entry["wall_s_per_seed"].append(summary["wall_s"])
             updates = read_scalar(run_dir, "updates")
             entry["updates_per_seed"].append(updates[-1][1] if updates else None)
-            returns = read_scalar(run_dir, "eval_return")
-            walls = dict(read_scalar(run_dir, "eval_wall_s"))
-            steps = [s for s, _ in returns] + [summary["env_steps"]]
-            entry["curves"][str(seed)] = {
-                "env_steps": steps,
-                "eval_return": [v for _, v in returns] + [summary["eval_return"]],
-                "wall_s": [walls.get(s) for s, _ in returns] + [summary["wall_s"]],
-            }
         results["algos"][algo] = entry
     for name in ("random", "constant", "scripted"):
         results[f"{name}_return"] = None if references is None else references[name]["return"]
     results["references"] = references
+    results["env_kwargs"] = env_kwargs
     return results
 
 
 def plot(results: dict, path: Path) -> None:
+    """Eval return against env steps: per algorithm, the mean and range over the seeds whose curve reaches
+    each step, and each seed's curve (dashed while unfinished)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -148,14 +209,26 @@ def plot(results: dict, path: Path) -> None:
     fig, ax = plt.subplots(figsize=(7, 4.2), dpi=120)
     colours = {"isodream": "tab:blue", "dreamerv2": "tab:orange", "torchrl_dreamer": "tab:green"}
     for algo, entry in results["algos"].items():
-        curves = list(entry["curves"].values())
+        curves = [c for c in entry["curves"].values() if c["env_steps"]]
         if not curves:
             continue
-        grid = sorted(set().union(*(c["env_steps"] for c in curves)))
-        values = np.array([np.interp(grid, c["env_steps"], c["eval_return"]) for c in curves])
         colour = colours.get(algo)
-        ax.plot(grid, values.mean(0), color=colour, label=f"{algo} ({len(curves)} seeds)")
-        ax.fill_between(grid, values.min(0), values.max(0), color=colour, alpha=0.2)
+        grid = np.array(sorted(set().union(*(c["env_steps"] for c in curves))))
+        values = np.array(
+            [
+                np.where(
+                    grid <= c["env_steps"][-1], np.interp(grid, c["env_steps"], c["eval_return"]), np.nan
+                )
+                for c in curves
+            ]
+        )
+        unfinished = sum(not c.get("finished", True) for c in curves)
+        label = f"{algo} ({len(curves)} seeds" + (f", {unfinished} unfinished)" if unfinished else ")")
+        ax.plot(grid, np.nanmean(values, 0), color=colour, label=label)
+        ax.fill_between(grid, np.nanmin(values, 0), np.nanmax(values, 0), color=colour, alpha=0.2)
+        for c in curves:
+            style = "-" if c.get("finished", True) else "--"
+            ax.plot(c["env_steps"], c["eval_return"], color=colour, linestyle=style, linewidth=0.7, alpha=0.5)
     for name, style in (("random", ":"), ("constant", "-."), ("scripted", "--")):
         value = results.get(f"{name}_return")
         if value is not None:
@@ -178,14 +251,17 @@ def _fmt(values, digits=1) -> str:
 
 
 def table(results: dict) -> str:
+    """Markdown table over the finished seeds, with the count of unfinished ones (logs, no summary.json)."""
     success = SUCCESS_KEY.get(results["env"], "successes")
     lines = [
-        f"| algo | seeds | final return | normalised score | {success} per episode | wall-clock per run (min) |",
-        "|---|---|---|---|---|---|",
+        f"| algo | seeds | unfinished | final return | normalised score | {success} per episode "
+        "| wall-clock per run (min) |",
+        "|---|---|---|---|---|---|---|",
     ]
     for algo, entry in results["algos"].items():
+        unfinished = sum(not c.get("finished", True) for c in entry["curves"].values())
         lines.append(
-            f"| {algo} | {len(entry['seeds'])} | {_fmt(entry['final_per_seed'])} | "
+            f"| {algo} | {len(entry['seeds'])} | {unfinished} | {_fmt(entry['final_per_seed'])} | "
             f"{_fmt(entry['normalised_per_seed'], 2)} | {_fmt(entry['final_successes_per_seed'])} | "
             f"{_fmt([w / 60 for w in entry['wall_s_per_seed']])} |"
         )
@@ -194,52 +270,76 @@ def table(results: dict) -> str:
         if name in refs:
             ref = refs[name]
             lines.append(
-                f"| {name} policy | - | {ref['return']:.1f} | {'0' if name == 'constant' else ('1' if name == 'scripted' else '-')} "
+                f"| {name} policy | - | - | {ref['return']:.1f} | {'0' if name == 'constant' else ('1' if name == 'scripted' else '-')} "
                 f"| {ref.get(success, float('nan')):.1f} | - |"
             )
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> dict:
+def build_parser() -> argparse.ArgumentParser:
+    """The bench's command line (its defaults: see the module docstring)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--algos", type=lambda s: s.split(","), default=list(ALGOS))
-    parser.add_argument("--seeds", type=lambda s: [int(x) for x in s.split(",")], default=[0, 1, 2])
+    parser.add_argument("--seeds", type=lambda s: [int(x) for x in s.split(",")], default=[0, 1])
     parser.add_argument("--env", default="sprites", help="the env group of isodream-train")
     parser.add_argument("--size", default="bench", help="the size group of isodream-train")
-    parser.add_argument("--env-steps", type=int, default=20_000)
+    parser.add_argument(
+        "--env-steps",
+        type=int,
+        default=51_000,
+        help="per run; 10000 updates at size=bench (module docstring)",
+    )
     parser.add_argument("--eval-every", type=int, default=2_500)
     parser.add_argument("--eval-episodes", type=int, default=10)
     parser.add_argument("--parallel", type=int, default=2, help="runs at a time (one torch thread each)")
-    parser.add_argument("--runs", type=Path, default=ROOT / "runs" / "bench_learning")
+    parser.add_argument("--runs", type=Path, default=Path.home() / "isodream-runs" / "bench_learning")
     parser.add_argument("--json", type=Path, default=ROOT / "docs" / "results" / "learning.json")
     parser.add_argument("--png", type=Path, default=None, help="default: the JSON's path with .png")
     parser.add_argument("--md", type=Path, default=None, help="default: the JSON's path with .md")
+    parser.add_argument(
+        "--write-every", type=float, default=120.0, help="seconds between rewrites of --json while runs train"
+    )
     parser.add_argument("--override", action="append", default=[], help="extra isodream-train override")
-    parser.add_argument("--collect-only", action="store_true", help="only read finished runs")
-    args = parser.parse_args(argv)
-    unknown = set(args.algos) - set(ALGOS)
-    if unknown:
-        parser.error(f"unknown algos {sorted(unknown)}; valid: {list(ALGOS)}")
-    if not args.collect_only:
-        train_all(args)
+    parser.add_argument("--collect-only", action="store_true", help="train nothing, only read the runs")
+    return parser
+
+
+def write_results(args: argparse.Namespace, argv: list[str] | None, final: bool = True) -> dict:
+    """Collect the runs and write ``--json`` (atomically: a temporary file, then a rename); with ``final``,
+    also the picture and the table."""
     results = {
         "env": args.env,
         "env_steps": args.env_steps,
-        **collect(args),
+        **collect(args, verbose=final),
         "size": args.size,
         "overrides": args.override,
         **provenance("learning.py", argv, parallel=args.parallel),
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(results, indent=2))
-    plot(results, args.png or args.json.with_suffix(".png"))
-    md = args.md or args.json.with_suffix(".md")
-    md.write_text(
-        f"# Learning on {args.env}: final evaluation at {args.env_steps} env steps\n\n"
-        f"Made by `{results['command']}` at commit `{results['commit']}` on `{results['cpu']}`.\n\n"
-        + table(results)
-        + "\n"
-    )
+    tmp = args.json.with_name(args.json.name + ".tmp")
+    tmp.write_text(json.dumps(results, indent=2))
+    tmp.replace(args.json)
+    if final:
+        plot(results, args.png or args.json.with_suffix(".png"))
+        md = args.md or args.json.with_suffix(".md")
+        md.write_text(
+            f"# Learning on {args.env}: final evaluation at {args.env_steps} env steps\n\n"
+            f"Made by `{results['command']}` at commit `{results['commit']}` on `{results['cpu']}`.\n\n"
+            + table(results)
+            + "\n"
+        )
+    return results
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    unknown = set(args.algos) - set(ALGOS)
+    if unknown:
+        parser.error(f"unknown algos {sorted(unknown)}; valid: {list(ALGOS)}")
+    if not args.collect_only:
+        train_all(args, on_progress=lambda: write_results(args, argv, final=False))
+    results = write_results(args, argv)
     print(table(results))
     return results
 

@@ -12,7 +12,22 @@ Loads the newest readable checkpoint of an ``isodream-train`` run, plays ``--epi
 - ``imagination_check``: from ``--starts`` fresh states (24 random steps, actions held 4 steps), 32
   imagined trajectories of the actor each, and the same action sequences replayed in copies of the real env
   (sprites only): the imagined and the real return over the horizon, and the per-step correlation of
-  imagined and real rewards (near 0: the actor optimises rewards that its actions do not get).
+  imagined and real rewards (near 0: the actor optimises rewards that its actions do not get). Also:
+
+  - ``imagined_reach_rate`` / ``imagined_reaches``: the fraction / number of imagined steps whose predicted
+    reward exceeds ``REACH_THRESHOLD`` (0.7: a reach, as the progress term alone stays below about 0.71),
+    against ``real_reach_rate`` / ``real_reaches``: those of the same replayed steps where the real env
+    reports ``info["reached"]``; ``reach_recall``: the fraction of the real reaches whose imagined step
+    exceeded the threshold too (``None`` without a real reach). An imagined rate far above the real one: the
+    actor optimises reaches that the model dreams up;
+  - ``value_vs_potential``: the slow value ``v_slow(e)`` of the start states (the filtered posterior at the
+    end of each context window, averaged over the imagined samples when ``e`` reads the sampled
+    noncontrollable window) against the true shaping potential ``phi = -progress_reward * d / image_size``
+    (``d``: the agent's distance to the target, in pixels) of the env there, over the ``--starts`` states and
+    ``--value-starts`` more context windows run only for this: the least-squares ``slope`` and
+    ``intercept`` of ``v_slow`` on ``phi``, ``r2``, ``correlation``, the number of ``points`` and the
+    means ``v_slow_mean`` and ``phi_mean``. A value that has learned the shaping term (the return still to
+    come from closing the distance, ``-phi``) has a slope near -1; near 0 it does not see the distance.
 
     python bench/policy_probe.py runs/ladder/R2_dv2 --json docs/results/ladder/policy_probe_R2_dv2.json
 """
@@ -34,8 +49,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import cpu_name, git_commit  # noqa: E402
 
 from isodream_rl.envs import make_env
+from isodream_rl.objectives.imagination import policy_features
 from isodream_rl.trainers.checkpoint import CheckpointManager
 from isodream_rl.trainers.run import config_from_dict, make_components
+
+#: an imagined step whose predicted reward exceeds this counts as a reach (the reach reward is 1; the progress
+#: term alone is at most about 0.71 at the default speed)
+REACH_THRESHOLD = 0.7
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -45,6 +65,12 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--steps", type=int, default=40)
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--starts", type=int, default=8)
+    parser.add_argument(
+        "--value-starts",
+        type=int,
+        default=32,
+        help="context windows run only for the slow value against the potential (on top of --starts)",
+    )
     parser.add_argument("--json", type=Path, required=True)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -90,7 +116,9 @@ def main(argv: list[str] | None = None) -> dict:
         "action_std_within_episode": batch["action"].std(1).mean(0).numpy().round(3).tolist(),
         "imagined_reward_mean": float(imagined["next", "reward"].mean()),
         "lambda_target_mean": float(imagined["lambda_target"].mean()),
-        "imagination_check": imagination_check(components, cfg, starts=args.starts)
+        "imagination_check": imagination_check(
+            components, cfg, starts=args.starts, value_starts=args.value_starts
+        )
         if cfg.env.name == "sprites"
         else None,
         "commit": git_commit(),
@@ -103,48 +131,116 @@ def main(argv: list[str] | None = None) -> dict:
     return result
 
 
+def context_window(components, env, rng: np.random.Generator, context: int) -> TensorDict:
+    """Steps ``env`` ``context`` times with random actions held 4 steps and filters them with the world model:
+    the model output ``[1, context]`` (its last posterior is the state of ``env`` now)."""
+    actions, pixels, rewards = [], [], []
+    for t in range(context):
+        if t % 4 == 0:
+            action = rng.uniform(-1, 1, 2)
+        obs, reward, *_ = env.step(action)
+        actions.append(action.copy())
+        pixels.append(obs.transpose(2, 0, 1))
+        rewards.append(reward)
+    window = TensorDict(
+        {
+            "action": torch.tensor(np.array(actions), dtype=torch.float32)[None],
+            ("next", "pixels"): torch.from_numpy(np.array(pixels))[None],
+            ("next", "reward"): torch.tensor(rewards, dtype=torch.float32)[None, :, None],
+            "is_init": torch.zeros(1, context, 1, dtype=torch.bool),
+        },
+        [1, context],
+    )
+    window["is_init"][:, 0] = True
+    _, out = components.model_loss(window)
+    return out
+
+
+def start_value(components, imagined: TensorDict) -> float:
+    """The slow value of the imagined trajectories' start state ``e_0``, averaged over the samples (they
+    differ only through the sampled noncontrollable window of the attention)."""
+    behavior, start = components.behavior, imagined[:, 0]
+    with behavior.actor_loss.imagination.autocast(start["state"].device.type):
+        value = behavior.value_loss.target_value(policy_features(behavior.policy_input, start))
+    return float(value.float().mean())
+
+
+def potential(env) -> float:
+    """The true shaping potential ``-progress_reward * d / image_size`` of the sprites env's current state."""
+    distance = float(np.sqrt(((env._agent - env._target) ** 2).sum()))
+    return -env.progress_reward * distance / env.image_size
+
+
+def reach_rates(imagined_reward: np.ndarray, reached: np.ndarray) -> dict:
+    """Imagined reaches (predicted reward above ``REACH_THRESHOLD``) against the real env's reaches, step by
+    step of the same plans."""
+    dreamt = imagined_reward > REACH_THRESHOLD
+    return {
+        "reach_threshold": REACH_THRESHOLD,
+        "imagined_reach_rate": float(dreamt.mean()),
+        "real_reach_rate": float(reached.mean()),
+        "imagined_reaches": int(dreamt.sum()),
+        "real_reaches": int(reached.sum()),
+        "reach_recall": float(dreamt[reached].mean()) if reached.any() else None,
+    }
+
+
+def linear_fit(x: np.ndarray, y: np.ndarray) -> dict:
+    """Least-squares ``y = slope * x + intercept`` with ``r2`` and the correlation (``None`` where undefined)."""
+    fit = {"slope": None, "intercept": None, "r2": None, "correlation": None, "points": len(x)}
+    if len(x) >= 2 and x.std() > 0:
+        slope, intercept = np.polyfit(x, y, 1)
+        residual = ((y - (slope * x + intercept)) ** 2).sum()
+        total = ((y - y.mean()) ** 2).sum()
+        fit.update(slope=float(slope), intercept=float(intercept))
+        if total > 0:
+            fit.update(r2=float(1 - residual / total), correlation=float(np.corrcoef(x, y)[0, 1]))
+    fit.update(v_slow_mean=float(y.mean()) if len(y) else None, phi_mean=float(x.mean()) if len(x) else None)
+    return fit
+
+
 @torch.no_grad()
-def imagination_check(components, cfg, *, starts: int, samples: int = 32, context: int = 24) -> dict:
-    """Imagined against real rewards of the actor's own imagined action sequences (see the module doc)."""
+def imagination_check(
+    components, cfg, *, starts: int, value_starts: int = 0, samples: int = 32, context: int = 24
+) -> dict:
+    """Imagined against real rewards and reaches of the actor's own imagined action sequences, and the slow
+    value against the true potential (see the module doc)."""
     from isodream_rl.envs.sprites import SpritesEnv
 
     kwargs = {"task": "reach", **dict(cfg.env.kwargs)}
     rng = np.random.default_rng(1)
-    imagined_sums, real_sums, imagined_all, real_all = [], [], [], []
+    imagined_sums, real_sums, imagined_all, real_all, reached_all = [], [], [], [], []
+    values, potentials = [], []
     for start in range(starts):
         env = SpritesEnv(**kwargs)
         env.reset(seed=20_000 + start)
-        actions, pixels, rewards = [], [], []
-        for t in range(context):
-            if t % 4 == 0:
-                action = rng.uniform(-1, 1, 2)
-            obs, reward, *_ = env.step(action)
-            actions.append(action.copy())
-            pixels.append(obs.transpose(2, 0, 1))
-            rewards.append(reward)
-        window = TensorDict(
-            {
-                "action": torch.tensor(np.array(actions), dtype=torch.float32)[None],
-                ("next", "pixels"): torch.from_numpy(np.array(pixels))[None],
-                ("next", "reward"): torch.tensor(rewards, dtype=torch.float32)[None, :, None],
-                "is_init": torch.zeros(1, context, 1, dtype=torch.bool),
-            },
-            [1, context],
-        )
-        window["is_init"][:, 0] = True
-        _, out = components.model_loss(window)
+        out = context_window(components, env, rng, context)
         _, imagined = components.behavior.actor_loss(out[:, -1:].expand(samples, 1).clone())
+        values.append(start_value(components, imagined))
+        potentials.append(potential(env))
         plan = imagined["action"].numpy()
         dreamt = imagined["next", "reward"].squeeze(-1).numpy()
         real = np.zeros_like(dreamt)
+        reached = np.zeros(dreamt.shape, dtype=bool)
         for k in range(samples):
             replay = copy.deepcopy(env)
             for j in range(plan.shape[1]):
-                real[k, j] = replay.step(plan[k, j])[1]
+                _, real[k, j], _, _, info = replay.step(plan[k, j])
+                reached[k, j] = info["reached"]
         imagined_sums.append(dreamt.sum(1).mean())
         real_sums.append(real.sum(1).mean())
         imagined_all.append(dreamt.ravel())
         real_all.append(real.ravel())
+        reached_all.append(reached.ravel())
+    # More start states for the value alone, from their own seeds and action draws (the check above unchanged).
+    value_rng = np.random.default_rng(2)
+    for start in range(value_starts):
+        env = SpritesEnv(**kwargs)
+        env.reset(seed=30_000 + start)
+        out = context_window(components, env, value_rng, context)
+        _, imagined = components.behavior.actor_loss(out[:, -1:].expand(samples, 1).clone())
+        values.append(start_value(components, imagined))
+        potentials.append(potential(env))
     dreamt, real = np.concatenate(imagined_all), np.concatenate(real_all)
     return {
         "starts": starts,
@@ -152,6 +248,9 @@ def imagination_check(components, cfg, *, starts: int, samples: int = 32, contex
         "imagined_return": float(np.mean(imagined_sums)),
         "real_return": float(np.mean(real_sums)),
         "reward_correlation": float(np.corrcoef(dreamt, real)[0, 1]),
+        **reach_rates(dreamt, np.concatenate(reached_all)),
+        "value_starts": value_starts,
+        "value_vs_potential": linear_fit(np.array(potentials), np.array(values)),
     }
 
 

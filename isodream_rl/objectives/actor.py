@@ -9,6 +9,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torch import nn
+from torchrl.modules import PercentileValueNorm
 from torchrl.objectives import LossModule
 from torchrl.objectives.utils import hold_out_net
 from torchrl.objectives.value.functional import td_lambda_return_estimate, vec_td_lambda_return_estimate
@@ -48,6 +49,14 @@ class IsoDreamActorLoss(LossModule):
     the rsampled actions, the controllable prior, the reward head and the slow value), or with
     ``gradient="reinforce"``: ``-mean w_j * (log pi(a_j | e_j) * sg(G_j - v_slow(e_j)) + eta * H_j)``.
     ``H_j = -log pi(a_j | e_j)`` of a sample (``TanhNormal`` has no closed-form entropy).
+
+    ``loss_actor_loc = rho * mean_{N, j, k} mu_{j,k}^2`` (``loc_penalty``) keeps the actor's pre-tanh mean ``mu``
+    (the network's raw output, before ``TanhNormal``'s ``upscale * tanh(mu / upscale)``) near zero. It is not in
+    the paper: without it, an early model error that pays one direction in every state drives ``mu`` to the
+    bound, where neither the squashed action's gradient nor, against a wall, the dynamics' gradient is left to
+    bring it back, and the policy stays there after the model is right (``tests/test_exact_model.py``). With
+    it, a mean that no return gradient holds decays back to where samples explore again. ``loc_penalty=0`` is
+    the paper's loss.
     ``w_j = prod_{k<j} gamma * c_{k+1}`` (detached), ``c`` the world model's continuation probability (1 without a
     discount head). Returns are computed with the slow value target of ``value_loss``.
 
@@ -66,13 +75,15 @@ class IsoDreamActorLoss(LossModule):
         gradient: ``"dynamics"`` (the authors' setting) or ``"reinforce"``.
         attention_through_actor: let the actor loss's gradient reach the policy input's parameters too (they
             stay in the value group; backpropagate both losses before stepping, e.g. their sum).
+        loc_penalty: ``rho``, the weight of the squared pre-tanh mean (0.1; 0: the paper's loss).
 
     Reads (``_AcceptedKeys``): the start states, by default the posteriors ``("next", "state" | "belief" |
     "free_state" | "free_belief")`` of the world-model output (any batch shape; flattened and detached).
 
     Returns:
-        ``(losses, imagined)``: ``losses`` holds ``loss_actor`` and detached diagnostics ``actor_entropy``,
-        ``lambda_target_mean``, ``imagined_reward_mean``; ``imagined`` is the detached ``[N, L]`` rollout with
+        ``(losses, imagined)``: ``losses`` holds ``loss_actor``, ``loss_actor_loc`` (with ``loc_penalty > 0``)
+        and detached diagnostics ``actor_entropy``, ``actor_loc_abs`` (mean ``|mu|``), ``lambda_target_mean``,
+        ``imagined_reward_mean``; ``imagined`` is the detached ``[N, L]`` rollout with
         ``lambda_target`` and ``discount_weight`` added, the input of the value loss.
 
     Examples:
@@ -127,10 +138,14 @@ class IsoDreamActorLoss(LossModule):
         entropy_bonus: float = 1e-4,
         gradient: str = "dynamics",
         attention_through_actor: bool = False,
+        loc_penalty: float = 0.1,
+        return_normalization: bool = False,
     ):
         super().__init__()
         if gradient not in ACTOR_GRADIENTS:
             raise ValueError(f"unknown actor gradient {gradient!r}; valid: {ACTOR_GRADIENTS}")
+        if not loc_penalty >= 0:
+            raise ValueError(f"loc_penalty must be >= 0, got {loc_penalty}")
         if actor.in_features != imagination.policy_input.out_features:
             raise ValueError(
                 f"the actor reads {actor.in_features} features, the policy input gives "
@@ -147,6 +162,10 @@ class IsoDreamActorLoss(LossModule):
         self.gamma, self.lmbda, self.entropy_bonus = gamma, lmbda, entropy_bonus
         self.gradient = gradient
         self.attention_through_actor = attention_through_actor
+        self.loc_penalty = loc_penalty
+        # EXPERIMENT (bench/exact_model.py): DreamerV3's return normalisation, TorchRL's PercentileValueNorm
+        self.return_normalization = return_normalization
+        self.retnorm = PercentileValueNorm(quantiles=(0.05, 0.95), rate=0.01, min_scale=1.0)
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
@@ -196,6 +215,11 @@ class IsoDreamActorLoss(LossModule):
         step_discount = torch.as_tensor(gamma, device=reward.device).expand_as(reward)
         weight = torch.cat([torch.ones_like(reward[:, :1]), step_discount[:, :-1]], dim=1).cumprod(1).detach()
 
+        scale = torch.ones((), device=reward.device)
+        if self.return_normalization:
+            if self.training:
+                self.retnorm.update(target.detach().reshape(-1, 1))
+            scale = self.retnorm.scale().squeeze(-1).detach()
         if reinforce:
             features = imagined.get("attended_state")
             with imagination.autocast(device_type):
@@ -207,20 +231,28 @@ class IsoDreamActorLoss(LossModule):
                 with torch.no_grad():
                     baseline = value_loss.target_value(features)
             log_prob = distribution.log_prob(imagined.get("action")).unsqueeze(-1)
-            objective = log_prob * (target - baseline.float()).detach()
+            objective = log_prob * ((target - baseline.float()) / scale).detach()
             entropy = -distribution.rsample_and_log_prob()[1].unsqueeze(-1)
         else:
-            objective = target
+            objective = target / scale
             entropy = -imagined.get("action_log_prob").unsqueeze(-1)
         loss = -(weight * (objective + self.entropy_bonus * entropy)).mean()
+        with torch.set_grad_enabled(torch.is_grad_enabled() and self.loc_penalty > 0), imagination.autocast(
+            device_type
+        ):
+            loc = actor(imagined.get("attended_state").detach())[0].float()
 
         imagined = imagined.detach()
         imagined.set(self.tensor_keys.lambda_target, target.detach())
         imagined.set(self.tensor_keys.discount_weight, weight)
+        terms = {"loss_actor": loss}
+        if self.loc_penalty:
+            terms["loss_actor_loc"] = self.loc_penalty * loc.pow(2).mean()
         losses = TensorDict(
             {
-                "loss_actor": loss,
+                **terms,
                 "actor_entropy": entropy.detach().mean(),
+                "actor_loc_abs": loc.detach().abs().mean(),
                 "lambda_target_mean": target.detach().mean(),
                 "imagined_reward_mean": reward.detach().mean(),
             },

@@ -106,6 +106,13 @@ class AlgoConfig:
     """lambda of the lambda-returns."""
     actor_entropy: float = 1e-4
     """Entropy bonus of the actor loss."""
+    actor_gradient: str = "dynamics"
+    """EXPERIMENT (bench/exact_model.py)."""
+    actor_return_normalization: bool = False
+    """EXPERIMENT (bench/exact_model.py)."""
+    actor_loc_penalty: float = 0.1
+    """Weight of the squared pre-tanh action mean in the actor loss (``IsoDreamActorLoss(loc_penalty=...)``): keeps
+    the policy from locking in on an early model error; 0 is the paper's loss (``algo=isodream_paper``)."""
     exploration_noise: float = 0.0
     """Std of the Gaussian noise added to the acting policy's sampled actions during collection (clamped to
     [-1, 1]; 0 as the authors; DreamerV1 and TorchRL's Dreamer example use 0.3)."""
@@ -360,6 +367,8 @@ def validate_config(cfg: RunConfig) -> None:
             "TorchRL's Trainer writes a scalar only once more than log_every steps have passed since its last "
             "write, so evaluations closer together than that would not be logged"
         )
+    if algo.actor_loc_penalty < 0:
+        errors.append(f"algo.actor_loc_penalty={algo.actor_loc_penalty} must be >= 0")
     if algo.exploration_noise < 0:
         errors.append(f"algo.exploration_noise={algo.exploration_noise} must be >= 0")
     if not 0.0 < algo.gamma <= 1.0 or not 0.0 <= algo.lmbda <= 1.0:

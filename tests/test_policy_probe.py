@@ -1,0 +1,83 @@
+"""``bench/policy_probe.py`` on a tiny sprites reach run: the imagined against the real reaches and the slow
+value against the true potential come out with values in range."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from isodream_rl.trainers.run import train
+from tests.conftest import load_bench, tiny_run_config
+
+probe = load_bench("policy_probe")
+
+DREAMERV2 = {
+    "algo__free_branch": False,
+    "algo__static_branch": False,
+    "algo__inverse_dynamics": False,
+    "algo__reward_uses_free": False,
+    "algo__policy_input": "controllable",
+}
+
+
+def test_linear_fit_recovers_a_line():
+    phi = np.array([-3.0, -2.0, -1.0, 0.0])
+    fit = probe.linear_fit(phi, 0.5 - phi)
+    assert fit["slope"] == pytest.approx(-1.0)
+    assert fit["intercept"] == pytest.approx(0.5)
+    assert fit["r2"] == pytest.approx(1.0)
+    assert fit["correlation"] == pytest.approx(-1.0)
+    assert fit["points"] == 4
+    assert fit["phi_mean"] == pytest.approx(-1.5) and fit["v_slow_mean"] == pytest.approx(2.0)
+    assert probe.linear_fit(np.zeros(3), np.ones(3))["slope"] is None  # one potential: no fit
+
+
+def test_reach_rates_count_steps_above_the_threshold_against_real_reaches():
+    dreamt = np.array([0.9, 0.71, 0.5, 0.69, 1.2, -0.3])
+    reached = np.array([True, False, True, False, False, False])
+    rates = probe.reach_rates(dreamt, reached)
+    assert rates["imagined_reaches"] == 3 and rates["imagined_reach_rate"] == pytest.approx(0.5)
+    assert rates["real_reaches"] == 2 and rates["real_reach_rate"] == pytest.approx(1 / 3)
+    assert rates["reach_recall"] == pytest.approx(0.5)  # the first real reach was imagined, the second not
+    assert probe.reach_rates(dreamt, np.zeros(6, dtype=bool))["reach_recall"] is None
+
+
+@pytest.mark.parametrize("algo", ["isodream", "dreamerv2"])
+def test_probe_reports_reaches_and_value_against_potential(tmp_path, algo):
+    changes = DREAMERV2 if algo == "dreamerv2" else {}
+    cfg = tiny_run_config(tmp_path / "run", train__total_steps=30, **changes)
+    cfg.env.kwargs = {"task": "reach", "num_distractors": 0}
+    cfg.logging.eval_every, cfg.logging.final_eval_episodes, cfg.logging.progress_bar = 0, 0, False
+    result = train(cfg)
+    assert result.updates >= 1
+
+    out = tmp_path / "probe.json"
+    report = probe.main(
+        [str(tmp_path / "run"), "--json", str(out), "--starts", "2", "--value-starts", "4"]
+        + ["--episodes", "1", "--steps", "8"]
+    )
+    assert json.loads(out.read_text())["imagination_check"] == report["imagination_check"]
+    check = report["imagination_check"]
+    # The earlier outputs are still there.
+    for key in ("starts", "samples", "imagined_return", "real_return", "reward_correlation"):
+        assert key in check
+    assert "imagined_reward_mean" in report and "reward_correlation" in report
+
+    steps = check["starts"] * check["samples"] * cfg.algo.horizon
+    assert check["reach_threshold"] == probe.REACH_THRESHOLD == 0.7
+    for rate, count in (("imagined_reach_rate", "imagined_reaches"), ("real_reach_rate", "real_reaches")):
+        assert 0.0 <= check[rate] <= 1.0
+        assert check[count] == round(check[rate] * steps)
+    if check["real_reaches"]:
+        assert 0.0 <= check["reach_recall"] <= 1.0
+    else:
+        assert check["reach_recall"] is None
+
+    fit = check["value_vs_potential"]
+    assert set(fit) == {"slope", "intercept", "r2", "correlation", "points", "v_slow_mean", "phi_mean"}
+    assert fit["points"] == 2 + 4 == check["starts"] + check["value_starts"]
+    assert all(math.isfinite(fit[key]) for key in ("slope", "intercept", "v_slow_mean", "phi_mean"))
+    assert fit["r2"] <= 1.0 + 1e-9 and -1.0 <= fit["correlation"] <= 1.0
+    # phi = -progress_reward * d / S with d at most the frame's diagonal.
+    assert -10.0 * math.sqrt(2) <= fit["phi_mean"] < 0.0
