@@ -207,3 +207,24 @@ def test_docs_snippet_runs():
     blocks = re.findall(r"```python\n(.*?)```", text, flags=re.S)
     assert blocks, "docs/behavior.md has no python block"
     exec(compile(blocks[0], str(DOCS), "exec"), {})
+
+
+def test_loc_penalty_is_the_squared_pre_tanh_mean_and_reaches_the_actor_only():
+    wm, actor_loss, value_loss = build(mode="controllable")
+    assert actor_loss.loc_penalty == 0.1  # the library's default
+    torch.manual_seed(0)
+    losses, imagined = actor_loss(start_batch(wm))
+    loc, _ = actor_loss.actor(imagined["attended_state"])
+    torch.testing.assert_close(losses["loss_actor_loc"], 0.1 * loc.pow(2).mean())
+    torch.testing.assert_close(losses["actor_loc_abs"], loc.abs().mean().detach())
+    losses["loss_actor_loc"].backward()
+    assert all(p.grad is None for p in wm.parameters()) and all(
+        p.grad is None for p in value_loss.parameters()
+    )
+    assert all(p.grad is not None for p in actor_loss.actor.parameters())
+
+    actor_loss.loc_penalty = 0.0  # the paper's loss: no term, the diagnostic stays
+    losses, _ = actor_loss(start_batch(wm))
+    assert "loss_actor_loc" not in losses.keys() and "actor_loc_abs" in losses.keys()
+    with pytest.raises(ValueError, match="loc_penalty must be >= 0"):
+        IsoDreamActorLoss(actor_loss.actor, actor_loss.imagination, value_loss, loc_penalty=-1.0)

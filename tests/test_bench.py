@@ -70,3 +70,28 @@ def test_video_prediction_bench_trains_equal_budgets_resumes_and_checks_the_aims
         assert all(r["iterations"] == 2 for r in second["variants"][variant]["seeds"])
         assert [p["iteration"] for p in second["history"][variant]["seed_0"]] == [0, 1, 2]
     assert second["history"]["isodream"]["seed_0"][:2] == first["history"]["isodream"]["seed_0"]
+
+
+def test_update_rate_reads_the_runs_own_rate_and_plans_10k_updates(tmp_path):
+    module = load_bench("update_rate")
+    path = tmp_path / "rate.json"
+    result = module.main(
+        [
+            "--algos",
+            "dreamerv2",
+            "--sizes",
+            "tiny",
+            "--updates",
+            "60",
+            "--log-every",
+            "50",
+            "--json",
+            str(path),
+        ]
+    )
+    entry = result["rates"]["dreamerv2"]["tiny"]
+    assert entry["updates_per_s"] > 0 and len(entry["updates_per_s_rows"]) >= 1
+    assert entry["hours_per_10k_updates"] == pytest.approx(10_000 / entry["updates_per_s"] / 3600)
+    assert entry["env_steps"] == 50 + 5 * 60
+    saved = json.loads(path.read_text())
+    assert saved["rates"] == result["rates"] and saved["cpu"] and saved["overrides"] == module.RUNG1
