@@ -140,7 +140,9 @@ def _curve(run_dir: Path, summary: dict | None) -> dict | None:
         curve["wall_s"].append(summary["wall_s"])
     # the newest update count logged at or before each evaluation (the logs and the evaluations keep their own
     # schedules); the final evaluation also reads summary.json's count
-    curve["updates"] = [max((u for s, u in updates if s <= step), default=None) for step in curve["env_steps"]]
+    curve["updates"] = [
+        max((u for s, u in updates if s <= step), default=None) for step in curve["env_steps"]
+    ]
     if summary is not None and summary.get("updates") is not None:
         curve["updates"][-1] = summary["updates"]
     curve["finished"] = summary is not None

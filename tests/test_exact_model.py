@@ -14,6 +14,9 @@ from isodream_rl.evaluation import ExactSpritesModel
 from isodream_rl.trainers import RunConfig
 from isodream_rl.trainers.exact_model import train_behavior_on_exact_model
 
+#: start states per update: a quarter of the bench's B * T = 512, so that the file takes about two minutes
+BATCH = 128
+
 
 def bench_behavior_config() -> RunConfig:
     """The learning bench's behavior (``size=bench``: 128-unit actor and value, horizon 15) at the library's
@@ -68,15 +71,17 @@ def test_the_reward_is_differentiable_in_the_action_and_the_error_points_one_way
 
 
 def test_the_learner_learns_the_task_on_the_exact_model():
-    result = train_behavior_on_exact_model(bench_behavior_config(), updates=400, eval_every=100)
+    result = train_behavior_on_exact_model(bench_behavior_config(), updates=400, batch=BATCH, eval_every=100)
     assert result.scripted_return > 100 and abs(result.constant_return) < 5
     # the deterministic policy heads for the target and scores most of the scripted controller's return
     assert result.cosine[-1] > 0.8, result.as_dict()
     assert result.returns[-1] >= 0.8 * result.scripted_return, result.as_dict()
 
 
-def recovery(cfg: RunConfig):
-    return train_behavior_on_exact_model(cfg, updates=750, reward_error=0.3, error_updates=250, eval_every=250)
+def recovery(cfg: RunConfig, updates: int = 750):
+    return train_behavior_on_exact_model(
+        cfg, updates=updates, batch=BATCH, reward_error=0.3, error_updates=250, eval_every=250
+    )
 
 
 def test_the_learner_recovers_from_an_early_fixed_direction_reward_error():
@@ -91,5 +96,5 @@ def test_without_the_loc_penalty_the_learner_locks_in_on_the_early_error():
     into the wall the error sent it to, so the default's recovery is the penalty's doing."""
     cfg = bench_behavior_config()
     cfg.algo.actor_loc_penalty = 0.0
-    result = recovery(cfg)
+    result = recovery(cfg, updates=500)  # 250 updates of the exact model: the default has recovered by then
     assert result.returns[-1] < 0.1 * result.scripted_return, result.as_dict()

@@ -9,7 +9,6 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torch import nn
-from torchrl.modules import PercentileValueNorm
 from torchrl.objectives import LossModule
 from torchrl.objectives.utils import hold_out_net
 from torchrl.objectives.value.functional import td_lambda_return_estimate, vec_td_lambda_return_estimate
@@ -139,7 +138,6 @@ class IsoDreamActorLoss(LossModule):
         gradient: str = "dynamics",
         attention_through_actor: bool = False,
         loc_penalty: float = 0.1,
-        return_normalization: bool = False,
     ):
         super().__init__()
         if gradient not in ACTOR_GRADIENTS:
@@ -163,9 +161,6 @@ class IsoDreamActorLoss(LossModule):
         self.gradient = gradient
         self.attention_through_actor = attention_through_actor
         self.loc_penalty = loc_penalty
-        # EXPERIMENT (bench/exact_model.py): DreamerV3's return normalisation, TorchRL's PercentileValueNorm
-        self.return_normalization = return_normalization
-        self.retnorm = PercentileValueNorm(quantiles=(0.05, 0.95), rate=0.01, min_scale=1.0)
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
@@ -215,11 +210,6 @@ class IsoDreamActorLoss(LossModule):
         step_discount = torch.as_tensor(gamma, device=reward.device).expand_as(reward)
         weight = torch.cat([torch.ones_like(reward[:, :1]), step_discount[:, :-1]], dim=1).cumprod(1).detach()
 
-        scale = torch.ones((), device=reward.device)
-        if self.return_normalization:
-            if self.training:
-                self.retnorm.update(target.detach().reshape(-1, 1))
-            scale = self.retnorm.scale().squeeze(-1).detach()
         if reinforce:
             features = imagined.get("attended_state")
             with imagination.autocast(device_type):
@@ -231,14 +221,15 @@ class IsoDreamActorLoss(LossModule):
                 with torch.no_grad():
                     baseline = value_loss.target_value(features)
             log_prob = distribution.log_prob(imagined.get("action")).unsqueeze(-1)
-            objective = log_prob * ((target - baseline.float()) / scale).detach()
+            objective = log_prob * (target - baseline.float()).detach()
             entropy = -distribution.rsample_and_log_prob()[1].unsqueeze(-1)
         else:
-            objective = target / scale
+            objective = target
             entropy = -imagined.get("action_log_prob").unsqueeze(-1)
         loss = -(weight * (objective + self.entropy_bonus * entropy)).mean()
-        with torch.set_grad_enabled(torch.is_grad_enabled() and self.loc_penalty > 0), imagination.autocast(
-            device_type
+        with (
+            torch.set_grad_enabled(torch.is_grad_enabled() and self.loc_penalty > 0),
+            imagination.autocast(device_type),
         ):
             loc = actor(imagined.get("attended_state").detach())[0].float()
 

@@ -173,8 +173,6 @@ def make_behavior(cfg: RunConfig, world_model: IsoDreamWorldModel) -> Behavior:
         lmbda=algo.lmbda,
         entropy_bonus=algo.actor_entropy,
         loc_penalty=algo.actor_loc_penalty,
-        gradient=algo.actor_gradient,
-        return_normalization=algo.actor_return_normalization,
         attention_through_actor=algo.attention_through_actor,
     )
     return Behavior(

@@ -106,10 +106,6 @@ class AlgoConfig:
     """lambda of the lambda-returns."""
     actor_entropy: float = 1e-4
     """Entropy bonus of the actor loss."""
-    actor_gradient: str = "dynamics"
-    """EXPERIMENT (bench/exact_model.py)."""
-    actor_return_normalization: bool = False
-    """EXPERIMENT (bench/exact_model.py)."""
     actor_loc_penalty: float = 0.1
     """Weight of the squared pre-tanh action mean in the actor loss (``IsoDreamActorLoss(loc_penalty=...)``): keeps
     the policy from locking in on an early model error; 0 is the paper's loss (``algo=isodream_paper``)."""
