@@ -15,7 +15,8 @@ Loads the newest readable checkpoint of an ``isodream-train`` run, plays ``--epi
   imagined and real rewards (near 0: the actor optimises rewards that its actions do not get). Also:
 
   - ``imagined_reach_rate`` / ``imagined_reaches``: the fraction / number of imagined steps whose predicted
-    reward exceeds ``REACH_THRESHOLD`` (0.7: a reach, as the progress term alone stays below about 0.71),
+    reward exceeds ``REACH_THRESHOLD`` (0.85: a reach earns 1 plus the progress of its step, while the
+    progress term alone is at most ``10 * sqrt(2) * 3.2 / 64 = 0.71`` for a diagonal step at full speed),
     against ``real_reach_rate`` / ``real_reaches``: those of the same replayed steps where the real env
     reports ``info["reached"]``; ``reach_recall``: the fraction of the real reaches whose imagined step
     exceeded the threshold too (``None`` without a real reach). An imagined rate far above the real one: the
@@ -53,9 +54,9 @@ from isodream_rl.objectives.imagination import policy_features
 from isodream_rl.trainers.checkpoint import CheckpointManager
 from isodream_rl.trainers.run import config_from_dict, make_components
 
-#: an imagined step whose predicted reward exceeds this counts as a reach (the reach reward is 1; the progress
-#: term alone is at most about 0.71 at the default speed)
-REACH_THRESHOLD = 0.7
+#: an imagined step whose predicted reward exceeds this counts as a reach: a real reach step earns 1 plus its
+#: progress, the progress term alone at most about 0.71 (a full-speed diagonal step), so 0.7 would count those
+REACH_THRESHOLD = 0.85
 
 
 def main(argv: list[str] | None = None) -> dict:
