@@ -212,13 +212,20 @@ def imagination_check(
     rng = np.random.default_rng(1)
     imagined_sums, real_sums, imagined_all, real_all, reached_all = [], [], [], [], []
     values, potentials = [], []
-    for start in range(starts):
+
+    def imagine_from(seed: int, generator: np.random.Generator):
+        """A fresh env after a context window from ``seed``, the actor's imagined plans from its state, and the
+        (slow value, potential) pair of that state."""
         env = SpritesEnv(**kwargs)
-        env.reset(seed=20_000 + start)
-        out = context_window(components, env, rng, context)
+        env.reset(seed=seed)
+        out = context_window(components, env, generator, context)
         _, imagined = components.behavior.actor_loss(out[:, -1:].expand(samples, 1).clone())
         values.append(start_value(components, imagined))
         potentials.append(potential(env))
+        return env, imagined
+
+    for start in range(starts):
+        env, imagined = imagine_from(20_000 + start, rng)
         plan = imagined["action"].numpy()
         dreamt = imagined["next", "reward"].squeeze(-1).numpy()
         real = np.zeros_like(dreamt)
@@ -236,12 +243,7 @@ def imagination_check(
     # More start states for the value alone, from their own seeds and action draws (the check above unchanged).
     value_rng = np.random.default_rng(2)
     for start in range(value_starts):
-        env = SpritesEnv(**kwargs)
-        env.reset(seed=30_000 + start)
-        out = context_window(components, env, value_rng, context)
-        _, imagined = components.behavior.actor_loss(out[:, -1:].expand(samples, 1).clone())
-        values.append(start_value(components, imagined))
-        potentials.append(potential(env))
+        imagine_from(30_000 + start, value_rng)
     dreamt, real = np.concatenate(imagined_all), np.concatenate(real_all)
     return {
         "starts": starts,
