@@ -253,3 +253,19 @@ def test_readme_main_job_shows_a_progress_bar_and_says_where_its_outputs_went(tm
     gif = re.search(r"newest open-loop prediction: (\S+)", out.stdout).group(1)
     assert (tmp_path / gif).stat().st_size > 0
     assert list((tmp_path / run / "logs").rglob("loss_model_reco.csv"))
+
+
+def test_a_config_saved_before_the_loc_penalty_reads_back_with_the_loss_it_trained_with():
+    import dataclasses
+
+    from isodream_rl.trainers.config import config_from_dict
+    from isodream_rl.trainers.run_dir import differing_settings
+
+    saved = dataclasses.asdict(RunConfig())
+    assert saved["algo"]["actor_loc_penalty"] == 0.1  # the default today
+    del saved["algo"]["actor_loc_penalty"]  # as run_config.json and checkpoints had it before
+    assert config_from_dict(saved).algo.actor_loc_penalty == 0.0
+    # so resuming such a run with today's defaults is refused, naming the setting, instead of changing its loss
+    assert differing_settings(saved, RunConfig()) == {"algo.actor_loc_penalty": (0.0, 0.1)}
+    saved["algo"]["actor_loc_penalty"] = 0.1
+    assert config_from_dict(saved).algo.actor_loc_penalty == 0.1

@@ -438,9 +438,15 @@ def validate_config(cfg: RunConfig) -> None:
         raise ConfigError("invalid training configuration:\n  - " + "\n  - ".join(errors))
 
 
+#: ``(section, field) -> value``: fields added with a default that changes what a run does; a configuration saved
+#: before such a field existed ran with this value, which it keeps when it is read back (resumed, probed).
+FORMER_BEHAVIOUR = {("algo", "actor_loc_penalty"): 0.0}
+
+
 def config_from_dict(data: dict) -> RunConfig:
     """Rebuild a :class:`RunConfig` from ``dataclasses.asdict`` output (as stored in checkpoints and
-    ``run_config.json``); fields added since it was written take their defaults."""
+    ``run_config.json``); fields added since it was written take their defaults, except those of
+    :data:`FORMER_BEHAVIOUR`, which take the value the run was trained with."""
     import dataclasses
 
     sections = {f.name: f.type for f in dataclasses.fields(RunConfig)}
@@ -449,6 +455,9 @@ def config_from_dict(data: dict) -> RunConfig:
         if name not in sections:
             continue
         section_type = globals().get(str(sections[name]))
+        if isinstance(value, dict):
+            former = {key: v for (section, key), v in FORMER_BEHAVIOUR.items() if section == name}
+            value = {**former, **value}
         kwargs[name] = section_type(**value) if isinstance(value, dict) and section_type else value
     return RunConfig(**kwargs)
 
