@@ -23,6 +23,7 @@ from torch import nn
 from isodream_rl.evaluation.exact_sprites import ExactSpritesModel, reference_returns
 from isodream_rl.trainers.builders import make_adam, make_behavior
 from isodream_rl.trainers.config import RunConfig
+from isodream_rl.trainers.stepper import loss_sum
 
 
 @dataclass
@@ -131,9 +132,7 @@ def train_behavior_on_exact_model(
         start = TensorDict({("next", "state"): state, ("next", "belief"): belief}, [batch])
         actor_losses, imagined = actor_loss(start)
         value_losses, _ = value_loss(imagined)
-        loss = sum(v for k, v in actor_losses.items() if k.startswith("loss")) + sum(
-            v for k, v in value_losses.items() if k.startswith("loss")
-        )
+        loss = loss_sum(actor_losses) + loss_sum(value_losses)
         for opt in optimizers.values():
             opt.zero_grad(set_to_none=True)
         loss.backward()

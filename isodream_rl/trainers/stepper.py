@@ -23,7 +23,8 @@ class NonFiniteLossError(RuntimeError):
     """Raised after ``max_nonfinite`` updates in a row had a NaN/inf loss or gradient."""
 
 
-def _loss_sum(losses: TensorDictBase) -> torch.Tensor:
+def loss_sum(losses: TensorDictBase) -> torch.Tensor:
+    """The sum of a loss module's ``loss_*`` entries (the diagnostics beside them are left out)."""
     return sum(value for key, value in losses.items() if key.startswith("loss"))
 
 
@@ -146,7 +147,7 @@ class IsoDreamOptimizationStepper(OptimizationStepper):
     def _run(self, batch: TensorDictBase, metrics: dict[str, torch.Tensor]) -> bool:
         losses, model_out = self.model_loss(batch)
         metrics.update({k: v.detach() for k, v in losses.items()})
-        if not self._backward(_loss_sum(losses), ["world_model"]):
+        if not self._backward(loss_sum(losses), ["world_model"]):
             return False
         if not self._clip_and_step(["world_model"], metrics):
             return False
@@ -161,7 +162,7 @@ class IsoDreamOptimizationStepper(OptimizationStepper):
         # between the two passes. The world model is held out of the actor loss and the rollout given to the
         # value loss is detached, so nothing else is shared.
         behavior = ["actor", "value"]
-        total = _loss_sum(actor_losses) + _loss_sum(value_losses)
+        total = loss_sum(actor_losses) + loss_sum(value_losses)
         if not self._backward(total, behavior):
             return False
         return self._clip_and_step(behavior, metrics)
