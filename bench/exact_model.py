@@ -5,6 +5,9 @@ the library's learning rates) on :class:`~isodream_rl.evaluation.ExactSpritesMod
 :func:`~isodream_rl.trainers.exact_model.train_behavior_on_exact_model`, in two cases:
 
 - ``learn``: the exact model from the first update;
+- ``no_reach``: imagination without the reach event (no reach reward, no respawn: only the progress term), as a
+  young world model that has not yet learnt the rare reaches; the evaluation keeps them;
+- ``recover_no_reach``: both: the early error, then imagination without reaches;
 - ``recover``: a reward error of 0.3 per unit action along +x for the first 250 updates, then the exact model
   (the young world model's systematic mistake; the aim is a 200-step return of at least half the scripted
   controller's by update 750).
@@ -47,9 +50,16 @@ VARIANTS: dict[str, dict] = {
     "paper": {"actor_loc_penalty": 0.0},
     "loc_penalty_0.03": {"actor_loc_penalty": 0.03},
     "loc_penalty_0.3": {"actor_loc_penalty": 0.3},
+    "gamma_0.95": {"gamma": 0.95},
+    "gamma_0.9": {"gamma": 0.9},
 }
-#: name -> (reward error, updates with the error)
-CASES = {"learn": (0.0, 0), "recover": (0.3, 250)}
+#: name -> (reward error, updates with the error, extra ExactSpritesModel arguments)
+CASES = {
+    "learn": (0.0, 0, {}),
+    "recover": (0.3, 250, {}),
+    "no_reach": (0.0, 0, {"imagine_reaches": False}),
+    "recover_no_reach": (0.3, 250, {"imagine_reaches": False}),
+}
 
 
 def bench_config(changes: dict) -> RunConfig:
@@ -121,7 +131,7 @@ def main(argv: list[str] | None = None) -> dict:
         entry = results["variants"].setdefault(variant, {"algo": VARIANTS[variant]})
         seeds = args.seeds[:1] if variant in args.single_seed_variants else args.seeds
         for case in args.cases:
-            error, error_updates = CASES[case]
+            error, error_updates, model_kwargs = CASES[case]
             for seed in seeds:
                 run = train_behavior_on_exact_model(
                     bench_config(VARIANTS[variant]),
@@ -130,6 +140,7 @@ def main(argv: list[str] | None = None) -> dict:
                     error_updates=error_updates,
                     eval_every=args.eval_every,
                     seed=seed,
+                    model_kwargs=model_kwargs,
                 ).as_dict()
                 run["normalised_final"] = (run["returns"][-1] - run["constant_return"]) / (
                     run["scripted_return"] - run["constant_return"]

@@ -29,6 +29,14 @@ Loads the newest readable checkpoint of an ``isodream-train`` run, plays ``--epi
     ``intercept`` of ``v_slow`` on ``phi``, ``r2``, ``correlation``, the number of ``points`` and the
     means ``v_slow_mean`` and ``phi_mean``. A value that has learned the shaping term (the return still to
     come from closing the distance, ``-phi``) has a slope near -1; near 0 it does not see the distance.
+  - ``gradient_check``: what the actor's pathwise gradient says, from the same start states: a shift
+    ``delta`` added to every imagined action (the model steps on ``a + delta``); the gradients of the imagined
+    reward sum (``reward``) and of the mean lambda-return the actor maximises (``lambda_return``: rewards plus
+    the bootstrapped slow value) with respect to ``delta``, each as its mean cosine with the direction from the
+    agent to the target in action coordinates (``cosine_*``; the true reward grows along it, so a model whose
+    gradients are right gives a cosine near +1) and its mean norm (``norm_*``), and the cosine of the gradient
+    of the slow value of the last imagined state (``cosine_value``; negative: the value pays for moving away
+    from the target).
 
     python bench/policy_probe.py runs/ladder/R2_dv2 --json docs/results/ladder/policy_probe_R2_dv2.json
 """
@@ -50,6 +58,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import cpu_name, git_commit  # noqa: E402
 
 from isodream_rl.envs import make_env
+from isodream_rl.objectives import lambda_returns
 from isodream_rl.objectives.imagination import policy_features
 from isodream_rl.trainers.checkpoint import CheckpointManager
 from isodream_rl.trainers.run import config_from_dict, make_components
@@ -211,7 +220,7 @@ def imagination_check(
     kwargs = {"task": "reach", **dict(cfg.env.kwargs)}
     rng = np.random.default_rng(1)
     imagined_sums, real_sums, imagined_all, real_all, reached_all = [], [], [], [], []
-    values, potentials = [], []
+    values, potentials, gradients = [], [], []
 
     def imagine_from(seed: int, generator: np.random.Generator):
         """A fresh env after a context window from ``seed``, the actor's imagined plans from its state, and the
@@ -222,6 +231,7 @@ def imagination_check(
         _, imagined = components.behavior.actor_loss(out[:, -1:].expand(samples, 1).clone())
         values.append(start_value(components, imagined))
         potentials.append(potential(env))
+        gradients.append(action_gradients(components, out[:, -1:].expand(samples, 1).clone(), env))
         return env, imagined
 
     for start in range(starts):
@@ -254,6 +264,45 @@ def imagination_check(
         **reach_rates(dreamt, np.concatenate(reached_all)),
         "value_starts": value_starts,
         "value_vs_potential": linear_fit(np.array(potentials), np.array(values)),
+        "gradient_check": {
+            key: float(np.mean([g[key] for g in gradients])) for key in gradients[0]
+        },
+    }
+
+
+def action_gradients(components, start: TensorDict, env) -> dict:
+    """The gradients of the imagined reward sum and of the lambda-return with respect to a shift of every
+    imagined action, against the direction to the target (see ``gradient_check`` in the module doc)."""
+    loss = components.behavior.actor_loss
+    imagination, rssm = loss.imagination, loss.imagination.world_model.control_rssm
+    delta = torch.zeros(2, requires_grad=True)
+    step = rssm.imagine_step
+    rssm.imagine_step = lambda state, belief, action: step(state, belief, action + delta)
+    try:
+        with torch.enable_grad():
+            imagined = imagination(*loss._start(start), actor=loss.actor)
+            with imagination.autocast("cpu"):
+                next_value = loss.value_loss.target_value(
+                    policy_features(imagination.policy_input, imagined["next"])
+                )
+            reward = imagined["next", "reward"]
+            target = lambda_returns(reward, next_value.float(), loss.gamma, loss.lmbda)
+            (grad_reward,) = torch.autograd.grad(reward.sum(1).mean(), delta, retain_graph=True)
+            (grad_return,) = torch.autograd.grad(target.mean(), delta, retain_graph=True)
+            (grad_value,) = torch.autograd.grad(next_value[:, -1].float().mean(), delta)
+    finally:
+        del rssm.imagine_step
+    direction = torch.as_tensor((env._target - env._agent)[::-1].copy(), dtype=torch.float32)
+
+    def cosine(g: torch.Tensor) -> float:
+        return float(torch.nn.functional.cosine_similarity(g, direction, dim=0, eps=1e-12))
+
+    return {
+        "cosine_reward": cosine(grad_reward),
+        "cosine_lambda_return": cosine(grad_return),
+        "cosine_value": cosine(grad_value),
+        "norm_reward": float(grad_reward.norm()),
+        "norm_lambda_return": float(grad_return.norm()),
     }
 
 

@@ -81,3 +81,25 @@ def test_probe_reports_reaches_and_value_against_potential(tmp_path, algo):
     assert fit["r2"] <= 1.0 + 1e-9 and -1.0 <= fit["correlation"] <= 1.0
     # phi = -progress_reward * d / S with d at most the frame's diagonal.
     assert -10.0 * math.sqrt(2) <= fit["phi_mean"] < 0.0
+
+    grads = check["gradient_check"]
+    assert set(grads) == {
+        "cosine_reward", "cosine_lambda_return", "cosine_value", "norm_reward", "norm_lambda_return"
+    }
+    for key in ("cosine_reward", "cosine_lambda_return", "cosine_value"):
+        assert -1.0 - 1e-6 <= grads[key] <= 1.0 + 1e-6
+    assert grads["norm_reward"] >= 0.0 and math.isfinite(grads["norm_lambda_return"])
+
+
+def test_the_direction_to_the_target_is_in_action_coordinates():
+    """``gradient_check`` compares gradients with ``(target - agent)[::-1]``: the env stores (row, col), the
+    action moves (x, y), so a step along that direction must bring the agent closer."""
+    from isodream_rl.envs.sprites import SpritesEnv
+
+    env = SpritesEnv(task="reach", num_distractors=0, sprite_size=0.1)
+    for seed in range(10):
+        env.reset(seed=seed)
+        direction = (env._target - env._agent)[::-1].copy()
+        before = np.linalg.norm(env._target - env._agent)
+        env.step((direction / np.abs(direction).max()).astype(np.float32))
+        assert np.linalg.norm(env._target - env._agent) < before

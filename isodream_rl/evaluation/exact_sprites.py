@@ -51,7 +51,9 @@ class ExactSpritesModel(nn.Module):
     through the reach indicator or the respawn, which are events).
 
     With ``reward_error != 0`` the reward gains ``reward_error * <action, error_direction>``: a model that
-    believes one direction pays, whatever the state.
+    believes one direction pays, whatever the state. With ``imagine_reaches=False`` imagination
+    (:meth:`imagine_step`) has no reach event: no ``reach_reward`` and no respawn, only the progress term, as a
+    young world model that has not yet learnt the rare reaches; :meth:`step` (the evaluation) keeps them.
 
     It duck-types the parts of :class:`~isodream_rl.modules.IsoDreamWorldModel` that behavior learning reads
     (``config``, ``control_rssm.imagine_step``, ``reward_features``, ``reward_head``, ``discount_head``,
@@ -66,6 +68,7 @@ class ExactSpritesModel(nn.Module):
         reward_error: the fixed-direction reward error per unit action (0: exact).
         error_direction: its direction in action space (normalised).
         seed: seeds the respawns.
+        imagine_reaches: whether :meth:`imagine_step` imagines the reach and the respawn (True: exact).
     """
 
     def __init__(
@@ -79,8 +82,10 @@ class ExactSpritesModel(nn.Module):
         reward_error: float = 0.0,
         error_direction: tuple[float, float] = (1.0, 0.0),
         seed: int = 0,
+        imagine_reaches: bool = True,
     ):
         super().__init__()
+        self.imagine_reaches = imagine_reaches
         radius = max(2, round(sprite_size * image_size))
         self.lo, self.hi = radius / image_size, (image_size - 1 - radius) / image_size
         self.reach_distance = 2 * radius / image_size
@@ -130,9 +135,10 @@ class ExactSpritesModel(nn.Module):
         return state, torch.zeros(n, 1, device=device)
 
     def step(
-        self, state: torch.Tensor, action: torch.Tensor
+        self, state: torch.Tensor, action: torch.Tensor, *, reaches: bool = True
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """One env step from ``state [N, 4]`` under ``action [N, 2]``: ``(next_state, reward [N], reached [N])``."""
+        """One env step from ``state [N, 4]`` under ``action [N, 2]``: ``(next_state, reward [N], reached [N])``.
+        With ``reaches=False`` a reach earns nothing and the target stays (``reached`` still reports it)."""
         if action.shape[-1] != 2 or state.shape[-1] != 4:
             raise ValueError(
                 f"ExactSpritesModel steps states [N, 4] with actions [N, 2], got {tuple(state.shape)} and "
@@ -143,15 +149,17 @@ class ExactSpritesModel(nn.Module):
         agent = (agent + self.agent_speed * action.clamp(-1, 1)).clamp(self.lo, self.hi)
         after = (agent - target).pow(2).sum(-1).add(1e-12).sqrt()
         reached = (after <= self.reach_distance).detach()
-        reward = self.progress_reward * (before - after) + self.reach_reward * reached.float()
+        reward = self.progress_reward * (before - after)
+        if reaches:
+            reward = reward + self.reach_reward * reached.float()
+            target = torch.where(reached.unsqueeze(-1), self.respawn(agent.detach()), target)
         if self.reward_error:
             reward = reward + self.reward_error * (action * self.error_direction.to(action)).sum(-1)
-        target = torch.where(reached.unsqueeze(-1), self.respawn(agent.detach()), target)
         return torch.cat([agent, target], dim=-1), reward, reached
 
     def imagine_step(self, state: torch.Tensor, belief: torch.Tensor, action: torch.Tensor):
         """The controllable prior's interface: ``(None, None, next_state [N, 4], reward [N, 1])`` (see :meth:`step`)."""
-        next_state, reward, _ = self.step(state, action)
+        next_state, reward, _ = self.step(state, action, reaches=self.imagine_reaches)
         return None, None, next_state, reward.unsqueeze(-1)
 
     @torch.no_grad()
