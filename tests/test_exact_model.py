@@ -5,9 +5,12 @@ what a young world model lets it do: it must learn the task, and it must recover
 reward error of the model is gone (the lock-in that real runs show when their world model is still young).
 """
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from isodream_rl.envs.sprites import SpritesEnv
 from isodream_rl.evaluation import ExactSpritesModel
@@ -16,12 +19,15 @@ from isodream_rl.trainers.exact_model import train_behavior_on_exact_model
 
 #: start states per update: a quarter of the bench's B * T = 512, so that the file takes about two minutes
 BATCH = 128
+SPRITES_GROUP = Path(__file__).resolve().parents[1] / "isodream_rl" / "configs" / "env" / "sprites.yaml"
 
 
 def bench_behavior_config() -> RunConfig:
     """The learning bench's behavior (``size=bench``: 128-unit actor and value, horizon 15) at the library's
-    defaults, on ``[s, h]`` (the exact model has no noncontrollable branch)."""
+    defaults for sprites (``env=sprites`` sets the discount 0.9), on ``[s, h]`` (the exact model has no
+    noncontrollable branch)."""
     cfg = RunConfig()
+    cfg.algo.gamma = OmegaConf.load(SPRITES_GROUP).algo.gamma
     cfg.algo.policy_input = "controllable"
     cfg.model.actor_units = cfg.model.value_units = 128
     cfg.train.threads = 1
