@@ -264,9 +264,7 @@ def imagination_check(
         **reach_rates(dreamt, np.concatenate(reached_all)),
         "value_starts": value_starts,
         "value_vs_potential": linear_fit(np.array(potentials), np.array(values)),
-        "gradient_check": {
-            key: float(np.mean([g[key] for g in gradients])) for key in gradients[0]
-        },
+        "gradient_check": {key: float(np.mean([g[key] for g in gradients])) for key in gradients[0]},
     }
 
 

@@ -2,14 +2,16 @@
 
 Each (algo, size) trains one short run on sprites ``reach`` (the learning bench's env settings by default) with
 one torch thread, one run at a time, no evaluation: ``--updates`` updates after the size's random prefill. The
-rate is read from the run's own ``updates_per_s`` log (collection included, as in a long run), skipping the
-first log row (start-up, first compilation of the kernels). Writes ``--json`` (default
-``docs/results/update_rate.json``): per algo and size the median rate, the env steps per second and the hours
-10000 updates take at that rate, with the CPU and the commit. Run it with nothing else on the machine: the
+rate is read from the run's own ``updates_per_s`` log (collection included, as in a long run), from the rows
+logged after the prefill, skipping the first of them (start-up, first compilation of the kernels). Writes
+``--json`` (default ``docs/results/update_rate.json``): per algo and size the median rate, the env steps per
+second and the hours 10000 updates take at that rate, with the CPU and the commit. Run it with nothing else on the machine: the
 number plans the learning bench's budget (``bench/learning.py``), it is not a speed claim.
 
     python bench/update_rate.py
     python bench/update_rate.py --algos dreamerv2 --sizes tiny --updates 40 --json /tmp/rate.json
+    python bench/update_rate.py --algos torchrl_dreamer_v3 --sizes tiny --updates 2 --log-every 4 \
+        --override train.frames_per_batch=5 --json /tmp/rate.json   # a check in two updates
 """
 
 from __future__ import annotations
@@ -61,8 +63,12 @@ def measure(algo: str, size: str, args: argparse.Namespace) -> dict:
         ]
         env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
         subprocess.run(command, cwd=ROOT, env=env, check=True, capture_output=True)
-        rates = [v for _, v in read_scalar(Path(run_dir), "updates_per_s")][1:]
-        env_rates = [v for _, v in read_scalar(Path(run_dir), "env_steps_per_s")][1:]
+
+        def after_prefill(name: str) -> list[float]:
+            """The rows of ``name`` after the random prefill (no updates there), less the first (start-up)."""
+            return [v for step, v in read_scalar(Path(run_dir), name) if step > settings["prefill"]][1:]
+
+        rates, env_rates = after_prefill("updates_per_s"), after_prefill("env_steps_per_s")
     if not rates:
         raise RuntimeError(f"{algo}/{size}: too few log rows; raise --updates or lower --log-every")
     rate = statistics.median(rates)
@@ -79,7 +85,9 @@ def measure(algo: str, size: str, args: argparse.Namespace) -> dict:
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
-        "--algos", type=lambda s: s.split(","), default=["isodream", "dreamerv2", "torchrl_dreamer"]
+        "--algos",
+        type=lambda s: s.split(","),
+        default=["isodream", "dreamerv2", "torchrl_dreamer", "torchrl_dreamer_v3"],
     )
     parser.add_argument("--sizes", type=lambda s: s.split(","), default=["bench", "small"])
     parser.add_argument("--updates", type=int, default=400)

@@ -19,7 +19,6 @@ traceback (``isodream_rl/user_errors.py``).
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 
 from isodream_rl.process_settings import use_huge_pages
@@ -31,12 +30,15 @@ import hydra  # noqa: E402
 from hydra.core.config_store import ConfigStore  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
+from isodream_rl.cli_overrides import check_overrides  # noqa: E402
 from isodream_rl.configs import register_dmc_envs  # noqa: E402
+from isodream_rl.run_lock import RunDirBusyError  # noqa: E402
 from isodream_rl.trainers import run as run_module  # noqa: E402
 from isodream_rl.trainers.checkpoint import CheckpointError  # noqa: E402
 from isodream_rl.trainers.config import ConfigError, RunConfig  # noqa: E402
+from isodream_rl.trainers.disk_space import DiskFullError  # noqa: E402
 from isodream_rl.trainers.stepper import NonFiniteLossError  # noqa: E402
-from isodream_rl.user_errors import report_user_errors, take_debug_flag  # noqa: E402
+from isodream_rl.user_errors import log_to_stderr, report_user_errors, take_debug_flag  # noqa: E402
 
 ConfigStore.instance().store(name="run_schema", node=RunConfig)
 register_dmc_envs()  # env=dmc_<domain>_<task> for every dm_control suite task
@@ -61,30 +63,13 @@ def _summary(result: run_module.RunResult) -> str:
     return "\n".join(lines)
 
 
-def _log_to_stderr() -> None:
-    """Warnings of this package (checkpoint fallback, skipped updates, signals) on stderr.
-
-    Hydra's logging setup disables the loggers that existed before it ran, ours included; turn them back on.
-    """
-    for name, item in logging.root.manager.loggerDict.items():
-        if name.startswith("isodream_rl") and isinstance(item, logging.Logger):
-            item.disabled = False
-    package = logging.getLogger("isodream_rl")
-    if not package.handlers:
-        handler = logging.StreamHandler(sys.stderr)
-        handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
-        package.addHandler(handler)
-        package.setLevel(logging.INFO)
-        package.propagate = False
-
-
 #: what isodream-train reports in one line (see isodream_rl/user_errors.py)
-TRAIN_ERRORS = (ConfigError, CheckpointError, NonFiniteLossError)
+TRAIN_ERRORS = (ConfigError, CheckpointError, NonFiniteLossError, RunDirBusyError, DiskFullError)
 
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="config")
 def _train_main(dict_cfg: DictConfig) -> None:
-    _log_to_stderr()
+    log_to_stderr()
     with report_user_errors("isodream-train", TRAIN_ERRORS):
         cfg: RunConfig = OmegaConf.to_object(dict_cfg)
         result = run_module.train(cfg)
@@ -94,11 +79,13 @@ def _train_main(dict_cfg: DictConfig) -> None:
 def train() -> None:
     """``isodream-train [hydra overrides] [--debug]``: train or resume a run (see ``isodream-train --help``).
 
-    A user error (invalid setting, a run_dir holding another run, a resume with other settings, no readable
-    checkpoint) is one line on stderr and exit status 2; ``--debug`` (or ``HYDRA_FULL_ERROR=1``) shows the
-    traceback.
+    A user error (invalid setting or group option, a run_dir holding another run or used by another process, a
+    resume with other settings, no readable checkpoint, a full disk) is one line on stderr and exit status 2;
+    ``--debug`` (or ``HYDRA_FULL_ERROR=1``) shows the traceback.
     """
     sys.argv = take_debug_flag(sys.argv)
+    with report_user_errors("isodream-train", (ConfigError,)):
+        check_overrides(sys.argv[1:])
     _train_main()
 
 

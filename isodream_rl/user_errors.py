@@ -8,6 +8,7 @@ settings) is printed as ``<command>: <message>`` on one line, and the process ex
 
 from __future__ import annotations
 
+import logging
 import os
 import sys
 from collections.abc import Iterator
@@ -42,6 +43,23 @@ def one_line(err: BaseException) -> str:
     if isinstance(err, KeyError) and text.startswith(("'", '"')):
         text = text[1:-1]
     return text or type(err).__name__
+
+
+def log_to_stderr() -> None:
+    """Warnings of this package (checkpoint fallback, skipped updates, signals, a taken-over lock) on stderr.
+
+    Hydra's logging setup disables the loggers that existed before it ran, ours included; turn them back on.
+    """
+    for name, item in logging.root.manager.loggerDict.items():
+        if name.startswith("isodream_rl") and isinstance(item, logging.Logger):
+            item.disabled = False
+    package = logging.getLogger("isodream_rl")
+    if not package.handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+        package.addHandler(handler)
+        package.setLevel(logging.INFO)
+        package.propagate = False
 
 
 @contextmanager

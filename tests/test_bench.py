@@ -95,3 +95,21 @@ def test_update_rate_reads_the_runs_own_rate_and_plans_10k_updates(tmp_path):
     assert entry["env_steps"] == 50 + 5 * 60
     saved = json.loads(path.read_text())
     assert saved["rates"] == result["rates"] and saved["cpu"] and saved["overrides"] == module.RUNG1
+
+
+def test_update_speed_times_one_full_update_of_each_algorithm_on_one_sample(tmp_path):
+    module = load_bench("update_speed")
+    path = tmp_path / "speed.json"
+    args = ["--size", "tiny", "--rounds", "2", "--warmup", "1", "--json", str(path)]
+    out = module.main(args)
+    assert json.loads(path.read_text()) == out
+    assert set(out["algos"]) == {"isodream", "dreamerv2", "torchrl_dreamer_v3"}
+    assert out["cpu"] and out["torch_threads"] == 1 and out["size"] == "tiny"
+    for algo, entry in out["algos"].items():
+        assert len(entry["wall_s"]) == len(entry["cpu_s"]) == 2, algo
+        assert entry["updates_per_s"] == pytest.approx(1 / entry["median_wall_s"])
+        for reference in ("isodream", "dreamerv2"):
+            expected = entry["median_wall_s"] / out["algos"][reference]["median_wall_s"]
+            assert entry[f"ratio_to_{reference}"] == pytest.approx(expected)
+        assert set(entry["parameters"]) == {"world_model", "actor", "value"}
+    assert out["algos"]["isodream"]["ratio_to_isodream"] == 1.0

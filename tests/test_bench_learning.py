@@ -5,6 +5,7 @@ import json
 import sys
 from pathlib import Path
 
+import pytest
 import yaml
 
 from tests.conftest import load_bench
@@ -169,3 +170,24 @@ def test_learning_bench_defaults_give_every_run_10k_updates():
     train_every = size["train"].get("train_every", RunConfig().train.train_every)
     assert (size["train"]["prefill_steps"], train_every) == (1000, 5)
     assert (args.env_steps - size["train"]["prefill_steps"]) / train_every == 10_000
+
+
+def test_learning_bench_accepts_torchrl_dreamer_v3_without_running_it_by_default(tmp_path, capsys):
+    bench = load_bench("learning")
+    assert "torchrl_dreamer_v3" not in bench.build_parser().parse_args([]).algos
+    runs, out = tmp_path / "runs", tmp_path / "learning.json"
+    args = [
+        "--algos",
+        "isodream,torchrl_dreamer_v3",
+        "--runs",
+        str(runs),
+        "--json",
+        str(out),
+        "--collect-only",
+    ]
+    bench.main(args)  # nothing to collect yet, and no "unknown algos"
+    saved = json.loads(out.read_text())["algos"]
+    assert set(saved) == {"isodream", "torchrl_dreamer_v3"} and saved["torchrl_dreamer_v3"]["seeds"] == []
+    with pytest.raises(SystemExit):
+        bench.main(["--algos", "torchrl_dreamer_v4", "--collect-only", "--json", str(out)])
+    assert "unknown algos ['torchrl_dreamer_v4']" in capsys.readouterr().err

@@ -1,12 +1,16 @@
-"""Fault injection: every fault of issue 27 reproduced, each ending in a clear error or a documented recovery.
+"""Fault injection: each fault of issues 27 and 37, ending in a clear error or a documented recovery.
 
 Faults (``fault``): a second run in a used run folder, a truncated replay memmap, a ``state.pt`` without its keys,
-a corrupted byte, a resume with another algorithm, SIGKILL and a full disk while a checkpoint is written, a
-corrupted CSV log, an env raising mid-episode in a parallel collector, NaN losses. Bad inputs (``refused``):
-pixels in the wrong range or NaN, NaN actions, no ``is_init``, 1-step windows, image sizes, argument types, and
-the CLI's user errors. Where a checkpoint survives, it is the last verified one and continuing from it gives the
-very losses the run gave after it (``continued``). ``bench/reliability_table.py`` runs this file and writes
-``docs/results/reliability.md`` from its report; each test's docstring is its row.
+a checkpoint without its manifest, a corrupted byte, a resume with another algorithm, SIGKILL and a full disk
+while a checkpoint is written, a corrupted CSV log, an env raising mid-episode in a parallel collector, NaN
+losses; and, from the command line with real processes and real disks: two runs in one run folder, a resume
+while the run trains, SIGKILL then resume (one lock, one timeline of logs), a tmpfs that fills up, a start that
+fails, ``isodream-video train`` twice into one folder. Bad inputs (``refused``): pixels in the wrong range or NaN,
+NaN actions, no ``is_init``, 1-step windows, image sizes, argument types, and the CLIs' user errors (unknown
+settings and group options, run folders that cannot be written, damaged files). Where a checkpoint survives, it
+is the last verified one and continuing from it gives the very losses the run gave after it (``continued``).
+``bench/reliability_table.py`` runs this file and writes ``docs/results/reliability.md`` from its report; each
+test's docstring is its row.
 """
 
 import copy
@@ -21,16 +25,19 @@ import signal
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import gymnasium as gym
 import pytest
 import torch
 from tensordict import TensorDict
+from torchrl.envs.transforms import DTypeCastTransform
 
 from isodream_rl.envs import make_env
 from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
 from isodream_rl.objectives import IsoDreamModelLoss
+from isodream_rl.run_lock import LOCK_FILE, lock_owner
 from isodream_rl.trainers import (
     CheckpointError,
     CheckpointManager,
@@ -43,7 +50,8 @@ from isodream_rl.trainers import (
 from isodream_rl.trainers import checkpoint as checkpoint_module
 from isodream_rl.trainers.checkpoint import set_rng_state, write_manifest
 from isodream_rl.trainers.hooks import ReplayPreparation
-from tests.conftest import tiny_run_config
+from isodream_rl.trainers.run_dir import existing_run_files
+from tests.conftest import tiny_run_config, write_tiny_bair
 
 ROOT = Path(__file__).resolve().parents[1]
 A = 2  # sprites' action width
@@ -65,13 +73,13 @@ def tiny_run(run_dir, **changes) -> RunConfig:
 
 @pytest.fixture
 def said(record_property):
-    """``said(text)``: what the library said, recorded in the JUnit report (``bench/reliability_table.py``
-    shows it); ``tmp_path`` prefixes are cut."""
+    """``said(text, limit=300)``: what the library said, recorded in the JUnit report
+    (``bench/reliability_table.py`` shows it), cut to ``limit`` characters; ``tmp_path`` prefixes are cut."""
 
-    def record(text: str) -> None:
+    def record(text: str, *, limit: int = 300) -> None:
         text = " ".join(str(text).split())
         text = re.sub(r"/tmp/\S*?/(?=run\b|checkpoints\b|lineage\b)", "", text)
-        record_property("said", text[:300])
+        record_property("said", text[:limit])
 
     return record
 
@@ -184,6 +192,21 @@ def test_truncated_replay_memmap_falls_back_and_is_never_written(lineage, tmp_pa
     # loading wrote nothing: neither the truncated checkpoint nor the one it loaded (replay read from a copy)
     assert snapshot(lineage.manager.directory) == before
     assert {p: p.stat().st_mtime_ns for p in lineage.manager.directory.rglob("*") if p.is_file()} == stamps
+
+
+def test_checkpoint_without_manifest_is_unverified_and_falls_back(lineage, tmp_path, caplog, said):
+    """fault: the newest checkpoint's manifest.json deleted and its replay pixels.memmap cut to a third (was:
+    read without verification, the missing frames filled with zeros) | recovered: a warning that it cannot be
+    verified, the previous (verified) checkpoint loads and continues exactly"""
+    newest = lineage.manager.checkpoints()[-1]
+    (newest / "manifest.json").unlink()
+    memmap = next((newest / "replay").rglob("pixels.memmap"))
+    memmap.write_bytes(memmap.read_bytes()[: memmap.stat().st_size // 3])
+    with caplog.at_level(logging.WARNING):
+        path, losses = lineage.continue_from(tmp_path)
+    assert "no manifest.json" in caplog.text and "falling back to the previous one" in caplog.text
+    said(caplog.records[0].getMessage())
+    assert path.name == "step_00000002" and losses == lineage.after[2]
 
 
 def test_state_without_its_keys_falls_back(lineage, tmp_path, caplog, said):
@@ -360,15 +383,19 @@ def test_resume_with_another_algorithm_is_refused_before_writing(finished_run, t
 
 
 def test_resume_with_a_corrupted_csv_log_continues(finished_run, tmp_path):
-    """fault: a CSV log file corrupted (binary junk, a cut line) | recovered: the resumed run appends its rows
-    after it; the checkpoints, not the logs, hold the run's state"""
+    """fault: a CSV log file corrupted after the last checkpoint (binary junk, a cut line) | recovered: resuming
+    cuts it back to its size at the checkpoint (the junk past it dropped, the cut row ended with a newline) and
+    appends its rows on lines of their own; the checkpoints, not the logs, hold the run's state"""
     run_dir = copy_of(finished_run, tmp_path)
     log = next((run_dir / "logs").rglob("loss_model_reco.csv"))
-    log.write_bytes(log.read_bytes()[:-7] + b"\x00\xff garbage,\n12,")
-    size = log.stat().st_size
+    original = log.read_bytes()
+    log.write_bytes(original[:-7] + b"\x00\xff garbage,\n12,")
     result = train(tiny_run(run_dir, resume=True, train__total_steps=40))
     assert result.env_steps == 40 and result.resumed_from is not None
-    assert log.stat().st_size > size
+    content = log.read_bytes()
+    assert content.startswith(original[:-7]) and b"garbage," not in content and b"\n12," not in content
+    step, value = content.splitlines()[-1].split(b",")
+    assert 30 < int(step) <= 40 and float(value) > 0
 
 
 class RaisingEnv(gym.Wrapper):
@@ -399,6 +426,339 @@ def test_env_raising_mid_episode_in_a_parallel_collector(tmp_path):
     cfg.train.frames_per_batch, cfg.train.total_steps, cfg.train.prefill_steps = 10, 30, 20
     result = train(cfg)
     assert result.env_steps == 30 and result.updates > 0
+
+
+# ---------------------------------------------------------------- whole runs from the command line
+
+#: a tiny isodream-train run: no final evaluation, no progress bar, one thread
+TINY_TRAIN = ["size=tiny", "train.threads=1", "logging.final_eval_episodes=0", "logging.progress_bar=false"]
+
+
+def start_command(module: str, args: list[str], cwd: Path) -> subprocess.Popen:
+    """``python -m <module> *args`` started in ``cwd``, as :func:`run_command` runs it, with text pipes."""
+    return subprocess.Popen(
+        [sys.executable, "-m", module, *args],
+        cwd=cwd,
+        env=command_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def wait_for(condition, process: subprocess.Popen, *, timeout: float = 300.0) -> None:
+    """Poll ``condition()`` every 0.1 s while ``process`` runs."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if process.poll() is not None:
+            raise AssertionError(f"the process ended first: {process.communicate()[1][-2000:]}")
+        if time.monotonic() > deadline:
+            raise AssertionError("timed out")
+        time.sleep(0.1)
+
+
+def user_error(out: subprocess.CompletedProcess | tuple[str, str], prog: str = "isodream-train") -> str:
+    """The one ``<prog>: ...`` line of a refused command's stderr (asserting there is one, and no traceback)."""
+    stderr = out.stderr if isinstance(out, subprocess.CompletedProcess) else out[1]
+    lines = [line for line in stderr.splitlines() if line.startswith(f"{prog}:")]
+    assert len(lines) == 1 and "Traceback" not in stderr, stderr[-3000:]
+    return lines[0]
+
+
+def logged_steps(run_dir: Path) -> dict[str, list[int]]:
+    """``{scalar: [steps]}`` of the run's CSV logs."""
+    return {
+        path.stem: [int(line.split(",")[0]) for line in path.read_text().splitlines()]
+        for path in (run_dir / "logs").rglob("*.csv")
+    }
+
+
+def assert_one_timeline(run_dir: Path) -> None:
+    """Every CSV log holds each step once, in order."""
+    steps = logged_steps(run_dir)
+    assert steps and all(rows == sorted(set(rows)) for rows in steps.values()), steps
+
+
+def test_two_runs_started_together_in_one_run_dir(tmp_path, said):
+    """fault: two isodream-train started together on one empty run_dir, seeds 0 and 1 (was: both passed the
+    guard; the second rewrote run_config.json with its seed, and resume was then refused with either seed) |
+    refused: one of them, in one line naming the other's pid (exit 2), before writing anything; run_config.json,
+    the checkpoints and the logs are the other's alone"""
+    args = [*TINY_TRAIN, "run_dir=run", "train.total_steps=150"]
+    runs = {
+        seed: start_command("isodream_rl.cli", [*args, f"train.seed={seed}"], tmp_path) for seed in (0, 1)
+    }
+    outs = {seed: run.communicate(timeout=900) for seed, run in runs.items()}
+    assert sorted(run.returncode for run in runs.values()) == [0, 2], outs
+    winner = next(seed for seed, run in runs.items() if run.returncode == 0)
+    line = user_error(outs[1 - winner])
+    assert f"in use by process {runs[winner].pid}" in line
+    said(line)
+    run_dir = tmp_path / "run"
+    assert json.loads((run_dir / "run_config.json").read_text())["train"]["seed"] == winner
+    state, _ = CheckpointManager(run_dir / "checkpoints").load_latest()
+    assert state["config"]["train"]["seed"] == winner and state["counters"]["env_steps"] == 150
+    assert_one_timeline(run_dir)
+    assert not (run_dir / LOCK_FILE).exists()
+
+
+def test_resume_while_the_run_trains_is_refused_naming_its_pid(tmp_path, said):
+    """fault: resume=true, then a new run with another seed, started in a run_dir whose run still trains (was:
+    both trained, each checkpoint save deleted the other's checkpoint in progress, both wrote the logs) |
+    refused: each in one line naming the training process's pid (exit 2); that run trains on alone (stopped
+    with SIGTERM: a checkpoint, then exit 0)"""
+    run_dir = tmp_path / "run"
+    first = start_command(
+        "isodream_rl.cli", [*TINY_TRAIN, "run_dir=run", "train.total_steps=20000"], tmp_path
+    )
+    try:
+        wait_for(
+            lambda: lock_owner(run_dir) == first.pid and any((run_dir / "checkpoints").glob("step_*")), first
+        )
+        lines = []
+        for extra in (["resume=true"], ["train.seed=1"]):
+            out = run_command("isodream_rl.cli", [*TINY_TRAIN, "run_dir=run", *extra], tmp_path)
+            assert out.returncode == 2
+            lines.append(user_error(out))
+            assert f"in use by process {first.pid}" in lines[-1]
+        said(lines[0])
+        assert first.poll() is None
+    finally:
+        first.send_signal(signal.SIGTERM)
+        out = first.communicate(timeout=900)
+    assert first.returncode == 0, out[1][-2000:]
+    state, _ = CheckpointManager(run_dir / "checkpoints").load_latest()
+    assert (
+        state["config"]["train"]["seed"] == 0
+        and json.loads((run_dir / "run_config.json").read_text())["train"]["seed"] == 0
+    )
+    assert_one_timeline(run_dir)
+
+
+def test_sigkill_then_resume_takes_over_the_lock_and_logs_one_timeline(tmp_path, said):
+    """fault: SIGKILL after the run logged rows past its last checkpoint, then resume=true (was: those rows stayed
+    and the resumed run logged the same steps again, step 150 twice) | recovered: the resumed run takes over the
+    dead process's lock (a warning naming its pid), cuts the CSV logs back to the checkpoint and logs each step
+    once"""
+    run_dir = tmp_path / "run"
+    args = [
+        *TINY_TRAIN,
+        "run_dir=run",
+        "train.total_steps=300",
+        "logging.log_every=49",
+        "checkpoint.every_updates=20",
+    ]
+    first = start_command("isodream_rl.cli", args, tmp_path)
+    try:  # rows every 50 steps, checkpoints every 100: kill once step 150 is logged, before the next checkpoint
+        wait_for(lambda: 150 in logged_steps(run_dir).get("loss_model_reco", []), first)
+    finally:
+        first.send_signal(signal.SIGKILL)
+        first.communicate()
+    state, checkpoint = CheckpointManager(run_dir / "checkpoints").load_latest()
+    assert max(logged_steps(run_dir)["loss_model_reco"]) > state["counters"]["env_steps"]
+    assert (run_dir / LOCK_FILE).read_text().strip() == str(first.pid)
+    out = run_command("isodream_rl.cli", [*args, "resume=true"], tmp_path)
+    assert out.returncode == 0, out.stderr[-3000:]
+    takeover = next(line for line in out.stderr.splitlines() if "taking over" in line)
+    assert f"process {first.pid}" in takeover
+    assert f"resumed from run/checkpoints/{checkpoint.name}" in out.stdout
+    said(takeover.partition(": ")[2])
+    assert_one_timeline(run_dir)
+    assert logged_steps(run_dir)["loss_model_reco"][-1] == 300 and not (run_dir / LOCK_FILE).exists()
+
+
+@pytest.fixture
+def tmpfs(tmp_path):
+    """``tmpfs(size, *options)``: a new tmpfs of ``size`` (mount's ``size=``, e.g. ``"70m"``) under ``tmp_path``,
+    unmounted after the test; the test is skipped where it cannot be mounted (not root, or not allowed here)."""
+    mounted = []
+
+    def mount(size: str, *options: str) -> Path:
+        if os.geteuid() != 0:
+            pytest.skip("a real full disk is a small tmpfs, and mounting one needs root")
+        point = tmp_path / f"disk{len(mounted)}"
+        point.mkdir()
+        out = subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", ",".join([f"size={size}", *options]), "tmpfs", str(point)],
+            capture_output=True,
+            text=True,
+        )
+        if out.returncode:
+            pytest.skip(f"cannot mount a tmpfs here: {out.stderr.strip()}")
+        mounted.append(point)
+        return point
+
+    yield mount
+    for point in mounted:
+        subprocess.run(["umount", "-l", str(point)], capture_output=True)
+
+
+def test_full_disk_at_a_checkpoint_on_a_real_disk(tmpfs, tmp_path, said):
+    """fault: run_dir on a 70 MB tmpfs that fills at the second checkpoint, then resume=true on the still full
+    disk (a crashed save's .tmp left there too), then resume=true once space is freed (was: SIGBUS, exit 135 and
+    no word, the half checkpoint left; the resume a traceback) | recovered: one line naming the checkpoint kept and
+    saying to free disk space and resume=true (exit 2), no half checkpoint; the resume on the full disk one such
+    line too, the checkpoint intact, the leftover .tmp removed; once space is freed, the run continues from the
+    last verified checkpoint"""
+    disk = tmpfs("70m")  # the replay memory takes 24 MB, each checkpoint 29 MB: the second one does not fit
+    args = [*TINY_TRAIN, f"run_dir={disk / 'run'}", "train.total_steps=150"]
+    out = run_command("isodream_rl.cli", args, tmp_path)
+    assert out.returncode == 2, out.stderr[-3000:]
+    line = user_error(out)
+    assert "step_00000020 failed" in line and "No space left on device" in line and "step_00000010" in line
+    assert "free disk space" in line and "resume=true" in line
+    manager = CheckpointManager(disk / "run" / "checkpoints")
+    assert sorted(p.name for p in manager.directory.iterdir()) == ["step_00000010"]
+    before = snapshot(manager.directory)
+    leftover = manager.directory / "step_00000020.tmp" / "replay"  # as a save killed mid-write leaves it
+    leftover.mkdir(parents=True)
+    (leftover / "pixels.memmap").write_bytes(b"\0" * (2 << 20))
+    out = run_command("isodream_rl.cli", [*args, "resume=true"], tmp_path)
+    assert out.returncode == 2, out.stderr[-3000:]
+    full = user_error(out)
+    assert "No space left on device" in full and "free disk space, then continue with resume=true" in full
+    said(f"{line} -- resumed on the full disk: {full}".replace(str(tmp_path) + "/", ""), limit=800)
+    assert snapshot(manager.directory) == before
+    subprocess.run(["mount", "-o", "remount,size=256m", str(disk)], check=True)
+    out = run_command("isodream_rl.cli", [*args, "resume=true"], tmp_path)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "resumed from" in out.stdout and "step_00000010" in out.stdout
+    assert manager.load_latest()[0]["counters"]["env_steps"] == 150
+
+
+def test_full_disk_before_the_replay_memory_is_written(tmpfs, tmp_path, said):
+    """fault: run_dir on a 16 MB tmpfs, smaller than the replay memory (24 MB; was: SIGBUS once its memory-mapped
+    pages met the full disk) | refused: one line saying what the replay memory needs and what is free, and to free
+    disk space (exit 2), before a page of it is written"""
+    disk = tmpfs("16m")
+    out = run_command(
+        "isodream_rl.cli", [*TINY_TRAIN, f"run_dir={disk / 'run'}", "train.total_steps=100"], tmp_path
+    )
+    assert out.returncode == 2, out.stderr[-3000:]
+    line = user_error(out)
+    assert "replay memory" in line and "MB are free" in line and "free disk space" in line
+    said(line.replace(str(tmp_path) + "/", ""))
+
+
+@pytest.mark.parametrize("case", ["a file", "under a file", "on a read-only disk"])
+def test_train_cli_refuses_a_run_dir_it_cannot_write(case, tmpfs, tmp_path, said):
+    """refused: isodream-train with a run_dir that is a file, under a file, or on a read-only disk (was: a
+    traceback; two for the read-only disk, ending in Hydra's logging handler) | one line naming the path and
+    what is wrong, exit 2"""
+    if case == "a file":
+        (tmp_path / "run").write_text("not a folder")
+        run_dir = "run"
+    elif case == "under a file":
+        (tmp_path / "notes").write_text("not a folder")
+        run_dir = "notes/run"
+    else:
+        run_dir = str(tmpfs("1m", "ro") / "run")
+    out = run_command("isodream_rl.cli", [*TINY_TRAIN, f"run_dir={run_dir}"], tmp_path)
+    assert out.returncode == 2, out.stderr[-3000:]
+    line = user_error(out)
+    assert f"run_dir {run_dir}" in line
+    said(line.replace(str(tmp_path) + "/", ""))
+
+
+def test_a_start_that_fails_leaves_no_run_and_the_corrected_command_starts(tmp_path, monkeypatch):
+    """fault: a start that fails while its parts are built (was: run_config.json written before, so the corrected
+    command was refused until overwrite=true) | recovered: run_config.json is written once the run has started, a
+    failed start leaves no run files (nor its lock), and the corrected command starts without overwrite=true"""
+    from isodream_rl.trainers import run as run_module
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("injected build failure")
+
+    monkeypatch.setattr(run_module, "make_components", broken)
+    with pytest.raises(RuntimeError, match="injected build failure"):
+        train(tiny_run(tmp_path / "run"))
+    assert existing_run_files(tmp_path / "run") == [] and not (tmp_path / "run" / LOCK_FILE).exists()
+    monkeypatch.undo()
+    assert train(tiny_run(tmp_path / "run")).env_steps == 30
+
+
+@pytest.fixture(scope="module")
+def bair_files(tmp_path_factory):
+    """A tiny BAIR-format data set (3 training and 2 test clips of 5 frames)."""
+    return write_tiny_bair(tmp_path_factory.mktemp("bair"))
+
+
+#: a tiny isodream-video training protocol (clips of 5 frames, 1-layer 4-channel model), without --out-dir
+TINY_VIDEO = ["--sequence-length", "5", "--train-frames", "4", "--test-frames", "5", "--horizons", "2", "3",
+              "--no-progress", "--checkpoint-every", "1", "--hidden-channels", "4", "--encoder-channels", "4", "4",
+              "--kernel-size", "3", "--num-layers", "1", "--action-embedding", "4", "--batch-size", "2",
+              "--threads", "1"]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def video_run(bair_files, tmp_path_factory):
+    """``(out_dir, train arguments)`` of a finished 2-iteration isodream-video run (tests copy it)."""
+    from isodream_rl.video_prediction.cli import main
+
+    out_dir = tmp_path_factory.mktemp("video") / "run"
+    args = ["train", "--dataset", "bair", "--data-path", str(bair_files), *TINY_VIDEO]
+    assert main([*args, "--iterations", "2", "--out-dir", str(out_dir)]) == 0
+    return out_dir, args
+
+
+def video_error(argv: list[str], capsys) -> str:
+    """The one line ``isodream-video`` says when it refuses ``argv`` (exit status 2)."""
+    from isodream_rl.video_prediction.cli import main
+
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("isodream-video: "), err
+    return err
+
+
+def test_video_train_refuses_a_used_out_dir(video_run, tmp_path, capsys, said):
+    """fault: isodream-video train run again into an --out-dir holding a run, without --resume (was: the first
+    run's checkpoint.pt replaced, both runs' rows in one set of CSVs) | refused: one line naming --resume and
+    --overwrite (exit 2), the first run's files untouched; --resume continues it (its logs cut back to its
+    checkpoint), --overwrite replaces it"""
+    from isodream_rl.video_prediction.cli import main
+    from isodream_rl.video_prediction.trainer import read_checkpoint
+
+    out_dir, args = video_run
+    out_dir = copy_of(out_dir, tmp_path)
+    before = snapshot(out_dir)
+    line = video_error([*args, "--iterations", "3", "--out-dir", str(out_dir)], capsys)
+    assert "holds another run" in line and "--resume" in line and "--overwrite" in line
+    said(line.replace(str(tmp_path) + "/", ""))
+    assert snapshot(out_dir) == before
+    assert main([*args, "--iterations", "3", "--out-dir", str(out_dir), "--resume"]) == 0
+    assert read_checkpoint(out_dir / "checkpoint.pt")["iteration"] == 3
+    assert_one_timeline(out_dir)
+    assert main([*args, "--iterations", "1", "--out-dir", str(out_dir), "--overwrite"]) == 0
+    assert read_checkpoint(out_dir / "checkpoint.pt")["iteration"] == 1
+    assert max(max(rows) for rows in logged_steps(out_dir).values()) == 1
+    assert not (out_dir / LOCK_FILE).exists()
+
+
+@pytest.mark.parametrize("case", ["truncated checkpoint.pt", "random checkpoint.pt", "truncated pusher .npz"])
+def test_video_cli_names_an_unreadable_file_in_one_line(case, video_run, tmp_path, capsys, said):
+    """refused: isodream-video eval on a truncated or random checkpoint.pt, train on a truncated cached pusher
+    .npz (was: a torch.load or BadZipFile traceback, the file not named) | one line naming the file, exit 2"""
+    if case.endswith(".npz"):
+        from isodream_rl.data import load_pusher_dataset
+
+        load_pusher_dataset(2, 5, seed=0, split="train", cache_dir=tmp_path)
+        (path,) = tmp_path.glob("pusher-*.npz")
+        path.write_bytes(path.read_bytes()[: path.stat().st_size // 3])
+        argv = ["train", "--dataset", "pusher", "--cache-dir", str(tmp_path), "--train-sequences", "2",
+                "--test-sequences", "2", "--iterations", "1", "--out-dir", str(tmp_path / "run"),
+                *TINY_VIDEO]  # fmt: skip
+    else:
+        path = tmp_path / "checkpoint.pt"
+        data = (video_run[0] / "checkpoint.pt").read_bytes()
+        path.write_bytes(data[: len(data) // 3] if case.startswith("truncated") else os.urandom(len(data)))
+        argv = ["eval", "--checkpoint", str(path)]
+    line = video_error(argv, capsys)
+    assert str(path) in line
+    said(line.replace(str(tmp_path) + "/", ""))
 
 
 # ---------------------------------------------------------------- bad inputs at the boundary
@@ -485,27 +845,62 @@ CLI_ERRORS = {
     "+env.kwargs.bogus=1": (["+env.kwargs.bogus=1"], "unexpected keyword argument 'bogus'"),
     "train.world_model_lr=-1": (["train.world_model_lr=-1"], r"train.world_model_lr=-1.0 must be >= 0"),
     "train.device=cuda": (["train.device=cuda"], "no usable CUDA GPU: set train.device=cpu"),
+    "+train.totl_steps=300": (
+        ["+train.totl_steps=300"],
+        r"train has no setting 'totl_steps' \(did you mean train.total_steps\?\).*: total_steps, prefill_steps",
+    ),
+    "train.seed=-1": (["train.seed=-1"], r"train.seed=-1 must be in \[0, 2\*\*32 - 1\]"),
+    "+model.overrides.precison=bf16": (
+        ["+model.overrides.precison=bf16"],
+        r"model.overrides.precison is not a WorldModelConfig field \(did you mean model.overrides.precision\?\)",
+    ),
+    "env=dmc_walker_wlak": (
+        ["env=dmc_walker_wlak"],
+        r"env group has no config 'dmc_walker_wlak' \(did you mean env=dmc_walker_walk\?\); valid: .*sprites",
+    ),
+    "size=huge": (
+        ["size=huge"],
+        "size group has no config 'huge'; valid: bench, paper, quickstart, small, tiny",
+    ),
+    "env.factory with float pixels in [0, 255]": (
+        ["env.factory=tests.test_faults:float_pixel_sprites"],
+        r"env.factory=.*float 'pixels' must be in \[0, 1\].*got values in \[0, 255\]: divide .* by 255",
+    ),
 }
 
 
-def run_command(module: str, args: list[str], cwd: Path, **env) -> subprocess.CompletedProcess:
-    environment = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT), **env)
+def float_pixel_sprites(**kwargs):
+    """``env.factory`` of a CLI test: sprites whose pixels are floats in [0, 255]."""
+    env = make_env("sprites", **kwargs)
+    env.append_transform(DTypeCastTransform(torch.uint8, torch.float32, in_keys=["pixels"]))
+    return env
+
+
+def command_env() -> dict[str, str]:
+    """The environment of the commands the tests run: one thread, this checkout first, one-line errors."""
+    environment = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
     environment.pop("HYDRA_FULL_ERROR", None)
+    return environment
+
+
+def run_command(module: str, args: list[str], cwd: Path) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, "-m", module, *args],
         cwd=cwd,
-        env=environment,
+        env=command_env(),
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=600,
     )
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="train.device=cuda is valid here")
 @pytest.mark.parametrize("case", list(CLI_ERRORS), ids=list(CLI_ERRORS))
 def test_train_cli_says_a_user_error_in_one_line(case, tmp_path, said):
-    """refused: isodream-train with a user error | one line on stderr, exit status 2, no traceback, no
-    run_config.json"""
+    """refused: isodream-train with a user error (issue 37 added: a key unknown to the schema with or without +, a
+    seed outside numpy's range, a misspelled model override, Hydra's unknown group options, an env.factory's float
+    frames in [0, 255]; were silently ignored or tracebacks) | one line on stderr naming the valid names, exit
+    status 2, no traceback, no run_config.json"""
     args, message = CLI_ERRORS[case]
     out = run_command("isodream_rl.cli", ["size=tiny", "run_dir=run", *args], tmp_path)
     assert out.returncode == 2, out.stderr[-2000:]

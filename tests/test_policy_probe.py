@@ -84,7 +84,11 @@ def test_probe_reports_reaches_and_value_against_potential(tmp_path, algo):
 
     grads = check["gradient_check"]
     assert set(grads) == {
-        "cosine_reward", "cosine_lambda_return", "cosine_value", "norm_reward", "norm_lambda_return"
+        "cosine_reward",
+        "cosine_lambda_return",
+        "cosine_value",
+        "norm_reward",
+        "norm_lambda_return",
     }
     for key in ("cosine_reward", "cosine_lambda_return", "cosine_value"):
         assert -1.0 - 1e-6 <= grads[key] <= 1.0 + 1e-6

@@ -2,13 +2,12 @@
 
 import json
 
-import numpy as np
 import pytest
 import torch
 
-from isodream_rl.data import write_bair_tfrecord
 from isodream_rl.video_prediction.cli import main
 from isodream_rl.video_prediction.trainer import TrainConfig, load_checkpoint
+from tests.conftest import write_tiny_bair
 
 
 @pytest.fixture(autouse=True)
@@ -21,16 +20,7 @@ def _one_thread():
 
 @pytest.fixture
 def bair_root(tmp_path):
-    rng = np.random.default_rng(0)
-    for split, n in (("train", 3), ("test", 2)):
-        (tmp_path / split).mkdir()
-        write_bair_tfrecord(
-            tmp_path / split / "traj.tfrecords",
-            rng.integers(0, 256, (n, 5, 64, 64, 3), dtype=np.uint8),
-            rng.normal(size=(n, 5, 4)).astype(np.float32),
-            rng.normal(size=(n, 5, 3)).astype(np.float32),
-        )
-    return tmp_path
+    return write_tiny_bair(tmp_path)
 
 
 TINY = ["--hidden-channels", "4", "--encoder-channels", "4", "4", "--kernel-size", "3", "--num-layers", "1",

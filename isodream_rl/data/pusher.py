@@ -220,13 +220,23 @@ def load_pusher_dataset(
 
     Returns:
         As :func:`generate_pusher_sequences`.
+
+    Raises:
+        ValueError: the cached file is unreadable (damaged on disk, or cut by a copy), naming it.
     """
     cache = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     key = f"v{_VERSION}-n{num_sequences}-t{num_frames}-s{seed}-{split}-{image_size}px"
     path = cache / f"pusher-{key}-{hashlib.sha1(key.encode()).hexdigest()[:8]}.npz"
     if path.exists():
-        with np.load(path) as f:
-            return {k: f[k] for k in ("frames", "actions", "endeffector_pos")}
+        try:
+            with np.load(path) as f:
+                return {k: f[k] for k in ("frames", "actions", "endeffector_pos")}
+        # a cut zip, a damaged member, a missing array: np.load raises each differently
+        except Exception as err:
+            raise ValueError(
+                f"the cached pusher data {path} is unreadable ({type(err).__name__}: {err}): delete it, and it is "
+                "generated again"
+            ) from err
     arrays = generate_pusher_sequences(
         num_sequences, num_frames, seed=seed, split=split, image_size=image_size, workers=workers
     )

@@ -6,12 +6,17 @@ SHA-256 of every other file of the checkpoint, written last. A checkpoint is wri
 verified, and renamed when complete, so a crash or a full disk mid-write never leaves a half checkpoint under a
 final name; older checkpoints are deleted only after the new one is verified.
 
-Loading checks the manifest (every file present, of its size and checksum, no file missing from it), then the
-keys the caller needs in ``state.pt``; any failure makes that checkpoint unreadable and the previous one is
-tried, with a warning. Loading never writes to a checkpoint: the replay data are copied before TorchRL's
-``loads`` opens them (it extends a short memmap file in place). The cost, measured on a 0.25 GB replay buffer
-(20k steps of 64x64 pixels, one busy core): ``dumps`` alone 0.3 s, with the manifest (SHA-256 at ~1.5 GB/s) and
-the flushes 0.8 s; verifying it at load 0.17 s. A full 100k-step buffer (1.2 GB) adds ~2.5 s per checkpoint.
+Loading checks the manifest (every file present, of its size and checksum, no file missing from it; a
+checkpoint without one is unverified), then the keys the caller needs in ``state.pt``; any failure makes that
+checkpoint unreadable and the previous one is tried, with a warning. Loading never writes to a checkpoint: the
+replay data are copied before TorchRL's ``loads`` opens them (it extends a short memmap file in place). The cost,
+measured on a 0.25 GB replay buffer (20k steps of 64x64 pixels, one busy core): ``dumps`` alone 0.3 s, with the
+manifest (SHA-256 at ~1.5 GB/s) and the flushes 0.8 s; verifying it at load 0.17 s. A full 100k-step buffer
+(1.2 GB) adds ~2.5 s per checkpoint.
+
+The replay data are written and read through memory maps, where a full disk is a SIGBUS, not an ``OSError``:
+the free space they need is checked first (:mod:`~isodream_rl.trainers.disk_space`), so a full disk is a
+:class:`CheckpointError` saying to free space and resume.
 
 TorchRL's ``Trainer(save_trainer_file=...)`` writes one file in place and has no fallback, and its ``Checkpoint``
 API does not save RNG states of numpy/python or skip unreadable versions, hence this module.
@@ -19,6 +24,7 @@ API does not save RNG states of numpy/python or skip unreadable versions, hence 
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import logging
@@ -32,6 +38,8 @@ from typing import Any
 
 import numpy as np
 import torch
+
+from isodream_rl.trainers.disk_space import folder_bytes, require_free_space
 
 logger = logging.getLogger(__name__)
 
@@ -178,22 +186,31 @@ class CheckpointManager:
         final = self.directory / f"{_PREFIX}{step:08d}"
         tmp = final.with_name(final.name + ".tmp")
         self.directory.mkdir(parents=True, exist_ok=True)
-        # writes and replay copies a killed process left behind
-        for stale in [*self.directory.glob(f"{_PREFIX}*.tmp"), *self.directory.glob(f"{_LOADING}*")]:
-            shutil.rmtree(stale, ignore_errors=True)
+        self.remove_leftovers()
         try:
             tmp.mkdir()
             torch.save(state, tmp / _STATE_FILE)
             if replay_buffer is not None:
+                # dumps writes through memory maps: a full disk there is a SIGBUS, not an OSError
+                require_free_space(
+                    {tmp: _replay_bytes(replay_buffer)}, what=f"the replay data of {final.name}"
+                )
                 replay_buffer.dumps(tmp / _REPLAY_DIR)
             write_manifest(tmp)
             verify(tmp, checksums=False)
         except BaseException as err:
             shutil.rmtree(tmp, ignore_errors=True)
             if isinstance(err, (OSError, CheckpointError)):
+                earlier = self.checkpoints()
+                then = (
+                    f"the earlier checkpoints are kept (the newest: {earlier[-1].name}): free disk space (or fix "
+                    "the folder's permissions) and continue with resume=true"
+                    if earlier
+                    else "no checkpoint was written before: free disk space (or fix the folder's permissions) and "
+                    "start again with overwrite=true"
+                )
                 raise CheckpointError(
-                    f"writing checkpoint {final} failed ({type(err).__name__}: {err}); the earlier checkpoints "
-                    f"are kept: free disk space (or fix the folder's permissions) and continue with resume=true"
+                    f"writing checkpoint {final} failed ({type(err).__name__}: {err}); {then}"
                 ) from err
             raise
         replaced = None
@@ -206,6 +223,15 @@ class CheckpointManager:
             shutil.rmtree(replaced, ignore_errors=True)
         self._rotate(final)
         return final
+
+    def remove_leftovers(self) -> None:
+        """Delete the half-written ``step_*.tmp`` folders and replay copies a killed or failed process left
+        behind. Only the process that holds the run folder (:class:`~isodream_rl.run_lock.RunDirLock`) may: for
+        another, they are writes in progress."""
+        if not self.directory.exists():
+            return
+        for stale in [*self.directory.glob(f"{_PREFIX}*.tmp"), *self.directory.glob(f"{_LOADING}*")]:
+            shutil.rmtree(stale, ignore_errors=True)
 
     def _rotate(self, newest: Path) -> None:
         older = [p for p in self.checkpoints() if _step_of(p) < _step_of(newest)]
@@ -221,18 +247,17 @@ class CheckpointManager:
     def load(self, path: str | Path, *, required_keys: Sequence[str] = ()) -> dict[str, Any]:
         """The state of checkpoint ``path`` after checking it against its manifest and for ``required_keys``.
 
-        A checkpoint without a manifest (written before there were manifests) is read unverified, with a
-        warning.
+        Every checkpoint this library writes has its manifest, written last: one without it is unverified (its
+        manifest deleted, or a copy cut short) and is not read.
 
         Raises:
-            CheckpointError: the checkpoint is unreadable: a file missing, truncated or corrupted, ``state.pt``
-                not a dict, or a required key missing.
+            CheckpointError: the checkpoint is unreadable: no manifest, a file missing, truncated or corrupted,
+                ``state.pt`` not a dict, or a required key missing.
         """
         path = Path(path)
-        if (path / MANIFEST_FILE).exists():
-            verify(path)
-        else:
-            logger.warning("checkpoint %s has no %s: read without verification", path, MANIFEST_FILE)
+        if not (path / MANIFEST_FILE).exists():
+            raise CheckpointError(f"it has no {MANIFEST_FILE}, so its files cannot be verified")
+        verify(path)
         try:
             state = torch.load(path / _STATE_FILE, map_location="cpu", weights_only=False)
         except Exception as err:
@@ -285,21 +310,47 @@ class CheckpointManager:
         from a copy: TorchRL's ``loads`` may write to the files it opens.
 
         Raises:
-            CheckpointError: the replay data do not load; a half-filled buffer cannot take a second attempt.
+            CheckpointError: the replay data do not load, or the disk has no room for the copy and the buffer's
+                memory (checked first: both are written through memory maps); a half-filled buffer cannot take
+                a second attempt.
         """
         source = Path(path) / _REPLAY_DIR
         if not source.exists():
             return
+        size = folder_bytes(source)
+        needs = {self.directory: size}
+        scratch_dir = getattr(getattr(replay_buffer, "storage", None), "scratch_dir", None)
+        if scratch_dir:
+            needs[scratch_dir] = size
+        what = f"resuming from {Path(path).name} (a copy of its replay data, then the replay memory)"
+        try:
+            require_free_space(needs, what=what)
+        except OSError as err:
+            raise CheckpointError(
+                f"{err.strerror}; the checkpoints are intact: free disk space, then continue with resume=true"
+            ) from err
         with tempfile.TemporaryDirectory(dir=self.directory, prefix=_LOADING) as scratch:
             copy = Path(scratch) / _REPLAY_DIR
             try:
                 shutil.copytree(source, copy)
                 replay_buffer.loads(copy)
             except Exception as err:
+                if isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT):
+                    raise CheckpointError(
+                        f"resuming from {path} failed ({err}); the checkpoints are intact: free disk space, "
+                        "then continue with resume=true"
+                    ) from err
                 raise CheckpointError(
                     f"the replay buffer of {path} is unreadable ({type(err).__name__}: {err}); delete "
                     f"{path} to resume from the previous checkpoint"
                 ) from err
+
+
+def _replay_bytes(replay_buffer) -> int:
+    """What ``replay_buffer.dumps`` writes: its storage's memmap files at their full size, or 0 when the storage
+    keeps no files."""
+    scratch_dir = getattr(getattr(replay_buffer, "storage", None), "scratch_dir", None)
+    return folder_bytes(scratch_dir, pattern="*.memmap") if scratch_dir else 0
 
 
 def _step_of(path: Path) -> int:

@@ -8,10 +8,11 @@ change, before any env or model is built.
 from __future__ import annotations
 
 import importlib.util
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+from difflib import get_close_matches
 from typing import Any
 
-from isodream_rl.modules.config import PAPER_EXACT, SIZE_PRESETS
+from isodream_rl.modules.config import PAPER_EXACT, SIZE_PRESETS, WorldModelConfig
 from isodream_rl.objectives.world_model import FREE_BRANCH_MODES, LAMBDA_INVERSE
 from isodream_rl.trainers.world_model_config import MODES, WorldModelModeConfig, world_model_mode_errors
 
@@ -29,6 +30,7 @@ ALGO_NAMES = (
     "isodream_no_attention",
     "isodream_no_static",
     "torchrl_dreamer",
+    "torchrl_dreamer_v3",
 )
 
 
@@ -299,6 +301,22 @@ def validate_config(cfg: RunConfig) -> None:
     for name in ("adam_eps", "grad_clip"):
         if not getattr(cfg.train, name) > 0:
             errors.append(f"train.{name}={getattr(cfg.train, name)} must be > 0")
+    if not 0 <= cfg.train.seed < 2**32:  # numpy's seed range
+        errors.append(f"train.seed={cfg.train.seed} must be in [0, 2**32 - 1]")
+    model_fields = sorted(f.name for f in fields(WorldModelConfig) if f.name != "action_dim")  # the env's
+    unknown = sorted(set(cfg.model.overrides) - set(model_fields))
+    for key in unknown:
+        close = get_close_matches(key, model_fields, 1)
+        errors.append(
+            f"model.overrides.{key} is not a WorldModelConfig field"
+            + (f" (did you mean model.overrides.{close[0]}?)" if close else "")
+            + f"; valid: {', '.join(model_fields)}"
+        )
+    if not unknown and cfg.model.size in SIZE_PRESETS:
+        try:  # the values, as the world model will check them when it is built
+            WorldModelConfig.from_preset(cfg.model.size, action_dim=1, **world_model_overrides(cfg))
+        except (TypeError, ValueError) as err:
+            errors.append(f"model.overrides={dict(cfg.model.overrides)} with the algo's branches: {err}")
     if cfg.mode == "world_model":
         errors += world_model_mode_errors(cfg)
         if errors:

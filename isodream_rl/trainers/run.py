@@ -16,7 +16,9 @@ import numpy as np
 import torch
 from torchrl.trainers import ReplayBufferTrainer, Trainer, UpdateWeights
 
+from isodream_rl.csv_logs import csv_log_sizes, cut_csv_logs
 from isodream_rl.envs.builder import ground_truth_mask_keys
+from isodream_rl.modules.encoder import check_pixel_values, check_pixels
 from isodream_rl.trainers import trainer_state
 from isodream_rl.trainers.builders import (
     close_logger,
@@ -30,6 +32,7 @@ from isodream_rl.trainers.builders import (
 from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager, rng_state, set_rng_state
 from isodream_rl.trainers.collectors import make_collector
 from isodream_rl.trainers.config import ConfigError, RunConfig, config_from_dict, validate_config
+from isodream_rl.trainers.disk_space import ReplayReservation
 from isodream_rl.trainers.evaluation import Evaluation, learning_summary, run_episodes, save_episode_gif
 from isodream_rl.trainers.hooks import (
     EpisodeReturns,
@@ -38,8 +41,9 @@ from isodream_rl.trainers.hooks import (
     StopOnSignal,
     Throughput,
 )
-from isodream_rl.trainers.run_dir import check_same_run, claim_run_dir, resuming, write_run_config
+from isodream_rl.trainers.run_dir import check_same_run, hold_run_dir, resuming, write_run_config
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
+from isodream_rl.trainers.world_model_config import TORCHRL_BASELINES
 
 logger = logging.getLogger(__name__)
 
@@ -71,10 +75,12 @@ def seed_everything(seed: int) -> None:
 
 
 def probe_action_dim(cfg: RunConfig) -> int:
-    """The width of the action of ``cfg``'s env (built once and closed).
+    """The width of the action of ``cfg``'s env (built once and closed). An ``env.factory`` env is reset once
+    too, and its first frame checked as the world model will check it.
 
     Raises:
-        ConfigError: the env cannot be built from ``env.name`` and ``env.kwargs`` (the message says why).
+        ConfigError: the env cannot be built from ``env.name`` and ``env.kwargs``, or the frames of an
+            ``env.factory`` env are not ``[3, 64, 64]`` uint8 or floats in ``[0, 1]`` (the message says why).
     """
     try:
         env = env_factory(cfg)()
@@ -84,6 +90,18 @@ def probe_action_dim(cfg: RunConfig) -> int:
             f"cannot be built: {err}"
         ) from err
     try:
+        if cfg.env.factory:
+            pixels = env.reset().get("pixels", None)
+            try:
+                if pixels is None:
+                    raise KeyError("its env returns no 'pixels'")
+                check_pixels(pixels, name="'pixels'")
+                check_pixel_values(pixels, name="'pixels'")
+            except (TypeError, ValueError, KeyError) as err:
+                message = err.args[0] if isinstance(err, KeyError) else err
+                raise ConfigError(
+                    f"invalid training configuration: env.factory={cfg.env.factory!r}: {message}"
+                ) from err
         return int(env.action_spec.shape[-1])
     finally:
         env.close()
@@ -164,21 +182,20 @@ class RunComponents:
 
 
 def begin_run(cfg: RunConfig) -> tuple[float, Path, Path, Path]:
-    """What every mode does first, before writing anything: check the config, check that the run folder is
-    free (or clear it with ``overwrite=true``, see :mod:`~isodream_rl.trainers.run_dir`), set threads and
-    seeds. ``run_config.json`` is written later (:func:`~isodream_rl.trainers.run_dir.write_run_config`), once
-    a resumed run's checkpoint is found to match the config.
+    """What every mode does first, in the run folder that :func:`train` holds (see
+    :func:`~isodream_rl.trainers.run_dir.hold_run_dir`): check the config, set threads and seeds.
+    ``run_config.json`` is written later (:func:`~isodream_rl.trainers.run_dir.write_run_config`), once the run's
+    parts are built and a resumed run's checkpoint is found to match the config.
 
     Returns:
         ``(start time from time.perf_counter, run_dir, pictures folder, logs folder)``.
 
     Raises:
-        ConfigError: an invalid configuration, or a run folder that holds another run.
-        CheckpointError: ``resume`` without a checkpoint.
+        ConfigError: an invalid configuration.
     """
     validate_config(cfg)
     started = time.perf_counter()
-    run_dir = claim_run_dir(cfg)
+    run_dir = Path(cfg.run_dir)
     torch.set_num_threads(cfg.train.threads)
     seed_everything(cfg.train.seed)
     return started, run_dir, run_dir / "pictures", run_dir / "logs"
@@ -198,12 +215,16 @@ def resume_state(cfg: RunConfig, checkpoints: CheckpointManager, *, required_key
 
 def make_components(cfg: RunConfig, *, action_dim: int, scratch_dir: Path):
     """The run's components for ``cfg.algo.name``: :class:`RunComponents` (Iso-Dream, its ablations and the
-    DreamerV2 baseline), or, for ``torchrl_dreamer``, TorchRL's own Dreamer pieces with the same interface
-    (``isodream_rl.baselines.torchrl_dreamer``)."""
+    DreamerV2 baseline), or, for ``torchrl_dreamer`` and ``torchrl_dreamer_v3``, TorchRL's own Dreamer and
+    DreamerV3 pieces with the same interface (``isodream_rl.baselines``)."""
     if cfg.algo.name == "torchrl_dreamer":
         from isodream_rl.baselines.torchrl_dreamer import TorchRLDreamerComponents
 
         return TorchRLDreamerComponents(cfg, action_dim=action_dim, scratch_dir=scratch_dir)
+    if cfg.algo.name == "torchrl_dreamer_v3":
+        from isodream_rl.baselines.torchrl_dreamer_v3 import TorchRLDreamerV3Components
+
+        return TorchRLDreamerV3Components(cfg, action_dim=action_dim, scratch_dir=scratch_dir)
     return RunComponents(cfg, action_dim=action_dim, scratch_dir=scratch_dir)
 
 
@@ -216,17 +237,30 @@ def train(cfg: RunConfig) -> RunResult:
     the policy) and a TorchRL ``Trainer`` with hooks for replay, logging, evaluation and checkpoints; with
     ``resume``, restore the newest readable checkpoint; train until ``train.total_steps`` or a signal.
 
+    The run folder is held by this process while it trains (:func:`~isodream_rl.trainers.run_dir.hold_run_dir`);
+    a resumed run cuts its CSV logs back to what they held at its checkpoint (:mod:`isodream_rl.csv_logs`).
+
     Raises:
-        ConfigError: invalid configuration (before anything is built).
+        ConfigError: invalid configuration (before anything is built), a run folder that holds another run or
+            cannot be written.
+        RunDirBusyError: another live process uses the run folder.
         CheckpointError: ``resume`` without a readable checkpoint.
+        DiskFullError: the disk filled up (the message names the checkpoint to resume from).
         NonFiniteLossError: too many NaN/inf updates in a row.
     """
-    if cfg.mode == "world_model":
-        # the world model alone: its own loop, this run folder and checkpoint format (imported here, as it
-        # builds on this module)
-        from isodream_rl.trainers import world_model_run
+    validate_config(cfg)
+    with hold_run_dir(cfg):
+        if cfg.mode == "world_model":
+            # the world model alone: its own loop, this run folder and checkpoint format (imported here, as it
+            # builds on this module)
+            from isodream_rl.trainers import world_model_run
 
-        return world_model_run.train(cfg)
+            return world_model_run.train(cfg)
+        return _train_rl(cfg)
+
+
+def _train_rl(cfg: RunConfig) -> RunResult:
+    """:func:`train` in ``mode=rl``, in the run folder it holds."""
     started, run_dir, pictures, logs = begin_run(cfg)
     train_cfg = cfg.train
     checkpoints = CheckpointManager(run_dir / "checkpoints", keep=cfg.checkpoint.keep)
@@ -234,7 +268,6 @@ def train(cfg: RunConfig) -> RunResult:
     if resuming(cfg):
         state, resumed_from = resume_state(cfg, checkpoints, required_keys=STATE_KEYS)
     action_dim = probe_action_dim(cfg)
-    write_run_config(cfg)  # the run starts: the config matches its checkpoint, the env builds
 
     scratch = run_dir / "replay_scratch"
     # The memmap files of an earlier process of this run (killed, or finished) are stale: the replay data
@@ -249,7 +282,10 @@ def train(cfg: RunConfig) -> RunResult:
         components.preparation.load_state_dict(state["hooks"]["preparation"])
         components.returns.load_state_dict(state["hooks"]["returns"])
         set_rng_state(state["rng"])
+        if "log_sizes" in state["counters"]:  # rows written after the checkpoint are of a timeline that ended
+            cut_csv_logs(logs, state["counters"]["log_sizes"])
         logger.info("resumed from %s (%d env steps)", resumed_from, state["counters"]["env_steps"])
+    write_run_config(cfg)  # the run starts: its parts are built, the config matches its checkpoint
     env_steps = state["counters"]["env_steps"] if state else 0
     wall_before = state["counters"].get("wall_s", 0.0) if state else 0.0
 
@@ -290,7 +326,11 @@ def train(cfg: RunConfig) -> RunResult:
     # ReplayBufferTrainer.register would also add a priority hook on the legacy post_loss stage, which the
     # stepper path never runs: register its two useful ops directly.
     replay_hook = ReplayBufferTrainer(components.replay_buffer, flatten_tensordicts=False)
-    trainer.register_op("batch_process", replay_hook.extend)
+    storage = getattr(components.replay_buffer, "storage", None)
+    if getattr(storage, "scratch_dir", None):
+        ReplayReservation(storage).register(trainer, replay_hook.extend)
+    else:
+        trainer.register_op("batch_process", replay_hook.extend)
     trainer.register_op("process_optim_batch", replay_hook.sample)
     components.returns.register(trainer)
     Throughput(stepper).register(trainer)
@@ -300,7 +340,7 @@ def train(cfg: RunConfig) -> RunResult:
     # the decomposition scores of the evaluations, where the env renders the ground truth and the world model
     # is Iso-Dream's (any of its variants)
     decomposition = (
-        cfg.algo.name != "torchrl_dreamer"
+        cfg.algo.name not in TORCHRL_BASELINES
         and not cfg.env.factory
         and bool(ground_truth_mask_keys(cfg.env.name))
     )
@@ -339,16 +379,12 @@ def train(cfg: RunConfig) -> RunResult:
     last_checkpoint: list[Path | None] = [resumed_from]
 
     def save() -> Path:
+        saved = components.state(
+            cfg, env_steps=trainer.collected_frames, trainer=trainer, evaluation=evaluation, wall_s=wall_s()
+        )
+        saved["counters"]["log_sizes"] = csv_log_sizes(logs)  # what a resume cuts the logs back to
         path = checkpoints.save(
-            stepper.updates,
-            components.state(
-                cfg,
-                env_steps=trainer.collected_frames,
-                trainer=trainer,
-                evaluation=evaluation,
-                wall_s=wall_s(),
-            ),
-            replay_buffer=components.replay_buffer if cfg.checkpoint.replay else None,
+            stepper.updates, saved, replay_buffer=components.replay_buffer if cfg.checkpoint.replay else None
         )
         last_checkpoint[0] = path
         return path

@@ -7,22 +7,33 @@ refused unless ``resume=true`` (continue that run; its configuration must match,
 ``run_config.json`` is written (:func:`write_run_config`) only once the run is known to start. Hydra's own
 records (``.hydra/``, ``<job>.log``) are not a run's files; ``isodream-train`` checks the folder before Hydra
 writes them (:class:`RunDirGuard`).
+
+While a run uses its folder, :func:`hold_run_dir` keeps it to this process (``run.lock``, see
+:mod:`isodream_rl.run_lock`), removes what a start that failed before ``run_config.json`` made (so the corrected
+command is not refused), and turns a full disk or a read-only folder met on the way into one line.
 """
 
 from __future__ import annotations
 
+import atexit
 import dataclasses
+import errno
 import json
+import os
 import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 from hydra.experimental.callback import Callback
 from omegaconf import OmegaConf
 
-from isodream_rl.trainers.checkpoint import CheckpointError
+from isodream_rl.run_lock import RunDirBusyError, RunDirLock
+from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.config import ConfigError, RunConfig, config_from_dict
-from isodream_rl.user_errors import report_user_errors
+from isodream_rl.trainers.disk_space import DiskFullError
+from isodream_rl.user_errors import log_to_stderr, report_user_errors
 
 #: the files and folders of a run (a folder holding one of them holds a run)
 RUN_FILES = ("run_config.json", "checkpoints", "logs", "pictures", "summary.json", "replay_scratch")
@@ -61,6 +72,22 @@ def existing_run_files(run_dir: str | Path) -> list[str]:
     return [name for name in RUN_FILES if (run_dir / name).exists()]
 
 
+def run_dir_problem(run_dir: str | Path) -> str | None:
+    """Why ``run_dir`` cannot hold a run (a file, under a file, on a read-only disk or not writable), or
+    ``None``; reads only."""
+    run_dir = Path(run_dir)
+    if run_dir.exists() and not run_dir.is_dir():
+        return f"run_dir {run_dir} is a file, not a folder: give a folder (a new one, or one holding a run)"
+    existing = run_dir
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        return f"run_dir {run_dir} is under {existing}, which is a file: give a path under a folder"
+    if not os.access(existing, os.W_OK | os.X_OK):
+        return f"run_dir {run_dir} cannot be written ({existing} is read-only or not yours): give another"
+    return None
+
+
 def claim_run_dir(cfg: RunConfig) -> Path:
     """Check that ``cfg`` may write to its ``run_dir``, clearing it with ``overwrite=true``; the folder.
 
@@ -94,6 +121,65 @@ def _another_run(run_dir: Path, found: list[str]) -> str:
         f"{run_dir} holds another run ({', '.join(found)}): continue it with resume=true, replace it with "
         "overwrite=true, or give another run_dir"
     )
+
+
+@contextmanager
+def hold_run_dir(cfg: RunConfig) -> Iterator[Path]:
+    """Hold ``cfg.run_dir`` for one run: ``with hold_run_dir(cfg) as run_dir: ...``.
+
+    On entering: refuse a path that cannot be a writable folder, take the folder's lock
+    (:class:`~isodream_rl.run_lock.RunDirLock`), claim it (:func:`claim_run_dir`), and remove the half-written
+    checkpoints a killed or failed process left. If the block fails before ``run_config.json`` exists (a new run
+    that did not start), the run files it made are removed. A full disk and a read-only folder met in the block
+    become one-line errors. The lock is released on leaving, however the block ends.
+
+    Raises:
+        ConfigError: ``run_dir`` is a file, under a file or not writable; the refusals of :func:`claim_run_dir`.
+        RunDirBusyError: another live process holds the folder (the message names its pid).
+        DiskFullError: the disk filled up; the message names the last verified checkpoint and says to resume.
+    """
+    run_dir = Path(cfg.run_dir)
+    problem = run_dir_problem(run_dir)
+    if problem:
+        raise ConfigError(problem)
+    lock = RunDirLock(run_dir)
+    try:
+        lock.acquire()
+    except OSError as err:
+        raise _os_error(err, run_dir) from err
+    try:
+        new = not resuming(cfg)
+        claim_run_dir(cfg)
+        CheckpointManager(run_dir / "checkpoints").remove_leftovers()
+        try:
+            yield run_dir
+        except BaseException:
+            if new and not (run_dir / "run_config.json").exists():
+                for name in existing_run_files(run_dir):
+                    shutil.rmtree(run_dir / name, ignore_errors=True)
+            raise
+    except OSError as err:
+        raise _os_error(err, run_dir) from err
+    finally:
+        lock.release()
+
+
+def _os_error(err: OSError, run_dir: Path) -> Exception:
+    """The one-line error of an ``OSError`` met while writing ``run_dir`` (``err`` itself when it is not the
+    user's to fix)."""
+    if err.errno in (errno.ENOSPC, errno.EDQUOT):
+        checkpoints = CheckpointManager(run_dir / "checkpoints").checkpoints()
+        then = (
+            f"the last checkpoint, {checkpoints[-1]}, is intact: free disk space, then continue with resume=true"
+            if checkpoints
+            else "no checkpoint was written yet: free disk space, then start again with overwrite=true"
+        )
+        return DiskFullError(f"the disk of run_dir {run_dir} is full ({err.strerror or err}); {then}")
+    if err.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
+        return ConfigError(
+            f"run_dir {run_dir} cannot be written ({err.strerror}: {err.filename}): give a writable run_dir"
+        )
+    return err
 
 
 def write_run_config(cfg: RunConfig) -> Path:
@@ -144,9 +230,10 @@ def check_same_run(saved: dict, cfg: RunConfig) -> None:
 
 class RunDirGuard(Callback):
     """A Hydra callback (``hydra.callbacks`` in ``configs/config.yaml``) that runs the refusals of
-    :func:`claim_run_dir` and :func:`check_same_run` before Hydra writes ``.hydra/`` into the run folder, so a
-    refused start leaves the folder as it was: a folder holding another run without ``resume``/``overwrite``,
-    and a resume whose settings differ from the run's ``run_config.json``. The refusal is one line on stderr and
+    :func:`hold_run_dir`, :func:`claim_run_dir` and :func:`check_same_run` before Hydra writes ``.hydra/`` into
+    the run folder, so a refused start leaves the folder as it was: a path that cannot be a writable folder, a
+    folder another live process holds, a folder holding another run without ``resume``/``overwrite``, and a
+    resume whose settings differ from the run's ``run_config.json``. The refusal is one line on stderr and
     exit status 2 (the exception with ``--debug`` or ``HYDRA_FULL_ERROR=1``). ``overwrite=true`` clears the
     folder later, in :func:`claim_run_dir`; the checkpoint's own configuration is checked again when it loads.
     """
@@ -155,10 +242,17 @@ class RunDirGuard(Callback):
         def setting(key: str):
             return OmegaConf.select(config, key, default=None)
 
-        if setting("overwrite"):
-            return
         run_dir = Path(str(setting("run_dir")))
-        with report_user_errors("isodream-train", (ConfigError,)):
+        log_to_stderr()  # a taken-over lock says so
+        with report_user_errors("isodream-train", (ConfigError, RunDirBusyError)):
+            problem = run_dir_problem(run_dir)
+            if problem:
+                raise ConfigError(problem)
+            # held from here to the end of the process: a second process started at the same time is refused
+            # before Hydra writes into the folder (the run holds it again, see hold_run_dir)
+            atexit.register(RunDirLock(run_dir).acquire().release)
+            if setting("overwrite"):
+                return
             if not (setting("resume") or setting("checkpoint.resume")):
                 found = existing_run_files(run_dir)
                 if found:

@@ -16,6 +16,8 @@ from isodream_rl.objectives.world_model import FREE_BRANCH_MODES
 
 #: What ``isodream-train`` trains: Algorithm 1 (world model, actor and value), or the world model alone.
 MODES = ("rl", "world_model")
+#: The algorithms built from TorchRL's own Dreamer pieces (``isodream_rl.baselines``): no Iso-Dream world model.
+TORCHRL_BASELINES = ("torchrl_dreamer", "torchrl_dreamer_v3")
 
 
 @dataclass
@@ -69,7 +71,7 @@ def world_model_mode_errors(cfg: Any) -> list[str]:
         errors.append(
             f"algo.free_branch_loss={algo.free_branch_loss!r} is not one of {list(FREE_BRANCH_MODES)}"
         )
-    if algo.name == "torchrl_dreamer":
+    if algo.name in TORCHRL_BASELINES:
         errors.append(
             "mode=world_model trains Iso-Dream's world model: pick another algo (dreamerv2 is the baseline)"
         )

@@ -33,6 +33,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from tqdm import tqdm
 
+from isodream_rl.csv_logs import csv_log_sizes, cut_csv_logs
 from isodream_rl.envs.builder import ground_truth_mask_keys
 from isodream_rl.evaluation.decomposition import TRUTH_KEYS
 from isodream_rl.modules import IsoDreamWorldModel
@@ -56,6 +57,7 @@ from isodream_rl.trainers.hooks import StopOnSignal
 from isodream_rl.trainers.run import RunResult, begin_run, probe_action_dim, resume_state, write_summary
 from isodream_rl.trainers.run_dir import resuming, write_run_config
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
+from isodream_rl.trainers.world_model_config import TORCHRL_BASELINES
 
 logger = logging.getLogger(__name__)
 
@@ -170,8 +172,8 @@ def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDream
         device: where the model goes.
 
     Raises:
-        CheckpointError: no readable checkpoint there, or one of ``algo=torchrl_dreamer`` (another world
-            model).
+        CheckpointError: no readable checkpoint there, or one of a TorchRL baseline (``algo=torchrl_dreamer``,
+            ``torchrl_dreamer_v3``: another world model).
     """
     path = Path(path)
     if path.is_file():
@@ -190,8 +192,10 @@ def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDream
     else:
         state, path = manager.load_latest(required_keys=("config", "models"))
     cfg = config_from_dict(state["config"])
-    if cfg.algo.name == "torchrl_dreamer":
-        raise CheckpointError(f"{path} holds TorchRL's Dreamer world model, not Iso-Dream's")
+    if cfg.algo.name in TORCHRL_BASELINES:
+        raise CheckpointError(
+            f"{path} holds the world model of algo={cfg.algo.name} (TorchRL's), not Iso-Dream's"
+        )
     cfg.model.overrides = {**cfg.model.overrides, "precision": "fp32"}
     model = IsoDreamWorldModel(make_world_model_config(cfg, action_dim=probe_action_dim(cfg)), device=device)
     model.load_state_dict(state["models"]["world_model"])
@@ -217,7 +221,6 @@ def train(cfg: RunConfig) -> RunResult:
     state, resumed_from = (
         resume_state(cfg, checkpoints, required_keys=STATE_KEYS) if resuming(cfg) else (None, None)
     )
-    write_run_config(cfg)
     window, batch_size = train_cfg.sequence_length, train_cfg.batch_size
 
     logger.info("collecting %d random-action episodes of %d steps", wm.episodes, wm.episode_length)
@@ -249,7 +252,10 @@ def train(cfg: RunConfig) -> RunResult:
         stepper.load_state_dict(state["stepper"])
         set_rng_state(state["rng"])
         wall_before = state["counters"]["wall_s"]
+        if "log_sizes" in state["counters"]:  # rows written after the checkpoint are of a timeline that ended
+            cut_csv_logs(logs, state["counters"]["log_sizes"])
         logger.info("resumed from %s (%d updates)", resumed_from, stepper.updates)
+    write_run_config(cfg)  # the run starts: its parts are built, the config matches its checkpoint
     first = stepper.updates
     env_steps = wm.episodes * wm.episode_length
     if first >= wm.updates:
@@ -267,7 +273,11 @@ def train(cfg: RunConfig) -> RunResult:
                 "config": dataclasses.asdict(cfg),
                 "models": {"world_model": world_model.state_dict()},
                 "stepper": stepper.state_dict(),
-                "counters": {"updates": stepper.updates, "wall_s": wall_s()},
+                "counters": {
+                    "updates": stepper.updates,
+                    "wall_s": wall_s(),
+                    "log_sizes": csv_log_sizes(logs),
+                },
                 "rng": rng_state(),
             },
         )

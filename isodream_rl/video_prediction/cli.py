@@ -4,6 +4,7 @@ Examples::
 
     isodream-video train --variant isodream --iterations 80000 --out-dir runs/isodream
     isodream-video train --variant isodream --iterations 80000 --out-dir runs/isodream --resume
+    isodream-video train --variant isodream --iterations 1000 --out-dir runs/isodream --overwrite
     isodream-video train --dataset bair --data-path /data/softmotion30_44k --variant no_action_free
     isodream-video eval --checkpoint runs/isodream/checkpoint.pt --json eval.json --showcase fig.png
     isodream-video eval --checkpoint ckpt.pt --dataset robonet --data-path /data/robonet_hdf5 \\
@@ -22,6 +23,7 @@ from pathlib import Path
 import torch
 from torch.utils.data import DataLoader
 
+from isodream_rl.run_lock import RunDirBusyError
 from isodream_rl.user_errors import report_user_errors, take_debug_flag
 from isodream_rl.video_prediction.metrics import FrameMetrics
 from isodream_rl.video_prediction.trainer import TrainConfig, build_split, evaluate, load_checkpoint, train
@@ -78,6 +80,11 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="continue from <out-dir>/checkpoint.pt if it exists (same settings; --iterations may grow)",
     )
+    train_p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="delete the run already in --out-dir (checkpoint.pt, logs/) first",
+    )
     eval_p = sub.add_parser("eval", help="evaluate a checkpoint on the test split (per-frame PSNR/SSIM)")
     eval_p.add_argument("--checkpoint", type=Path, required=True)
     _add_config_arguments(eval_p, _EVAL_OVERRIDES)
@@ -89,7 +96,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def _train(args: argparse.Namespace) -> dict:
     config = TrainConfig.from_dict(_overrides(args, [f.name for f in fields(TrainConfig)]))
-    result = train(config, progress=not args.no_progress, resume=args.resume)
+    result = train(config, progress=not args.no_progress, resume=args.resume, overwrite=args.overwrite)
     result["config"] = {k: v for k, v in vars(config).items()}
     if args.result_json is not None:
         args.result_json.write_text(json.dumps(result, indent=2, default=list))
@@ -132,10 +139,11 @@ def _eval(args: argparse.Namespace) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``isodream-video``. A user error (a missing path, an invalid option, a file that is not a
-    checkpoint) is one line on stderr and exit status 2; ``--debug`` shows the traceback."""
+    checkpoint, an --out-dir holding another run or used by another process) is one line on stderr and exit
+    status 2; ``--debug`` shows the traceback."""
     args = _parser().parse_args(argv)
     take_debug_flag(["--debug"] if args.debug else [])
-    with report_user_errors("isodream-video", (FileNotFoundError, KeyError, ValueError)):
+    with report_user_errors("isodream-video", (FileNotFoundError, KeyError, ValueError, RunDirBusyError)):
         result = _train(args) if args.command == "train" else _eval(args)
     print(json.dumps(result["metrics"], indent=2))
     return 0

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -14,6 +15,7 @@ from tensordict import TensorDict
 from torch.utils.data import DataLoader, default_collate
 from tqdm.auto import tqdm
 
+from isodream_rl.csv_logs import csv_log_sizes, cut_csv_logs
 from isodream_rl.data import (
     ArraySequences,
     BAIRDataset,
@@ -22,6 +24,7 @@ from isodream_rl.data import (
     VideoClips,
     load_pusher_dataset,
 )
+from isodream_rl.run_lock import RunDirLock
 from isodream_rl.video_prediction.config import PredictorConfig, variant_config
 from isodream_rl.video_prediction.metrics import FrameMetrics
 from isodream_rl.video_prediction.objective import VideoPredictionLoss
@@ -35,6 +38,7 @@ __all__ = [
     "train",
     "save_checkpoint",
     "load_checkpoint",
+    "read_checkpoint",
     "RESUMABLE",
 ]
 
@@ -261,11 +265,35 @@ def save_checkpoint(path: str | os.PathLike, state: dict) -> None:
     os.replace(tmp, path)
 
 
+def read_checkpoint(path: str | os.PathLike, *, device: str = "cpu") -> dict:
+    """The state dict of a checkpoint written by :func:`train`.
+
+    Raises:
+        ValueError: the file is no readable torch file (truncated, corrupted, another format) or holds no dict.
+    """
+    try:
+        state = torch.load(path, map_location=device, weights_only=False)
+    # torch.load raises what its unpickler meets: RuntimeError, EOFError, pickle errors
+    except Exception as err:
+        raise ValueError(
+            f"{path} is not a readable checkpoint ({type(err).__name__}: {err}); it may be truncated or of "
+            "another program: give a checkpoint.pt that isodream-video train wrote"
+        ) from err
+    if not isinstance(state, dict):
+        raise ValueError(f"{path} holds a {type(state).__name__}, not a video-prediction checkpoint")
+    return state
+
+
 def load_checkpoint(
     path: str | os.PathLike, *, device: str = "cpu"
 ) -> tuple[ThreeBranchPredictor, TrainConfig, dict]:
-    """Rebuild the model of a checkpoint written by :func:`train`; returns ``(model, config, state)``."""
-    state = torch.load(path, map_location=device, weights_only=False)
+    """Rebuild the model of a checkpoint written by :func:`train`; returns ``(model, config, state)``.
+
+    Raises:
+        ValueError: the file is no readable checkpoint (:func:`read_checkpoint`).
+        KeyError: it is a torch file, but not a video-prediction checkpoint.
+    """
+    state = read_checkpoint(path, device=device)
     for key in ("model", "train_config", "predictor_config"):
         if key not in state:
             raise KeyError(f"{path} is not a video-prediction checkpoint: missing '{key}'")
@@ -352,7 +380,35 @@ def _plain(value):
     return list(value) if isinstance(value, tuple) else value
 
 
-def train(config: TrainConfig, *, progress: bool = True, resume: bool = False) -> dict:
+#: what a training run writes into ``out_dir``: a folder holding one of them holds a run
+RUN_FILES = ("checkpoint.pt", "logs")
+
+
+def claim_out_dir(out_dir: Path, *, resume: bool, overwrite: bool) -> None:
+    """Check that a run may write to ``out_dir``, clearing it with ``overwrite``.
+
+    Raises:
+        ValueError: ``out_dir`` holds another run and neither ``resume`` nor ``overwrite`` is set, or both are
+            set; nothing is written or deleted then.
+    """
+    if resume and overwrite:
+        raise ValueError("--resume and --overwrite contradict each other: give one of them")
+    found = [name for name in RUN_FILES if (out_dir / name).exists()]
+    if not found or resume:
+        return
+    if not overwrite:
+        raise ValueError(
+            f"--out-dir {out_dir} holds another run ({', '.join(found)}): continue it with --resume, replace it "
+            "with --overwrite, or give another --out-dir"
+        )
+    for name in found:
+        path = out_dir / name
+        shutil.rmtree(path) if path.is_dir() else path.unlink()
+
+
+def train(
+    config: TrainConfig, *, progress: bool = True, resume: bool = False, overwrite: bool = False
+) -> dict:
     """Train one variant; validate, checkpoint and evaluate on the way.
 
     Every ``val_every`` iterations the model is scored on the first ``val_batches`` batches of the test split
@@ -364,7 +420,11 @@ def train(config: TrainConfig, *, progress: bool = True, resume: bool = False) -
     and gives the same weights as an uninterrupted run; Adam's learning rate is constant, so ``iterations``
     may be raised on resume to train longer.
 
-    Writes ``<out_dir>/checkpoint.pt`` and TorchRL logger files under ``<out_dir>/logs``.
+    Writes ``<out_dir>/checkpoint.pt`` and TorchRL logger files under ``<out_dir>/logs``. An ``out_dir`` holding
+    another run is refused unless ``resume`` (continue it) or ``overwrite`` (delete it first), as
+    ``isodream-train`` does, and it is held by this process while the run writes to it
+    (:class:`~isodream_rl.run_lock.RunDirLock`); a resumed run cuts its CSV logs back to what they held at the
+    checkpoint (:mod:`isodream_rl.csv_logs`).
 
     Returns:
         ``{"iterations", "train_seconds", "metrics": {"psnr_10": .., ...}, "curves": {"psnr": [...], ..},
@@ -372,13 +432,23 @@ def train(config: TrainConfig, *, progress: bool = True, resume: bool = False) -
 
     Raises:
         ValueError: ``resume=True`` and the checkpoint was written with settings outside :data:`RESUMABLE`
-            that differ from ``config``.
+            that differ from ``config``, or is unreadable; ``out_dir`` holds another run (see above).
+        RunDirBusyError: another live process uses ``out_dir``.
     """
+    out_dir = Path(config.out_dir)
+    if resume or not overwrite:  # the refusals, before the data are made
+        claim_out_dir(out_dir, resume=resume, overwrite=overwrite)
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
     train_set, test_set = build_split(config, "train"), build_split(config, "test")
-    out_dir = Path(config.out_dir)  # made once the data are found
-    out_dir.mkdir(parents=True, exist_ok=True)
+    with RunDirLock(out_dir, setting="--out-dir"):  # made once the data are found
+        claim_out_dir(out_dir, resume=resume, overwrite=overwrite)
+        return _train(config, train_set, test_set, progress=progress, resume=resume)
+
+
+def _train(config: TrainConfig, train_set, test_set, *, progress: bool, resume: bool) -> dict:
+    """:func:`train` in the ``out_dir`` it holds."""
+    out_dir = Path(config.out_dir)
     action_dim = train_set[0]["actions"].shape[-1]
     model = build_predictor(config, action_dim)
     loss_fn = VideoPredictionLoss(
@@ -393,8 +463,9 @@ def train(config: TrainConfig, *, progress: bool = True, resume: bool = False) -
     test_loader = DataLoader(test_set, batch_size=config.batch_size)
     checkpoint = out_dir / "checkpoint.pt"
     step, previous_seconds, history = 0, 0.0, []
+    log_sizes: dict[str, int] | None = {}  # a run resumed without a checkpoint starts its logs again
     if resume and checkpoint.exists():
-        state = torch.load(checkpoint, map_location=config.device, weights_only=False)
+        state = read_checkpoint(checkpoint, device=config.device)
         if "sampler" not in state:
             raise ValueError(
                 f"cannot resume {checkpoint}: it was written before training could resume (no sampler state); "
@@ -408,6 +479,9 @@ def train(config: TrainConfig, *, progress: bool = True, resume: bool = False) -
             balls.load_state_dict(state["balls_rng"])
         torch.set_rng_state(state["torch_rng"].cpu())  # map_location may have moved it
         step, previous_seconds, history = state["iteration"], state["train_seconds"], state["history"]
+        log_sizes = state.get("log_sizes")
+    if resume and log_sizes is not None:  # rows written after the checkpoint are of a timeline that ended
+        cut_csv_logs(out_dir / "logs", log_sizes)
     logger = _make_logger(config, out_dir)
     metrics: dict[str, float] | None = None
 
@@ -426,6 +500,7 @@ def train(config: TrainConfig, *, progress: bool = True, resume: bool = False) -
                 "torch_rng": torch.get_rng_state(),
                 "train_seconds": previous_seconds + time.monotonic() - start,
                 "history": history,
+                "log_sizes": csv_log_sizes(out_dir / "logs"),
             },
         )
 

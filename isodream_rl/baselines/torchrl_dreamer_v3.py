@@ -1,0 +1,919 @@
+"""``algo=torchrl_dreamer_v3``: TorchRL's DreamerV3, composed as TorchRL's DreamerV3 reproduction, at our sizes.
+
+The world-model agent a TorchRL user picks today (Hafner et al. 2023, https://arxiv.org/abs/2301.04104), through
+the collector, ``SliceSampler`` replay, evaluation, checkpoints and ``summary.json`` of an Iso-Dream run:
+
+- world model (``DreamerV3ModelLoss``): ``DreamerV3ImageEncoder`` on uint8 ``("next", "pixels")``,
+  ``RSSMPriorV3`` (block GRU) / ``RSSMPosteriorV3`` (RMS-normed) with categorical latents in an
+  ``RSSMRolloutV3`` that resets at ``is_init``, ``DreamerV3ImageDecoder``, a two-hot reward head
+  (``DreamerV3MLP`` + ``SymExpTwoHot``) and a continuation head;
+- behaviour: imagination in a ``DreamerEnv`` on the same prior and reward head, ``DreamerV3ActorLoss``
+  (REINFORCE, percentile return normalisation in ``PercentileValueNorm``, entropy 3e-4, continuation-weighted
+  lambda-returns), ``DreamerV3ValueLoss`` (two-hot critic, slow-critic regulariser with a ``SoftUpdate``
+  target), the replay-value term of ``DreamerV3Loss``;
+- ``DreamerV3Optimizer`` (adaptive gradient clipping, RMS-scaled momentum, linear warm-up) on the sum of all
+  ``loss_*`` terms, one per parameter group (world model, actor, value): TorchRL's optimiser keeps one update
+  counter per group and is otherwise per parameter, so this is the update of one optimiser with three groups,
+  and it lets the world model train alone during ``train.world_model_warmup`` while the actor's and value's
+  counters (bias correction, learning-rate warm-up) start when they do;
+- acting: the encoder, ``RSSMStateEstimatorV3`` and the actor, with ``previous_action`` carried.
+
+Widths. DreamerV3 scales with one knob, as its presets ``size1m`` ... ``size400m`` do: ``hidden`` (RSSM hidden
+layers, reward and continuation heads), ``deter = 8 hidden`` (GRU state), 32 categoricals of ``hidden / 16``
+classes, image depth ``hidden / 16``. Here ``hidden = 1.875 x`` our preset's ``hidden_dim`` (rounded to a
+multiple of 8), fitted so that the DreamerV3 world model has as many parameters as Iso-Dream's three-branch
+world model (``algo=isodream``, sprites, 2 actions), at ``size=bench`` and ``size=small``: -1.5 % and +6.0 %.
+Actor and value are ``model.actor_units`` / ``model.value_units`` wide, 3 hidden layers each, on
+``[belief, state]`` (1216 features at bench, where DreamerV2's read 96): wider first layers than ours. Trained
+parameters (world model / actor / value; the slow critic is not counted, Iso-Dream's value includes the
+attention):
+
+=========  ======  ==============================  =================================  ========================
+size       hidden  torchrl_dreamer_v3              isodream                           dreamerv2 world model
+=========  ======  ==============================  =================================  ========================
+``bench``  120     1.840 M / 0.190 M / 0.222 M     1.869 M / 0.062 M / 0.070 M        0.443 M
+``small``  240     7.147 M / 0.748 M / 0.813 M     6.745 M / 0.240 M / 0.338 M        1.472 M
+=========  ======  ==============================  =================================  ========================
+
+``bench/update_speed.py`` writes these counts beside its timings; at ``tiny``, ``paper`` and ``quickstart`` the
+rule gives 0.14 M, 17.6 M and 0.14 M world models (not fitted there).
+
+DreamerV3's own settings are TorchRL's, as its DreamerV3 reproduction (``sota-implementations/dreamer_v3``) sets
+them where a class default keeps an older behaviour for compatibility: unimix 0.01 (class default 0), separate
+dynamics / representation KL with weights 1 / 0.1 and 1 free nat on their sum (class default ``"balanced"``),
+REINFORCE (class default: reparameterised), a two-hot critic (class default: symlog MSE) with slow-critic
+regularisation 1 and target rate 0.02 (class default 0), a continuation head trained to ``1 - 1/333`` with
+``gamma = 1`` in the lambda-returns; symlog/two-hot reward with 255 bins, return normalisation (5th-95th
+percentile, rate 0.01, floor 1), entropy 3e-4, lambda 0.95, replay-value weight 0.3, policy std in [0.1, 1],
+zero-initialised reward and value outputs, actor outputs scaled by 0.01. All of them sit in
+:class:`DreamerV3Settings`.
+
+Where this departs from TorchRL's settings, and why:
+
+- learning rates: the run's ``train.world_model_lr`` / ``actor_lr`` / ``value_lr`` (one per parameter group)
+  instead of DreamerV3's 4e-5 for all: the budget is the run's (a few thousand updates, where DreamerV3's
+  rate is set for hundreds of thousands), as ``algo=torchrl_dreamer`` trains with the run's rates rather than
+  TorchRL's Dreamer example's. The optimiser's own settings (clip 0.3, eps 1e-20, 1000-update warm-up) are
+  TorchRL's; ``train.adam_eps`` and ``train.grad_clip`` are not read.
+- discount: ``algo.gamma`` is not read; the continuation head's ``1 - 1/333`` discounts, as in DreamerV3.
+- actions: the acting policy clamps its sample to [-1, 1], where TorchRL's reproduction clips in the env and
+  stores the raw sample; the world model sees the same either way (``RSSMPriorV3``'s block GRU divides an
+  action by ``max(|a|, 1)``).
+- widths (above), and fp32 only (``model.overrides.precision=bf16`` is refused: TorchRL's DreamerV3 autocasts on
+  CUDA only).
+
+Local pieces, where TorchRL's did not fit:
+
+- :class:`DreamerV3ContinuousActor`: TorchRL ships DreamerV3's discrete actor only
+  (``DreamerV3DiscreteActor``); this is its reproduction's bounded-normal actor, built from ``DreamerV3MLP``.
+- :class:`WindowInputCheck`: the one-line errors the other algos give on a bad batch (pixel range, NaN, no
+  ``is_init``, one-step windows), as the world model's first module.
+- :class:`TorchRLDreamerV3Policy`: our envs carry the recurrent state under TorchRL's ``("next", ...)``
+  convention through a primer, and evaluation reads ``make_tensordict_primer``; it wraps TorchRL's acting
+  sequence (which it runs unchanged).
+- :class:`TorchRLDreamerV3OptimizationStepper`: TorchRL's ``DreamerV3OptimizationStepper`` has no skipping of
+  non-finite updates, no update counter and no fixed metric keys, which the run's hooks and checkpoints read;
+  this one runs the same loss, optimiser and target update inside
+  :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper`.
+- :class:`TorchRLDreamerV3Components`: the interface of :class:`~isodream_rl.trainers.run.RunComponents`.
+
+Composing it found no bug in TorchRL 0.14.1's DreamerV3 classes that needed a local fix. Two behaviours to know:
+``RSSMRolloutV3`` zeroes state, belief and the transition's action where ``is_init`` is set, so a window (or an
+episode) starts one step later than the acting ``RSSMStateEstimatorV3`` starts it (Iso-Dream's filter resets the
+same way, docs/concepts.md); ``DreamerV3Optimizer`` counts updates per parameter group, so a group that joins late
+must be its own optimiser (above).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import (
+    InteractionType,
+    ProbabilisticTensorDictModule,
+    ProbabilisticTensorDictSequential,
+    TensorDictModule,
+    TensorDictModuleBase,
+    TensorDictSequential,
+)
+from torch import nn
+from torchrl.data import Bounded, Composite, Unbounded
+from torchrl.envs import TensorDictPrimer
+from torchrl.envs.model_based.dreamer import DreamerEnv
+from torchrl.modules import (
+    DreamerV3ImageDecoder,
+    DreamerV3ImageEncoder,
+    DreamerV3MLP,
+    IndependentNormal,
+    RSSMPosteriorV3,
+    RSSMPriorV3,
+    RSSMRolloutV3,
+    RSSMStateEstimatorV3,
+    SymExpTwoHot,
+    WorldModelWrapper,
+)
+from torchrl.objectives import DreamerV3ActorLoss, DreamerV3Loss, DreamerV3ModelLoss, DreamerV3ValueLoss
+from torchrl.objectives.utils import SoftUpdate, ValueEstimators
+from torchrl.trainers.algorithms import DreamerV3Optimizer
+
+from isodream_rl.modules.config import SIZE_PRESETS
+from isodream_rl.modules.encoder import check_pixel_values, check_pixels
+from isodream_rl.modules.policy import read_acting_inputs
+from isodream_rl.trainers.builders import make_replay_buffer
+from isodream_rl.trainers.config import ConfigError, RunConfig
+from isodream_rl.trainers.hooks import EpisodeReturns, ReplayPreparation
+from isodream_rl.trainers.run import RunComponents
+from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper, loss_sum
+
+logger = logging.getLogger(__name__)
+
+#: ``hidden`` of DreamerV3's size rule per unit of our preset's ``hidden_dim`` (fitted to Iso-Dream's counts).
+HIDDEN_PER_HIDDEN_DIM = 1.875
+#: The size-preset field this baseline reads (``SIZE_PRESETS`` merged with ``model.overrides``).
+SIZE_KEYS = ("hidden_dim",)
+#: The observation key and the carried acting state.
+PIXELS = ("next", "pixels")
+CARRIED = ("state", "belief", "previous_action")
+#: The parameter groups, each with its own optimiser and learning rate.
+GROUPS = ("world_model", "actor", "value")
+
+
+@dataclass(frozen=True)
+class DreamerV3Settings:
+    """DreamerV3's settings as TorchRL's DreamerV3 reproduction sets them; one home per value."""
+
+    num_categoricals: int = 32
+    """Categorical variables of the stochastic state."""
+    unimix: float = 0.01
+    """Uniform mixture of every categorical (latents, KL)."""
+    num_blocks: int = 8
+    """Blocks of the block GRU and of the decoder's input projection."""
+    prior_layers: int = 2
+    """Hidden layers of the prior's logit MLP."""
+    num_bins: int = 255
+    """Two-hot bins of the reward and value heads."""
+    free_bits: float = 1.0
+    """Free nats of each KL term (on the sum over the categoricals)."""
+    lambda_dynamic: float = 1.0
+    """Weight of the dynamics KL (trains the prior)."""
+    lambda_representation: float = 0.1
+    """Weight of the representation KL (trains the posterior)."""
+    continuation_horizon: float = 333.0
+    """The continuation head learns ``1 - 1 / horizon`` on non-terminal steps: DreamerV3's discount."""
+    lmbda: float = 0.95
+    """lambda of the lambda-returns."""
+    entropy_bonus: float = 3e-4
+    """eta, the actor's entropy weight."""
+    return_normalization_rate: float = 0.01
+    """EMA rate of the 5th / 95th return percentiles."""
+    return_normalization_min_scale: float = 1.0
+    """Floor of the return-normalisation divisor."""
+    slow_critic_regularization: float = 1.0
+    """Weight of the critic's regression towards its slow copy."""
+    slow_critic_tau: float = 0.02
+    """Rate of the slow critic's ``SoftUpdate``."""
+    replay_value_loss_weight: float = 0.3
+    """Weight of the critic loss on replayed posteriors."""
+    policy_min_std: float = 0.1
+    """Lower bound of the actor's std."""
+    policy_max_std: float = 1.0
+    """Upper bound of the actor's std."""
+    agc: float = 0.3
+    """Adaptive gradient clipping: largest gradient norm per unit of parameter norm."""
+    optimizer_eps: float = 1e-20
+    """Epsilon of the optimiser's RMS denominator."""
+    lr_warmup: int = 1000
+    """Updates of linear learning-rate warm-up (the first update has learning rate 0)."""
+
+
+@dataclass(frozen=True)
+class DreamerV3Widths:
+    """Widths of DreamerV3's size rule (one knob, ``hidden``) and of the actor and value MLPs."""
+
+    hidden: int
+    """RSSM hidden layers, reward and continuation heads (DreamerV3's ``rssm.hidden`` and ``units``)."""
+    actor_units: int
+    """Width of the actor's 3 hidden layers."""
+    value_units: int
+    """Width of the value's 3 hidden layers."""
+
+    @property
+    def deter(self) -> int:
+        """GRU state width (``belief``)."""
+        return 8 * self.hidden
+
+    @property
+    def classes(self) -> int:
+        """Classes of each categorical, also the image encoder's base depth."""
+        return max(1, (self.hidden + 8) // 16)
+
+    def state_dim(self, settings: DreamerV3Settings) -> int:
+        """Width of the one-hot ``state``: categoricals x classes."""
+        return settings.num_categoricals * self.classes
+
+    @classmethod
+    def from_run(cls, cfg: RunConfig) -> DreamerV3Widths:
+        """The widths for ``cfg``'s size preset (``model.overrides`` applied) and actor / value units.
+
+        Raises:
+            ValueError: an unknown size preset.
+            ConfigError: a precision other than fp32.
+        """
+        if cfg.model.size not in SIZE_PRESETS:
+            raise ValueError(f"unknown size preset {cfg.model.size!r}; valid: {sorted(SIZE_PRESETS)}")
+        overrides = dict(cfg.model.overrides)
+        precision = overrides.pop("precision", "fp32")
+        if precision != "fp32":
+            raise ConfigError(
+                f"invalid training configuration: algo=torchrl_dreamer_v3 trains in fp32 only (TorchRL's DreamerV3 "
+                f"autocasts on CUDA only), got model.overrides.precision={precision!r}: drop the override"
+            )
+        ignored = sorted(set(overrides) - set(SIZE_KEYS))
+        if ignored:
+            logger.info("torchrl_dreamer_v3 ignores the Iso-Dream model overrides %s", ignored)
+        hidden_dim = int(overrides.get("hidden_dim", SIZE_PRESETS[cfg.model.size]["hidden_dim"]))
+        hidden = 8 * max(1, round(HIDDEN_PER_HIDDEN_DIM * hidden_dim / 8))
+        return cls(hidden=hidden, actor_units=cfg.model.actor_units, value_units=cfg.model.value_units)
+
+
+# ---------------------------------------------------------------------------------------------- world model
+class WindowInputCheck(TensorDictModuleBase):
+    """Refuses a bad ``[B, T]`` replay batch with the one-line errors of the other algorithms' world models.
+
+    Reads uint8 ``("next", "pixels")`` ``[B, T, 3, 64, 64]`` (or floats in [0, 1]), ``"action"`` ``[B, T, A]`` and
+    ``"is_init"`` ``[B, T, 1]``; writes nothing. One min/max of float pixels; uint8 pixels are not scanned.
+
+    Args:
+        action_dim: width of ``"action"``.
+    """
+
+    def __init__(self, *, action_dim: int) -> None:
+        super().__init__()
+        self.action_dim = action_dim
+        self.in_keys = [PIXELS, "action", "is_init"]
+        self.out_keys = []
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if tensordict.batch_dims != 2:
+            raise ValueError(
+                f"the DreamerV3 world model expects a [B, T] tensordict (replay windows), got batch_size "
+                f"{tuple(tensordict.batch_size)}; reshape flat samples with td.reshape(-1, T)"
+            )
+        pixels, action = tensordict.get(PIXELS, None), tensordict.get("action", None)
+        if pixels is None or action is None:
+            missing = [str(k) for k, v in ((PIXELS, pixels), ("action", action)) if v is None]
+            raise KeyError(f"the DreamerV3 world model needs {missing} in its input tensordict")
+        check_pixels(pixels, name="('next', 'pixels')")
+        if action.dim() != 3 or action.shape[-1] != self.action_dim:
+            raise ValueError(
+                f"'action' must have shape [B, T, {self.action_dim}] for this world model, got {tuple(action.shape)}"
+            )
+        if tensordict.batch_size[1] < 2:
+            raise ValueError(
+                "the DreamerV3 world model needs windows of at least 2 steps (the replay-value target reads the "
+                f"next step; one step teaches no dynamics), got T={tensordict.batch_size[1]}: sample longer windows"
+            )
+        if tensordict.get("is_init", None) is None:
+            raise ValueError(
+                "the DreamerV3 world model needs 'is_init' [B, T, 1] bool (True where an episode starts; TorchRL's "
+                "InitTracker writes it): without it windows never reset. Pass torch.zeros(B, T, 1, "
+                "dtype=torch.bool) for windows inside one episode"
+            )
+        check_pixel_values(pixels, name="('next', 'pixels')")
+        if not bool(torch.isfinite(action).all()):
+            raise ValueError("'action' holds NaN or inf values: check the policy or the replay data")
+        return tensordict
+
+
+@dataclass
+class DreamerV3Parts:
+    """The networks, shared by the world model, imagination, the losses and the acting policy."""
+
+    encoder: DreamerV3ImageEncoder
+    prior: RSSMPriorV3
+    posterior: RSSMPosteriorV3
+    decoder: DreamerV3ImageDecoder
+    reward: DreamerV3MLP
+    continuation: DreamerV3MLP
+
+
+def _parts(
+    *, action_dim: int, widths: DreamerV3Widths, settings: DreamerV3Settings, device
+) -> DreamerV3Parts:
+    depth, hidden, deter = widths.classes, widths.hidden, widths.deter
+    latent = widths.state_dim(settings) + deter
+    encoder = DreamerV3ImageEncoder(depth=depth, device=device)
+    categorical = {"num_categoricals": settings.num_categoricals, "num_classes": widths.classes}
+    return DreamerV3Parts(
+        encoder=encoder,
+        prior=RSSMPriorV3(
+            action_shape=(action_dim,),
+            hidden_dim=hidden,
+            rnn_hidden_dim=deter,
+            action_dim=action_dim,
+            recurrent_model="block_gru",
+            num_blocks=settings.num_blocks,
+            prior_num_layers=settings.prior_layers,
+            unimix=settings.unimix,
+            device=device,
+            **categorical,
+        ),
+        posterior=RSSMPosteriorV3(
+            hidden_dim=hidden,
+            rnn_hidden_dim=deter,
+            obs_embed_dim=encoder.output_features((3, 64, 64)),
+            use_rms_norm=True,
+            unimix=settings.unimix,
+            device=device,
+            **categorical,
+        ),
+        decoder=DreamerV3ImageDecoder(latent, depth=depth, num_blocks=settings.num_blocks, device=device),
+        reward=DreamerV3MLP(
+            latent, settings.num_bins, depth=1, num_cells=hidden, outscale=0.0, device=device
+        ),
+        continuation=DreamerV3MLP(latent, 1, depth=1, num_cells=hidden, device=device),
+    )
+
+
+def _next(key: str) -> tuple[str, str]:
+    return ("next", key)
+
+
+def _world_model(parts: DreamerV3Parts, *, action_dim: int, num_bins: int) -> TensorDictSequential:
+    """Input check, encoder, RSSM rollout (reset at ``is_init``), decoder, reward and continuation heads."""
+    return TensorDictSequential(
+        WindowInputCheck(action_dim=action_dim),
+        TensorDictModule(parts.encoder, in_keys=[PIXELS], out_keys=[_next("encoded_latents")]),
+        RSSMRolloutV3(
+            TensorDictModule(
+                parts.prior,
+                in_keys=["state", "belief", "action"],
+                out_keys=[_next("prior_logits"), _next("state"), _next("belief")],
+            ),
+            TensorDictModule(
+                parts.posterior,
+                in_keys=[_next("belief"), _next("encoded_latents")],
+                out_keys=[_next("posterior_logits"), _next("state")],
+            ),
+            reset_key="is_init",
+        ),
+        TensorDictModule(
+            parts.decoder, in_keys=[_next("state"), _next("belief")], out_keys=[_next("reco_pixels")]
+        ),
+        TensorDictModule(
+            parts.reward, in_keys=[_next("belief"), _next("state")], out_keys=[_next("reward_logits")]
+        ),
+        TensorDictModule(
+            SymExpTwoHot(num_bins), in_keys=[_next("reward_logits")], out_keys=[_next("reward")]
+        ),
+        TensorDictModule(
+            parts.continuation, in_keys=[_next("belief"), _next("state")], out_keys=[_next("continue_pred")]
+        ),
+    )
+
+
+def _model_based_env(
+    parts: DreamerV3Parts, *, action_dim: int, state_dim: int, belief_dim: int, num_bins: int, device
+) -> DreamerEnv:
+    """Imagination: the prior steps ``state``/``belief``, the reward head gives the (decoded) reward. The specs
+    that ``set_specs_from_env`` would copy from a primed env, set by hand (the components know no env)."""
+    env = DreamerEnv(
+        world_model=WorldModelWrapper(
+            TensorDictModule(
+                parts.prior, in_keys=["state", "belief", "action"], out_keys=["_", "state", "belief"]
+            ),
+            TensorDictSequential(
+                TensorDictModule(parts.reward, in_keys=["belief", "state"], out_keys=["reward_logits"]),
+                TensorDictModule(SymExpTwoHot(num_bins), in_keys=["reward_logits"], out_keys=["reward"]),
+            ),
+        ),
+        prior_shape=torch.Size([state_dim]),
+        belief_shape=torch.Size([belief_dim]),
+        device=device,
+    )
+    latent = Composite(
+        state=Unbounded((state_dim,), device=device), belief=Unbounded((belief_dim,), device=device)
+    )
+    env.action_spec = Bounded(-1.0, 1.0, (action_dim,), device=device)
+    env.observation_spec = latent.clone()
+    env.state_spec = latent.clone()
+    env.reward_spec = Unbounded((1,), device=device)
+    return env
+
+
+# ---------------------------------------------------------------------------------------------- behaviour
+class DreamerV3ContinuousActor(nn.Module):
+    """DreamerV3's bounded-normal actor: ``loc = tanh(mean)``, ``scale = (max - min) sigmoid(s + 2) + min``.
+
+    A ``DreamerV3MLP`` trunk (RMS norm, SiLU) on ``[belief, state]`` and two linear heads whose initial weights
+    are scaled by 0.01, as TorchRL's DreamerV3 reproduction builds it.
+
+    Args:
+        in_features: width of ``[belief, state]``.
+        action_dim: width of the action.
+        num_cells: width of the trunk's hidden layers.
+        depth: hidden layers of the trunk. Defaults to 3.
+        min_std: lower bound of the std. Defaults to 0.1.
+        max_std: upper bound of the std. Defaults to 1.0.
+        device: where the parameters live.
+
+    Examples:
+        >>> actor = DreamerV3ContinuousActor(12, 2, num_cells=8)
+        >>> loc, scale = actor(torch.zeros(4, 8), torch.zeros(4, 4))
+        >>> loc.shape, bool(((scale >= 0.1) & (scale <= 1.0)).all())
+        (torch.Size([4, 2]), True)
+    """
+
+    def __init__(
+        self,
+        in_features: int,
+        action_dim: int,
+        *,
+        num_cells: int,
+        depth: int = 3,
+        min_std: float = 0.1,
+        max_std: float = 1.0,
+        device=None,
+    ) -> None:
+        super().__init__()
+        self.trunk = DreamerV3MLP(in_features, None, depth=depth, num_cells=num_cells, device=device)
+        self.mean = DreamerV3MLP(num_cells, action_dim, depth=0, outscale=0.01, device=device)
+        self.std = DreamerV3MLP(num_cells, action_dim, depth=0, outscale=0.01, device=device)
+        self.min_std, self.max_std = min_std, max_std
+
+    def forward(self, belief: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``[*B, D]``, ``[*B, S]`` -> ``loc`` ``[*B, A]`` in (-1, 1), ``scale`` ``[*B, A]`` in [min, max]."""
+        hidden = self.trunk(belief, state)
+        scale = (self.max_std - self.min_std) * torch.sigmoid(self.std(hidden) + 2.0) + self.min_std
+        return self.mean(hidden).tanh(), scale
+
+
+def _actor(*, latent: int, action_dim: int, units: int, settings: DreamerV3Settings, device):
+    return ProbabilisticTensorDictSequential(
+        TensorDictModule(
+            DreamerV3ContinuousActor(
+                latent,
+                action_dim,
+                num_cells=units,
+                min_std=settings.policy_min_std,
+                max_std=settings.policy_max_std,
+                device=device,
+            ),
+            in_keys=["belief", "state"],
+            out_keys=["loc", "scale"],
+        ),
+        ProbabilisticTensorDictModule(
+            in_keys=["loc", "scale"],
+            out_keys=["action"],
+            default_interaction_type=InteractionType.RANDOM,
+            distribution_class=IndependentNormal,
+            return_log_prob=True,
+            log_prob_key="action_log_prob",
+        ),
+    )
+
+
+def _value(*, latent: int, units: int, num_bins: int, device) -> TensorDictSequential:
+    return TensorDictSequential(
+        TensorDictModule(
+            DreamerV3MLP(latent, num_bins, depth=3, num_cells=units, outscale=0.0, device=device),
+            in_keys=["belief", "state"],
+            out_keys=["state_value_logits"],
+        ),
+        TensorDictModule(SymExpTwoHot(num_bins), in_keys=["state_value_logits"], out_keys=["state_value"]),
+    )
+
+
+class TorchRLDreamerV3Policy(TensorDictModuleBase):
+    """Acting policy around TorchRL's DreamerV3 acting sequence (encoder, ``RSSMStateEstimatorV3``, actor).
+
+    At each env step: ``DreamerV3ImageEncoder`` on uint8 ``"pixels"`` ``[*B, 3, 64, 64]``;
+    ``RSSMStateEstimatorV3`` advances ``belief`` from the carried ``state``, ``belief`` and ``previous_action``
+    (all zeroed where ``"is_init"``) and samples the posterior ``state``; the actor samples the action (exploration
+    type ``RANDOM`` or unset) or gives ``tanh(mean)`` (``DETERMINISTIC``/``MODE``/``MEAN``, e.g. evaluation), clamped
+    to [-1, 1]. The posterior samples its categoricals in both cases, as TorchRL's estimator does.
+
+    Writes ``"action"`` and, following TorchRL's recurrent convention, ``("next", "state")``, ``("next",
+    "belief")`` and ``("next", "previous_action")``; prime the env with :meth:`make_tensordict_primer`. Runs
+    without gradients, on the device of ``module``'s parameters; any batch shape (or none).
+
+    Args:
+        module: the acting sequence described above (reads ``"pixels"``, ``"is_init"`` and the carried keys;
+            writes ``"state"``, ``"belief"``, ``"action"``).
+        state_dim: width of ``"state"``.
+        belief_dim: width of ``"belief"``.
+        action_dim: width of ``"action"``.
+        pixels_key: the observation key. Defaults to ``"pixels"``.
+        action_key: where the action is written. Defaults to ``"action"``.
+    """
+
+    def __init__(
+        self,
+        module: TensorDictModuleBase,
+        *,
+        state_dim: int,
+        belief_dim: int,
+        action_dim: int,
+        pixels_key: str = "pixels",
+        action_key: str = "action",
+    ) -> None:
+        super().__init__()
+        self.module = module
+        self.widths = {"state": state_dim, "belief": belief_dim, "previous_action": action_dim}
+        self.pixels_key, self.action_key = pixels_key, action_key
+        self.in_keys = [pixels_key, "is_init", *CARRIED]
+        self.out_keys = [action_key, *(("next", key) for key in CARRIED)]
+
+    def recurrent_spec(self) -> Composite:
+        """Specs of the carried keys (unbatched): ``"state"`` ``[S]``, ``"belief"`` ``[D]``, ``"previous_action"``
+        ``[A]``."""
+        device = next(self.module.parameters()).device
+        return Composite({key: Unbounded((width,), device=device) for key, width in self.widths.items()})
+
+    def make_tensordict_primer(self) -> TensorDictPrimer:
+        """A ``TensorDictPrimer`` adding the carried keys (zeros at reset) to an env or a batch of envs."""
+        return TensorDictPrimer(self.recurrent_spec(), random=False, default_value=0.0, expand_specs=True)
+
+    @torch.no_grad()
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        batch = tensordict.batch_size
+        device = next(self.module.parameters()).device
+        pixels, carried, reset = read_acting_inputs(
+            tensordict,
+            owner="TorchRLDreamerV3Policy",
+            pixels_key=self.pixels_key,
+            carried_keys=list(CARRIED),
+            device=device,
+        )
+        if pixels.dtype != torch.uint8:
+            raise ValueError(f"{self.pixels_key!r} must be uint8 [*B, 3, 64, 64], got {pixels.dtype}")
+        n = pixels.shape[0]
+        if reset is None:
+            reset = torch.zeros(n, 1, dtype=torch.bool, device=device)
+        work = TensorDict(
+            {"pixels": pixels.to(device), "is_init": reset, **carried}, batch_size=[n], device=device
+        )
+        self.module(work)
+        action = work.get("action").clamp(-1.0, 1.0)
+        out_device = tensordict.device if tensordict.device is not None else pixels.device
+        tensordict.set(self.action_key, action.to(out_device).reshape(*batch, -1))
+        for key, value in (
+            ("state", work.get("state")),
+            ("belief", work.get("belief")),
+            ("previous_action", action),
+        ):
+            tensordict.set(("next", key), value.to(out_device).reshape(*batch, -1))
+        return tensordict
+
+
+@dataclass
+class TorchRLDreamerV3Learner:
+    """TorchRL's DreamerV3 learner: networks, losses, slow-critic updater, imagination env and acting policy."""
+
+    world_model: TensorDictSequential
+    actor: ProbabilisticTensorDictSequential
+    value: TensorDictSequential
+    model_based_env: DreamerEnv
+    model_loss: DreamerV3ModelLoss
+    actor_loss: DreamerV3ActorLoss
+    value_loss: DreamerV3ValueLoss
+    loss_module: DreamerV3Loss
+    target_updater: SoftUpdate
+    policy: TorchRLDreamerV3Policy
+
+    def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
+        """The trained parameters, each once: ``world_model``, ``actor``, ``value`` (not its slow copy)."""
+        return {
+            "world_model": list(self.world_model.parameters()),
+            "actor": list(self.actor.parameters()),
+            "value": list(self.value_loss.parameters()),
+        }
+
+
+def dreamer_v3_model_loss(
+    world_model: TensorDictModuleBase, *, settings: DreamerV3Settings = DreamerV3Settings()
+) -> DreamerV3ModelLoss:
+    """``DreamerV3ModelLoss`` as TorchRL's reproduction configures it for pixels: separate dynamics and
+    representation KL, squared error on ``pixels / 255`` (no symlog), two-hot reward, continuation trained to
+    ``1 - 1 / continuation_horizon``; the output keeps its graph for the replay-value term."""
+    return DreamerV3ModelLoss(
+        world_model,
+        kl_mode="separate",
+        lambda_dynamic=settings.lambda_dynamic,
+        lambda_representation=settings.lambda_representation,
+        unimix=settings.unimix,
+        free_bits=settings.free_bits,
+        lambda_continue=1.0,
+        continue_target_scale=1.0 - 1.0 / settings.continuation_horizon,
+        reco_symlog=False,
+        num_reward_bins=settings.num_bins,
+        detach_output=False,
+    )
+
+
+def make_torchrl_dreamer_v3(
+    *,
+    action_dim: int,
+    widths: DreamerV3Widths,
+    horizon: int = 15,
+    settings: DreamerV3Settings = DreamerV3Settings(),
+    device: str | torch.device = "cpu",
+) -> TorchRLDreamerV3Learner:
+    """TorchRL's DreamerV3 modules and losses composed as its reproduction composes them, at ``widths``.
+
+    Args:
+        action_dim: width of the action (in [-1, 1]).
+        widths: the widths (:class:`DreamerV3Widths`).
+        horizon: imagination horizon.
+        settings: DreamerV3's settings (:class:`DreamerV3Settings`).
+        device: where the modules live.
+
+    Returns:
+        :class:`TorchRLDreamerV3Learner`; ``loss_module(td)`` on a ``[B, T]`` replay batch (root ``"state"``/
+        ``"belief"`` zeros) returns every ``loss_*`` term.
+    """
+    state_dim, belief_dim = widths.state_dim(settings), widths.deter
+    latent = state_dim + belief_dim
+    parts = _parts(action_dim=action_dim, widths=widths, settings=settings, device=device)
+    world_model = _world_model(parts, action_dim=action_dim, num_bins=settings.num_bins)
+    model_based_env = _model_based_env(
+        parts,
+        action_dim=action_dim,
+        state_dim=state_dim,
+        belief_dim=belief_dim,
+        num_bins=settings.num_bins,
+        device=device,
+    )
+    actor = _actor(
+        latent=latent, action_dim=action_dim, units=widths.actor_units, settings=settings, device=device
+    )
+    value = _value(latent=latent, units=widths.value_units, num_bins=settings.num_bins, device=device)
+    model_loss = dreamer_v3_model_loss(world_model, settings=settings)
+    continuation = TensorDictSequential(
+        TensorDictModule(parts.continuation, in_keys=["belief", "state"], out_keys=["continue_logits"]),
+        TensorDictModule(nn.Sigmoid(), in_keys=["continue_logits"], out_keys=["continuation"]),
+    )
+    actor_loss = DreamerV3ActorLoss(
+        actor,
+        value,
+        model_based_env,
+        continuation_model=continuation,
+        imagination_horizon=horizon,
+        entropy_bonus=settings.entropy_bonus,
+        use_reinforce=True,
+        return_normalization_rate=settings.return_normalization_rate,
+        return_normalization_min_scale=settings.return_normalization_min_scale,
+    )
+    actor_loss.make_value_estimator(ValueEstimators.TDLambda, gamma=1.0, lmbda=settings.lmbda)
+    value_loss = DreamerV3ValueLoss(
+        value,
+        value_loss="two_hot",
+        num_value_bins=settings.num_bins,
+        actor_loss=actor_loss,
+        slow_critic_regularization=settings.slow_critic_regularization,
+    )
+    loss_module = DreamerV3Loss(
+        model_loss,
+        actor_loss,
+        value_loss,
+        replay_value_loss_weight=settings.replay_value_loss_weight,
+        continuation_horizon=settings.continuation_horizon,
+        lmbda=settings.lmbda,
+    )
+    acting = TensorDictSequential(
+        TensorDictModule(parts.encoder, in_keys=["pixels"], out_keys=["encoded_latents"]),
+        RSSMStateEstimatorV3(parts.prior, parts.posterior),
+        actor,
+    )
+    return TorchRLDreamerV3Learner(
+        world_model=world_model,
+        actor=actor,
+        value=value,
+        model_based_env=model_based_env,
+        model_loss=model_loss,
+        actor_loss=actor_loss,
+        value_loss=value_loss,
+        loss_module=loss_module,
+        target_updater=SoftUpdate(value_loss, tau=settings.slow_critic_tau),
+        policy=TorchRLDreamerV3Policy(
+            acting, state_dim=state_dim, belief_dim=belief_dim, action_dim=action_dim
+        ),
+    )
+
+
+# ---------------------------------------------------------------------------------------------- optimisation
+class TorchRLDreamerV3OptimizationStepper(IsoDreamOptimizationStepper):
+    """One DreamerV3 update (TorchRL's ``DreamerV3OptimizationStepper``'s, eager) as the run's stepper.
+
+    Per :meth:`step` on a flat ``[B * T]`` replay sample: :meth:`prepare` (zero root ``"state"``/``"belief"``, as
+    TorchRL's reproduction sets them; on the training device), windows ``[B, T]``, then ``DreamerV3Loss`` (world
+    model, imagination from every posterior, actor, critic, replay critic), one backward of the sum of its
+    ``loss_*`` terms, one step of each ``DreamerV3Optimizer`` and of the slow critic's ``SoftUpdate``. During the
+    first ``world_model_warmup`` updates only ``DreamerV3ModelLoss`` runs and only the world model's optimiser
+    steps (the other terms are logged as NaN).
+
+    An update whose loss or gradient norm (``grad_norm_<group>``, logged before the optimiser's own adaptive
+    clipping: no other clipping) is not finite is skipped; ``max_nonfinite`` in a row raise. Counters, metric
+    keys and checkpoint state are those of :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper`;
+    the return normalisation's statistics are module buffers, checkpointed with the models.
+
+    Args:
+        loss_module: ``DreamerV3Loss``.
+        optimizers: a ``DreamerV3Optimizer`` per parameter group: ``"world_model"``, ``"actor"``, ``"value"``.
+        target_updater: the slow critic's ``SoftUpdate``.
+        sequence_length: T, the replay window length.
+        state_dim: width of ``"state"``.
+        belief_dim: width of ``"belief"``.
+        max_nonfinite: non-finite updates in a row that stop the run.
+        world_model_warmup: updates of the world model alone first.
+        device: the training device.
+    """
+
+    def __init__(
+        self,
+        *,
+        loss_module: DreamerV3Loss,
+        optimizers: dict[str, torch.optim.Optimizer],
+        target_updater: SoftUpdate,
+        sequence_length: int,
+        state_dim: int,
+        belief_dim: int,
+        max_nonfinite: int = 5,
+        world_model_warmup: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
+        if set(optimizers) != set(GROUPS):
+            raise ValueError(f"optimizers must be keyed {list(GROUPS)}, got {sorted(optimizers)}")
+        super().__init__(
+            model_loss=loss_module.model_loss,
+            world_model_optimizer=optimizers["world_model"],
+            sequence_length=sequence_length,
+            target_updater=target_updater,
+            grad_clip=math.inf,
+            max_nonfinite=max_nonfinite,
+            world_model_warmup=world_model_warmup,
+        )
+        self.optimizers = {name: optimizers[name] for name in GROUPS}
+        self.loss_module = loss_module
+        self.state_dim, self.belief_dim = state_dim, belief_dim
+        self.device = torch.device(device)
+
+    def prepare(self, sub_batch: TensorDictBase) -> TensorDictBase:
+        """What ``DreamerV3Loss`` reads, from a flat ``[N]`` replay sample.
+
+        Returns:
+            ``[N]`` tensordict on the training device: ``"action"``, ``"is_init"``, ``("next", "pixels")`` (as
+            stored, uint8), ``("next", "reward")``, ``("next", "done")``, ``("next", "terminated")``, and zero
+            ``"state"`` ``[N, S]`` / ``"belief"`` ``[N, D]`` (the rollout reads each window's first step).
+        """
+        n = sub_batch.numel()
+        batch = sub_batch.select(
+            "action",
+            "is_init",
+            PIXELS,
+            ("next", "reward"),
+            ("next", "done"),
+            ("next", "terminated"),
+            strict=False,
+        )
+        batch.set("state", torch.zeros(n, self.state_dim))
+        batch.set("belief", torch.zeros(n, self.belief_dim))
+        return batch.to(self.device)
+
+    def step(self, trainer, sub_batch: TensorDictBase) -> TensorDictBase:
+        """One update on a flat ``[B * T]`` replay sample; returns detached scalar metrics (fixed key set)."""
+        return super().step(trainer, self.prepare(sub_batch.reshape(-1)))
+
+    def _losses(self, batch: TensorDictBase, *, world_model_only: bool) -> TensorDictBase:
+        if world_model_only:
+            losses, _ = self.loss_module.model_loss(batch)
+            return losses.apply(torch.squeeze)
+        losses = self.loss_module(batch)
+        return losses.exclude(self.loss_module.tensor_keys.replay_context)
+
+    @torch.no_grad()
+    def _discover_keys(self, batch: TensorDictBase) -> None:
+        """The metric names of a full update, from the loss on a ``[1, 2]`` slice of the first batch; the return
+        normalisation's statistics it moves are put back, so that a resumed run continues exactly."""
+        saved = [(buffer, buffer.clone()) for buffer in self.loss_module.buffers()]
+        try:
+            keys = list(self._losses(batch, world_model_only=False).keys())
+        finally:
+            for buffer, value in saved:
+                buffer.copy_(value)
+        self._metric_keys = [*keys, *(f"grad_norm_{name}" for name in GROUPS), "nonfinite_skipped"]
+
+    def _run(self, batch: TensorDictBase, metrics: dict[str, torch.Tensor]) -> bool:
+        warming_up = self.updates < self.world_model_warmup
+        losses = self._losses(batch, world_model_only=warming_up)
+        metrics.update({k: v.detach() for k, v in losses.items()})
+        # grad_clip is inf: _clip_and_step only measures the norms, TorchRL's optimiser clips
+        stepped = ["world_model"] if warming_up else list(GROUPS)
+        return self._backward(loss_sum(losses), list(GROUPS)) and self._clip_and_step(stepped, metrics)
+
+
+# ---------------------------------------------------------------------------------------------- run components
+@dataclass
+class TorchRLDreamerV3Behavior:
+    """What the run reads of the behaviour side: the acting policy (and the losses, for inspection)."""
+
+    policy: TorchRLDreamerV3Policy
+    actor_loss: DreamerV3ActorLoss
+    value_loss: DreamerV3ValueLoss
+
+
+class TorchRLDreamerV3Components(RunComponents):
+    """Models, losses, optimiser, stepper and replay buffer of an ``algo=torchrl_dreamer_v3`` run.
+
+    The interface of :class:`~isodream_rl.trainers.run.RunComponents` over TorchRL's DreamerV3
+    (:func:`make_torchrl_dreamer_v3`): widths from :meth:`DreamerV3Widths.from_run`; ``algo.horizon``;
+    ``train.world_model_lr``/``actor_lr``/``value_lr`` as the optimiser's three parameter groups,
+    ``world_model_warmup``, ``max_nonfinite_updates``, ``device``. The replay buffer, its preparation hook and the
+    episode-return hook are the Iso-Dream run's.
+
+    Args:
+        cfg: the run configuration.
+        action_dim: width of the env's action.
+        scratch_dir: folder of the replay buffer's memmap files.
+        settings: DreamerV3's settings. Defaults to TorchRL's (:class:`DreamerV3Settings`).
+
+    Attributes:
+        learner (:class:`TorchRLDreamerV3Learner`), model_loss (``DreamerV3ModelLoss``), world_model (``None``: no
+        open-loop prediction in the evaluation), behavior (:class:`TorchRLDreamerV3Behavior`), stepper
+        (:class:`TorchRLDreamerV3OptimizationStepper`), replay_buffer, preparation, returns.
+    """
+
+    def __init__(
+        self,
+        cfg: RunConfig,
+        *,
+        action_dim: int,
+        scratch_dir: Path,
+        settings: DreamerV3Settings = DreamerV3Settings(),
+    ) -> None:
+        train = cfg.train
+        widths = DreamerV3Widths.from_run(cfg)
+        self.learner = make_torchrl_dreamer_v3(
+            action_dim=action_dim,
+            widths=widths,
+            horizon=cfg.algo.horizon,
+            settings=settings,
+            device=train.device,
+        )
+        self.model_loss = self.learner.model_loss
+        self.world_model = None
+        self.behavior = TorchRLDreamerV3Behavior(
+            policy=self.learner.policy, actor_loss=self.learner.actor_loss, value_loss=self.learner.value_loss
+        )
+        rates = {"world_model": train.world_model_lr, "actor": train.actor_lr, "value": train.value_lr}
+        optimizers = {
+            name: DreamerV3Optimizer(
+                params,
+                lr=rates[name],
+                agc=settings.agc,
+                eps=settings.optimizer_eps,
+                warmup_steps=settings.lr_warmup,
+            )
+            for name, params in self.learner.parameter_groups().items()
+        }
+        self.stepper = TorchRLDreamerV3OptimizationStepper(
+            loss_module=self.learner.loss_module,
+            optimizers=optimizers,
+            target_updater=self.learner.target_updater,
+            sequence_length=train.sequence_length,
+            state_dim=widths.state_dim(settings),
+            belief_dim=widths.deter,
+            max_nonfinite=train.max_nonfinite_updates,
+            world_model_warmup=train.world_model_warmup,
+            device=train.device,
+        )
+        self.replay_buffer = make_replay_buffer(cfg, scratch_dir=scratch_dir)
+        self.preparation = ReplayPreparation(
+            num_envs=cfg.env.num_envs, capacity_per_env=train.buffer_size // cfg.env.num_envs
+        )
+        self.returns = EpisodeReturns()
+
+    def modules(self) -> dict[str, nn.Module]:
+        """The trained modules and the return normalisation's statistics, by checkpoint name (imagination, the
+        losses and the policy share them)."""
+        return {
+            "world_model": self.learner.world_model,
+            "actor": self.learner.actor,
+            "value_loss": self.learner.value_loss,
+            "return_norm": self.learner.actor_loss.retnorm,
+        }
+
+    def load_models(self, state: dict) -> None:
+        """Load the weights saved by :meth:`state` (checkpoint key ``"models"``)."""
+        missing = set(self.modules()) - set(state["models"])
+        if missing:
+            raise KeyError(
+                f"the checkpoint has no {sorted(missing)} weights: it was not written by an "
+                "algo=torchrl_dreamer_v3 run"
+            )
+        super().load_models(state)
