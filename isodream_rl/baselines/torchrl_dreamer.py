@@ -62,7 +62,7 @@ from torchrl.objectives import DreamerActorLoss, DreamerModelLoss, DreamerValueL
 from torchrl.objectives.utils import ValueEstimators
 
 from isodream_rl.modules.config import SIZE_PRESETS
-from isodream_rl.modules.policy import read_acting_inputs
+from isodream_rl.modules.policy import carried_state_primer, read_acting_inputs
 from isodream_rl.trainers.builders import make_adam, make_replay_buffer
 from isodream_rl.trainers.config import RunConfig
 from isodream_rl.trainers.hooks import EpisodeReturns, ReplayPreparation
@@ -274,7 +274,7 @@ class TorchRLDreamerPolicy(TensorDictModuleBase):
     def make_tensordict_primer(self) -> TensorDictPrimer:
         """A ``TensorDictPrimer`` adding ``"state"``/``"belief"`` (zeros at reset) to an env or a batch of envs,
         as TorchRL's example primes its env."""
-        return TensorDictPrimer(self.recurrent_spec(), random=False, default_value=0.0, expand_specs=True)
+        return carried_state_primer(self.recurrent_spec())
 
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:

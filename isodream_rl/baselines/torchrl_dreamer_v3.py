@@ -123,7 +123,7 @@ from torchrl.trainers.algorithms import DreamerV3Optimizer
 
 from isodream_rl.modules.config import SIZE_PRESETS
 from isodream_rl.modules.encoder import check_pixel_values, check_pixels
-from isodream_rl.modules.policy import read_acting_inputs
+from isodream_rl.modules.policy import carried_state_primer, read_acting_inputs
 from isodream_rl.trainers.builders import make_replay_buffer
 from isodream_rl.trainers.config import ConfigError, RunConfig
 from isodream_rl.trainers.hooks import EpisodeReturns, ReplayPreparation
@@ -537,7 +537,7 @@ class TorchRLDreamerV3Policy(TensorDictModuleBase):
 
     def make_tensordict_primer(self) -> TensorDictPrimer:
         """A ``TensorDictPrimer`` adding the carried keys (zeros at reset) to an env or a batch of envs."""
-        return TensorDictPrimer(self.recurrent_spec(), random=False, default_value=0.0, expand_specs=True)
+        return carried_state_primer(self.recurrent_spec())
 
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:

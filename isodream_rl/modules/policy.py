@@ -18,6 +18,12 @@ from isodream_rl.modules.world_model import IsoDreamWorldModel
 _RANDOM = (None, ExplorationType.RANDOM)
 
 
+def carried_state_primer(spec: Composite) -> TensorDictPrimer:
+    """A ``TensorDictPrimer`` adding the carried keys of ``spec`` (unbatched ``Composite``), zeros at reset, to
+    an env or a batch of envs: what every acting policy's ``make_tensordict_primer`` returns."""
+    return TensorDictPrimer(spec, random=False, default_value=0.0, expand_specs=True)
+
+
 def read_acting_inputs(
     tensordict: TensorDictBase,
     *,
@@ -135,7 +141,7 @@ class IsoDreamPolicy(TensorDictModuleBase):
 
     def make_tensordict_primer(self) -> TensorDictPrimer:
         """A ``TensorDictPrimer`` adding the carried keys (zeros at reset) to an env or a batch of envs."""
-        return TensorDictPrimer(self.recurrent_spec(), random=False, default_value=0.0, expand_specs=True)
+        return carried_state_primer(self.recurrent_spec())
 
     def _window(self, free_state: torch.Tensor, free_belief: torch.Tensor) -> torch.Tensor:
         tau = self.policy_input.window
