@@ -57,11 +57,13 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import cpu_name, git_commit  # noqa: E402
 
+import isodream_rl.baselines  # noqa: F401  (registers algo=torchrl_dreamer and torchrl_dreamer_v3)
 from isodream_rl.envs import make_env
 from isodream_rl.objectives import lambda_returns
 from isodream_rl.objectives.imagination import policy_features
 from isodream_rl.trainers.checkpoint import CheckpointManager
-from isodream_rl.trainers.run import config_from_dict, make_components
+from isodream_rl.trainers.config import config_from_dict
+from isodream_rl.trainers.registry import make_components
 
 #: an imagined step whose predicted reward exceeds this counts as a reach: a real reach step earns 1 plus its
 #: progress, the progress term alone at most about 0.71 (a full-speed diagonal step), so 0.7 would count those

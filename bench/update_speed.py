@@ -35,8 +35,9 @@ from tensordict import TensorDict
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import provenance  # noqa: E402
 
-import isodream_rl.cli  # noqa: E402, F401  (registers the config schema)
-from isodream_rl.trainers.run import make_components, probe_action_dim  # noqa: E402
+import isodream_rl.cli  # noqa: E402, F401  (registers the config schema and the TorchRL baselines)
+from isodream_rl.trainers.registry import make_components  # noqa: E402
+from isodream_rl.trainers.run_lifecycle import probe_action_dim  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "isodream_rl" / "configs"

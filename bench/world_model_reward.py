@@ -29,9 +29,9 @@ from common import cpu_name, git_commit  # noqa: E402  (bench/common.py, on the 
 
 from isodream_rl.envs.builder import make_gym_env
 from isodream_rl.envs.reference import scripted_action
+from isodream_rl.trainers.components import RunComponents
 from isodream_rl.trainers.config import RunConfig
 from isodream_rl.trainers.openloop import open_loop_prediction, prediction_frames, save_gif
-from isodream_rl.trainers.run import RunComponents
 
 p = argparse.ArgumentParser()
 p.add_argument("--name", required=True)

@@ -30,13 +30,16 @@ import hydra  # noqa: E402
 from hydra.core.config_store import ConfigStore  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
+import isodream_rl.baselines  # noqa: E402, F401  (registers algo=torchrl_dreamer and torchrl_dreamer_v3)
 from isodream_rl.cli_overrides import check_overrides  # noqa: E402
 from isodream_rl.configs import register_dmc_envs  # noqa: E402
+from isodream_rl.recipes.latent_probe import probe  # noqa: E402
 from isodream_rl.run_lock import RunDirBusyError  # noqa: E402
 from isodream_rl.trainers import run as run_module  # noqa: E402
 from isodream_rl.trainers.checkpoint import CheckpointError  # noqa: E402
 from isodream_rl.trainers.config import ConfigError, RunConfig  # noqa: E402
 from isodream_rl.trainers.disk_space import DiskFullError  # noqa: E402
+from isodream_rl.trainers.run_lifecycle import RunResult  # noqa: E402
 from isodream_rl.trainers.stepper import NonFiniteLossError  # noqa: E402
 from isodream_rl.user_errors import log_to_stderr, report_user_errors, take_debug_flag  # noqa: E402
 
@@ -44,7 +47,7 @@ ConfigStore.instance().store(name="run_schema", node=RunConfig)
 register_dmc_envs()  # env=dmc_<domain>_<task> for every dm_control suite task
 
 
-def _summary(result: run_module.RunResult) -> str:
+def _summary(result: RunResult) -> str:
     lines = [
         f"run finished: {result.env_steps} env steps, {result.updates} updates"
         + (f" (resumed from {result.resumed_from})" if result.resumed_from else ""),
@@ -72,7 +75,9 @@ def _train_main(dict_cfg: DictConfig) -> None:
     log_to_stderr()
     with report_user_errors("isodream-train", TRAIN_ERRORS):
         cfg: RunConfig = OmegaConf.to_object(dict_cfg)
-        result = run_module.train(cfg)
+        # the algorithm is the registered one of cfg.algo.name (isodream_rl.trainers.registry); a world-model run
+        # on sprites ends with the latent probe
+        result = run_module.train(cfg, probe=probe)
     print(_summary(result))
 
 

@@ -45,7 +45,7 @@ def test_training_entry_points_turn_on_huge_pages_unless_the_user_chose(preset):
     extra = {} if preset is None else {"THP_MEM_ALLOC_ENABLE": preset}
     read = "import os; print(os.environ.get('THP_MEM_ALLOC_ENABLE'))"
     assert _run(f"import isodream_rl; {read}", **extra) == str(preset)  # the package alone sets nothing
-    for entry in ("isodream_rl.cli", "isodream_rl.recipes.world_model_demo"):
+    for entry in ("isodream_rl.cli", "isodream_rl.cli_demo"):
         assert _run(f"import {entry}; {read}", **extra) == (preset or "1"), entry
     # torch imported first: its allocator has read the variable already, so the entry point leaves it alone
     assert _run(f"import torch, isodream_rl.cli; {read}", **extra) == str(preset)

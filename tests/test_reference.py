@@ -7,12 +7,12 @@ from isodream_rl.envs import make_env
 from isodream_rl.envs.builder import make_gym_env
 from isodream_rl.envs.reference import (
     CONSTANT_ACTIONS,
-    episode_metrics,
     normalised_score,
     reference_returns,
     run_reference_episodes,
     scripted_action,
 )
+from isodream_rl.envs.task_metrics import episode_metrics
 
 
 def test_constant_candidates_are_zero_and_the_eight_directions():

@@ -16,13 +16,15 @@ ROOT = PACKAGE_DIR.name
 #: the layers, lowest first: a module may import its own layer's and lower layers' modules, never a higher one's.
 #: Each entry is a subpackage or a top-level module of isodream_rl (the package's own ``__init__`` is the lowest).
 LAYERS: tuple[frozenset[str], ...] = (
-    frozenset({"__init__", "process_settings", "user_errors", "run_lock", "csv_logs"}),  # process-wide helpers
+    # process-wide helpers
+    frozenset({"__init__", "process_settings", "user_errors", "run_lock", "csv_logs"}),
     frozenset({"envs", "data", "modules"}),
     frozenset({"objectives"}),
     frozenset({"evaluation"}),
     frozenset({"trainers"}),
     frozenset({"baselines", "recipes", "video_prediction"}),
-    frozenset({"cli", "cli_overrides", "configs"}),
+    # the console entry points and their configuration
+    frozenset({"cli", "cli_demo", "cli_overrides", "configs"}),
 )
 
 
@@ -166,6 +168,10 @@ def test_no_module_imports_a_higher_layer():
 def test_no_two_subpackages_import_each_other():
     units: dict[str, set[str]] = defaultdict(set)
     for module, targets in import_graph().items():
-        units[unit_of(module)].update(unit_of(target) for target in targets if unit_of(target) != unit_of(module))
+        units[unit_of(module)].update(
+            unit_of(target) for target in targets if unit_of(target) != unit_of(module)
+        )
     loops = cycles(dict(units))
-    assert not loops, "subpackages that import each other:\n" + "\n".join(" <-> ".join(loop) for loop in loops)
+    assert not loops, "subpackages that import each other:\n" + "\n".join(
+        " <-> ".join(loop) for loop in loops
+    )

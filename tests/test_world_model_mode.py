@@ -15,10 +15,17 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 import isodream_rl.cli
+from isodream_rl.data.sprites_episodes import collect_sprites_episodes, episode_windows
 from isodream_rl.envs.sprites import DISTRACTOR_COLOURS
-from isodream_rl.recipes.sprites_data import collect_sprites_episodes, episode_windows
-from isodream_rl.recipes.visualize import score_branches
-from isodream_rl.trainers import CheckpointError, CheckpointManager, ConfigError
+from isodream_rl.evaluation.branches import score_branches
+from isodream_rl.recipes.latent_probe import probe
+from isodream_rl.trainers import (
+    CheckpointError,
+    CheckpointManager,
+    ConfigError,
+    IsoDreamOptimizationStepper,
+    world_model_run,
+)
 from isodream_rl.trainers import run as run_module
 from isodream_rl.trainers.world_model_run import collect_episodes, ramp_weight, schedule_value
 from tests.conftest import cli_process
@@ -44,7 +51,7 @@ def composed(*overrides):
 
 
 def train(run_dir, *overrides):
-    return run_module.train(composed(f"run_dir={run_dir}", *overrides))
+    return run_module.train(composed(f"run_dir={run_dir}", *overrides), probe=probe)
 
 
 def latest_state(run_dir) -> dict:
@@ -294,13 +301,37 @@ def test_any_env_of_the_env_group_trains_and_is_scored_where_it_has_ground_truth
         assert not any(k.startswith(("iou_", "background_share_")) for k in result.summary)
 
 
-def test_stops_once_its_wall_clock_budget_is_spent_and_summarises(tmp_path):
-    summary = train(tmp_path, "world_model.updates=100000", "world_model.max_minutes=0.001").summary
+class _UpdateClock:
+    """A clock on which an update takes ``update_s`` seconds and each reading ``read_s`` more: a wall-clock budget
+    runs out after a known number of updates, whatever the machine's speed."""
+
+    def __init__(self, *, update_s: float, read_s: float) -> None:
+        self.now, self.update_s, self.read_s = 0.0, update_s, read_s
+
+    def __call__(self) -> float:
+        self.now += self.read_s
+        return self.now
+
+    def timed(self, step):
+        def timed_step(*args, **kwargs):
+            self.now += self.update_s
+            return step(*args, **kwargs)
+
+        return timed_step
+
+
+def test_stops_once_its_wall_clock_budget_is_spent_and_summarises(tmp_path, monkeypatch):
+    clock = _UpdateClock(update_s=10.0, read_s=0.1)
+    monkeypatch.setattr(world_model_run, "wall_clock", clock)
+    monkeypatch.setattr(IsoDreamOptimizationStepper, "step", clock.timed(IsoDreamOptimizationStepper.step))
+    # a budget of 30 s: spent by the third update (10 s each)
+    summary = train(tmp_path, "world_model.updates=100000", "world_model.max_minutes=0.5").summary
     assert summary["stopped_by"] == "max_minutes" and 1 <= summary["updates"] < 100000
+    assert summary["updates"] == 3
     assert latest_state(tmp_path)["stepper"]["updates"] == summary["updates"]
     assert "iou_control_vs_agent" in summary and summary["png"].endswith(f"{summary['updates']:08d}.png")
     # resumed with a budget of its own (one it has spent already): scored as it is, not trained further
-    again = train(tmp_path, "world_model.updates=100000", "world_model.max_minutes=0.002", "resume=true")
+    again = train(tmp_path, "world_model.updates=100000", "world_model.max_minutes=0.5", "resume=true")
     assert again.summary["stopped_by"] == "max_minutes" and again.updates == summary["updates"]
     assert again.summary["seconds"] > summary["seconds"]
     with pytest.raises(ConfigError, match="max_minutes"):
@@ -348,7 +379,7 @@ def test_isodream_demo_is_isodream_train_exp_world_model(tmp_path):
     env = dict(os.environ, OMP_NUM_THREADS="1", HYDRA_FULL_ERROR="0")
     args = [a for a in TINY if a != "exp=world_model"] + ["run_dir=demo"]
     out = subprocess.run(
-        [sys.executable, "-m", "isodream_rl.recipes.world_model_demo", *args],
+        [sys.executable, "-m", "isodream_rl.cli_demo", *args],
         cwd=tmp_path,
         env=env,
         capture_output=True,
@@ -361,7 +392,7 @@ def test_isodream_demo_is_isodream_train_exp_world_model(tmp_path):
     assert json.loads((tmp_path / "demo" / "summary.json").read_text())["mode"] == "world_model"
     # its former flags are refused with a pointer to their translation
     former = subprocess.run(
-        [sys.executable, "-m", "isodream_rl.recipes.world_model_demo", "--steps", "5"],
+        [sys.executable, "-m", "isodream_rl.cli_demo", "--steps", "5"],
         cwd=tmp_path,
         env=env,
         capture_output=True,

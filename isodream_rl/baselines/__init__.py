@@ -3,6 +3,9 @@
 ``algo=torchrl_dreamer``: TorchRL's own Dreamer pieces at our sizes (:mod:`isodream_rl.baselines.torchrl_dreamer`).
 ``algo=torchrl_dreamer_v3``: TorchRL's DreamerV3 at Iso-Dream's parameter count
 (:mod:`isodream_rl.baselines.torchrl_dreamer_v3`).
+
+Importing this package registers both with the trainers' algorithm registry (:mod:`isodream_rl.trainers.registry`);
+``isodream-train`` imports it.
 """
 
 from isodream_rl.baselines.torchrl_dreamer import (

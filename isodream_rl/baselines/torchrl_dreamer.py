@@ -16,7 +16,8 @@ Local pieces, where TorchRL's did not fit:
   neither resets at ``is_init`` nor writes ``("next", "state")``, and its posterior samples even in evaluation.
 - :class:`TorchRLDreamerOptimizationStepper`: the example's training loop (three optimisers) is a script, not
   an ``OptimizationStepper``; it also turns our replay sample into what ``DreamerModelLoss`` reads.
-- :class:`TorchRLDreamerComponents`: the interface of :class:`~isodream_rl.trainers.run.RunComponents`.
+- :class:`TorchRLDreamerComponents`: the interface of :class:`~isodream_rl.trainers.components.RunComponents`,
+  registered as ``algo=torchrl_dreamer`` (:mod:`isodream_rl.trainers.registry`) when this module is imported.
 """
 
 from __future__ import annotations
@@ -64,9 +65,10 @@ from torchrl.objectives.utils import ValueEstimators
 from isodream_rl.modules.config import SIZE_PRESETS
 from isodream_rl.modules.policy import carried_state_primer, read_acting_inputs
 from isodream_rl.trainers.builders import make_adam, make_replay_buffer
+from isodream_rl.trainers.components import RunComponents
 from isodream_rl.trainers.config import RunConfig
 from isodream_rl.trainers.hooks import EpisodeReturns, ReplayPreparation
-from isodream_rl.trainers.run import RunComponents
+from isodream_rl.trainers.registry import register_algorithm
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
 
 logger = logging.getLogger(__name__)
@@ -677,10 +679,11 @@ class TorchRLDreamerOptimizationStepper(IsoDreamOptimizationStepper):
 
 
 # ---------------------------------------------------------------------------------------------- run components
+@register_algorithm("torchrl_dreamer")
 class TorchRLDreamerComponents(RunComponents):
     """Models, losses, optimisers, stepper and replay buffer of an ``algo=torchrl_dreamer`` run.
 
-    The interface of :class:`~isodream_rl.trainers.run.RunComponents` over TorchRL's Dreamer
+    The interface of :class:`~isodream_rl.trainers.components.RunComponents` over TorchRL's Dreamer
     (:func:`make_torchrl_dreamer`): widths from ``SIZE_PRESETS[model.size]`` + ``model.overrides``,
     ``model.actor_units``/``value_units``; ``algo.horizon``, ``gamma``, ``lmbda``, ``lambda_reward``,
     ``free_nats``; ``train.*_lr``, ``adam_eps``, ``grad_clip``, ``max_nonfinite_updates``, ``device``;

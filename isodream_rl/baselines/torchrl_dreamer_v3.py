@@ -75,7 +75,8 @@ Local pieces, where TorchRL's did not fit:
   non-finite updates, no update counter and no fixed metric keys, which the run's hooks and checkpoints read;
   this one runs the same loss, optimiser and target update inside
   :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper`.
-- :class:`TorchRLDreamerV3Components`: the interface of :class:`~isodream_rl.trainers.run.RunComponents`.
+- :class:`TorchRLDreamerV3Components`: the interface of :class:`~isodream_rl.trainers.components.RunComponents`,
+  registered as ``algo=torchrl_dreamer_v3`` (:mod:`isodream_rl.trainers.registry`) when this module is imported.
 
 Composing it found no bug in TorchRL 0.14.1's DreamerV3 classes that needed a local fix. Two behaviours to know:
 ``RSSMRolloutV3`` zeroes state, belief and the transition's action where ``is_init`` is set, so a window (or an
@@ -125,9 +126,10 @@ from isodream_rl.modules.config import SIZE_PRESETS
 from isodream_rl.modules.encoder import check_pixel_values, check_pixels
 from isodream_rl.modules.policy import carried_state_primer, read_acting_inputs
 from isodream_rl.trainers.builders import make_replay_buffer
+from isodream_rl.trainers.components import RunComponents
 from isodream_rl.trainers.config import ConfigError, RunConfig
 from isodream_rl.trainers.hooks import EpisodeReturns, ReplayPreparation
-from isodream_rl.trainers.run import RunComponents
+from isodream_rl.trainers.registry import register_algorithm
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper, loss_sum
 
 logger = logging.getLogger(__name__)
@@ -827,10 +829,11 @@ class TorchRLDreamerV3Behavior:
     value_loss: DreamerV3ValueLoss
 
 
+@register_algorithm("torchrl_dreamer_v3")
 class TorchRLDreamerV3Components(RunComponents):
     """Models, losses, optimiser, stepper and replay buffer of an ``algo=torchrl_dreamer_v3`` run.
 
-    The interface of :class:`~isodream_rl.trainers.run.RunComponents` over TorchRL's DreamerV3
+    The interface of :class:`~isodream_rl.trainers.components.RunComponents` over TorchRL's DreamerV3
     (:func:`make_torchrl_dreamer_v3`): widths from :meth:`DreamerV3Widths.from_run`; ``algo.horizon``;
     ``train.world_model_lr``/``actor_lr``/``value_lr`` as the optimiser's three parameter groups,
     ``world_model_warmup``, ``max_nonfinite_updates``, ``device``. The replay buffer, its preparation hook and the

@@ -1,4 +1,6 @@
-"""Video-prediction data: BAIR TFRecords, RoboNet HDF5, a local BAIR-like pusher set, bouncing balls."""
+"""Data: video-prediction sets (BAIR TFRecords, RoboNet HDF5, a local BAIR-like pusher set, bouncing balls), and
+random-action episodes of the sprites scene with their ground truth (:mod:`isodream_rl.data.sprites_episodes`, not
+imported here: it loads TorchRL)."""
 
 from isodream_rl.data.bair import BAIRDataset, decode_bair_example, encode_bair_example, write_bair_tfrecord
 from isodream_rl.data.bouncing_balls import BouncingBalls, ball_trajectories, overlay_balls

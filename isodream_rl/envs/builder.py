@@ -9,7 +9,7 @@
 - ``"is_init"`` (``InitTracker``) and ``"step_count"`` (``StepCounter``);
 - ``("next", "reward")``: float32 ``[1]``; ``done``/``terminated``/``truncated``;
 - ``"sim_error"``: bool ``[]``, ``True`` on the step where the simulator raised (see ``SimulatorFaultGuard``);
-- the info entries the task's success counts read (``isodream_rl.envs.reference.TASK_METRICS``), float32
+- the info entries the task's success counts read (``isodream_rl.envs.task_metrics.TASK_METRICS``), float32
   ``[]``: ``"reached"`` and ``"touching"`` for sprites, ``"distance"`` and ``"collision_impulse"`` for the
   highway;
 - with ``return_masks=True``, the env's ground-truth masks, bool ``[H, W]`` (:func:`ground_truth_mask_keys`).
@@ -45,6 +45,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Binary, Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import Compose, EnvBase, EnvCreator, InitTracker, ParallelEnv, StepCounter, TransformedEnv
 
+from isodream_rl.envs.task_metrics import task_info_keys
 from isodream_rl.process_settings import single_threaded_llvmpipe
 
 logger = logging.getLogger(__name__)
@@ -425,8 +426,6 @@ def make_env(
         )
     if return_masks and (name == "highway" or name in dmc_env_names()):
         cfg.setdefault("masks", True)
-    from isodream_rl.envs.reference import task_info_keys
-
     env = make_gym_env(name, **cfg)
     return wrap_gym_env(
         env,

@@ -14,7 +14,7 @@ policies, run on the raw gymnasium env (no TorchRL overhead) with the same episo
 The **normalised score** of a return ``R`` is ``(R - R_constant) / (R_scripted - R_constant)``
 (:func:`normalised_score`): 0 is the best constant action, 1 the scripted controller.
 
-Each task also has its own success counts (:data:`TASK_METRICS`, :func:`episode_metrics`), reported beside the
+Each task also has its own success counts (:mod:`isodream_rl.envs.task_metrics`), reported beside the
 return: reaches and contact steps per episode on sprites, metres driven and collisions on the highway.
 """
 
@@ -26,6 +26,8 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+
+from isodream_rl.envs.task_metrics import episode_metrics
 
 #: The constant actions tried for the ``constant`` reference: zero and the 8 compass directions.
 CONSTANT_ACTIONS: tuple[tuple[float, float], ...] = ((0.0, 0.0),) + tuple(
@@ -101,47 +103,11 @@ def _wrap_angle(angle: float) -> float:
     return float((angle + np.pi) % (2 * np.pi) - np.pi)
 
 
-def _count(value):
-    return value * 1.0
-
-
-def _positive(value):
-    return (value > 0) * 1.0
-
-
-#: The task's success counts, per env name: ``metric -> (info key, per-step value)``; a metric is the sum of
-#: the per-step values over an episode. ``make_env`` exports these info keys as float scalars, so evaluation
-#: episodes run through TorchRL are scored the same way as the reference policies.
-TASK_METRICS: dict[str, dict[str, tuple[str, Callable]]] = {
-    "sprites": {"reaches": ("reached", _count), "contacts": ("touching", _count)},
-    "highway": {"distance": ("distance", _count), "collisions": ("collision_impulse", _positive)},
-}
-
-
 def has_reference_policies(name: str, **env_kwargs: Any) -> bool:
     """Whether env ``name`` built with ``env_kwargs`` has a scripted controller (sprites ``reach``, highway)."""
     if name == "sprites":
         return env_kwargs.get("task", "none") == "reach"
     return name == "highway"
-
-
-def task_info_keys(name: str) -> tuple[str, ...]:
-    """The info keys :data:`TASK_METRICS` reads for env ``name`` (empty for DMC)."""
-    return tuple(key for key, _ in TASK_METRICS.get(name, {}).values())
-
-
-def episode_metrics(name: str, steps: Sequence[dict[str, Any]]) -> dict[str, float]:
-    """The task's success counts over one episode of env ``name``, from the per-step ``info`` dicts (or
-    tensordicts holding the same keys).
-
-    - sprites: ``reaches`` (targets reached), ``contacts`` (steps touching a distractor);
-    - highway: ``distance`` (metres driven along the lane), ``collisions`` (crashes; a crash ends the episode);
-    - other envs: ``{}``.
-    """
-    return {
-        metric: float(sum(transform(step[key]) for step in steps))
-        for metric, (key, transform) in TASK_METRICS.get(name, {}).items()
-    }
 
 
 def run_reference_episodes(
@@ -152,7 +118,7 @@ def run_reference_episodes(
     Episode ``k`` starts with ``env.reset(seed=seed + k)``, so every policy meets the same episodes.
 
     Returns:
-        ``(returns, metrics)``: one float and one :func:`episode_metrics` dict per episode.
+        ``(returns, metrics)``: one float and one :func:`~isodream_rl.envs.task_metrics.episode_metrics` dict per episode.
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
@@ -199,8 +165,9 @@ def reference_returns(
 
     Returns:
         ``{"random": ..., "constant": ..., "scripted": ...}``, each with ``return`` (mean), ``return_std``,
-        ``returns`` and the mean of each :func:`episode_metrics` key; ``constant`` also has ``action``.
+        ``returns`` and the mean of each :func:`~isodream_rl.envs.task_metrics.episode_metrics` key; ``constant`` also has ``action``.
     """
+    # the TorchRL builders load on first use (isodream_rl/envs/__init__.py)
     from isodream_rl.envs.builder import make_gym_env
 
     env = make_gym_env(name, **env_kwargs)
@@ -251,12 +218,9 @@ def normalised_score(value: float, *, constant: float, scripted: float) -> float
 
 __all__ = [
     "CONSTANT_ACTIONS",
-    "TASK_METRICS",
-    "episode_metrics",
     "has_reference_policies",
     "normalised_score",
     "reference_returns",
     "run_reference_episodes",
     "scripted_action",
-    "task_info_keys",
 ]

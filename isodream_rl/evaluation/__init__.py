@@ -4,6 +4,9 @@
 controllable agent, the moving noncontrollable distractors and the static background, on windows with
 ground-truth masks (``make_env(..., return_masks=True)``, any env of ``isodream_rl.envs``).
 
+:mod:`isodream_rl.evaluation.branches` (not imported here): the pictures of each branch and the scores of the
+world-model mode (``score_branches``).
+
 :class:`ExactSpritesModel`: sprites ``reach`` as an exact, differentiable world model, to train the behavior
 learner without model error (:func:`isodream_rl.trainers.exact_model.train_behavior_on_exact_model`).
 """

@@ -46,7 +46,7 @@ def check_windows(windows: TensorDictBase) -> None:
         shape = tuple(windows.batch_size) if isinstance(windows, TensorDictBase) else type(windows).__name__
         raise ValueError(
             f"decomposition scores need windows as a TensorDict of batch size [N, T], got {shape}; cut flat "
-            "episodes with isodream_rl.recipes.sprites_data.episode_windows"
+            "episodes with isodream_rl.data.sprites_episodes.episode_windows"
         )
     keys = set(windows.keys(include_nested=True))
     missing = [key for key in (*_MODEL_KEYS, *TRUTH_KEYS.values()) if key not in keys]
@@ -183,7 +183,7 @@ def decomposition_scores(
 
     Examples:
         >>> from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
-        >>> from isodream_rl.recipes.sprites_data import collect_sprites_episodes, episode_windows
+        >>> from isodream_rl.data.sprites_episodes import collect_sprites_episodes, episode_windows
         >>> model = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
         >>> windows = episode_windows(collect_sprites_episodes(episodes=1, steps=8), window=8)
         >>> scores = decomposition_scores(model, windows)

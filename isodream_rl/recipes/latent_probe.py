@@ -20,7 +20,8 @@ sprite the trunk carries but ``embed_free`` does not is dropped by the noncontro
 
 The episodes are made like the run's (its scene, ``env.kwargs``, action hold and window, read from the
 checkpoint's configuration), from seeds it never trains on. ``isodream-train exp=world_model`` runs the same
-probe at the end of training and reports it as ``probe_r2_*`` in its ``summary.json``.
+probe at the end of training (its CLI hands :func:`probe` to the trainer) and reports it as ``probe_r2_*`` in
+its ``summary.json``.
 """
 
 from __future__ import annotations
@@ -31,8 +32,9 @@ from typing import Any
 
 import torch
 
+from isodream_rl.data.sprites_episodes import collect_sprites_episodes, episode_windows, model_input
 from isodream_rl.modules import IsoDreamWorldModel
-from isodream_rl.recipes.sprites_data import collect_sprites_episodes, episode_windows, model_input
+from isodream_rl.trainers.world_model_run import load_world_model, probe_scene
 
 
 def sprite_centres(truth, num_distractors: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -154,7 +156,7 @@ def probe(
     model's latent samples; the scores of one checkpoint are the same on every call. ``action_hold``,
     ``num_distractors`` and ``scene`` (``SpritesEnv`` keywords: ``num_backgrounds``, ``background_seed``,
     ``sprite_size``, ``distractor_colours``...) make the episodes, as
-    :func:`~isodream_rl.recipes.sprites_data.collect_sprites_episodes` does."""
+    :func:`~isodream_rl.data.sprites_episodes.collect_sprites_episodes` does."""
     if episode_length % window:
         raise ValueError(f"episode_length ({episode_length}) must be a multiple of window ({window})")
     data = collect_sprites_episodes(
@@ -197,9 +199,6 @@ def probe(
 
 def main(argv: list[str] | None = None) -> dict[str, float]:
     """``python -m isodream_rl.recipes.latent_probe RUN_DIR [--encoder] [--episodes N] [--json PATH]``."""
-    # the trainers import this module for the probe at the end of a run: read checkpoints through them here
-    from isodream_rl.trainers.world_model_run import load_world_model, probe_scene
-
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument(
         "checkpoint",

@@ -1,6 +1,7 @@
 """Training recipes: configuration, TorchRL Trainer assembly, optimisation stepper, hooks, checkpoints."""
 
 from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
+from isodream_rl.trainers.components import RunComponents
 from isodream_rl.trainers.config import (
     AlgoConfig,
     CheckpointConfig,
@@ -12,7 +13,9 @@ from isodream_rl.trainers.config import (
     TrainConfig,
     validate_config,
 )
-from isodream_rl.trainers.run import RunComponents, RunResult, evaluate_checkpoint, train
+from isodream_rl.trainers.registry import register_algorithm
+from isodream_rl.trainers.run import evaluate_checkpoint, train
+from isodream_rl.trainers.run_lifecycle import RunResult
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper, NonFiniteLossError
 from isodream_rl.trainers.world_model_config import WorldModelModeConfig
 
@@ -33,6 +36,7 @@ __all__ = [
     "TrainConfig",
     "WorldModelModeConfig",
     "evaluate_checkpoint",
+    "register_algorithm",
     "train",
     "validate_config",
 ]

@@ -15,7 +15,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.record.loggers import Logger
 from torchrl.trainers import TrainerHookBase
 
-from isodream_rl.envs.reference import TASK_METRICS
+from isodream_rl.envs.task_metrics import TASK_METRICS
 from isodream_rl.evaluation import decomposition_scores
 from isodream_rl.evaluation.decomposition import TRUTH_KEYS
 from isodream_rl.trainers.openloop import open_loop_prediction, prediction_frames, prediction_video, save_gif

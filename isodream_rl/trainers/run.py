@@ -1,49 +1,43 @@
-"""Algorithm 1 as a TorchRL ``Trainer``: assemble a run from a :class:`RunConfig`, train, resume, evaluate."""
+"""Algorithm 1 as a TorchRL ``Trainer``: assemble a run from a :class:`RunConfig`, train, resume, evaluate.
+
+:func:`train` is the entry of both modes of ``isodream-train``: it checks the config, holds the run folder and
+runs ``mode=rl`` here or ``mode=world_model`` (:mod:`isodream_rl.trainers.world_model_run`). The run's parts
+come from the algorithm registry (:func:`~isodream_rl.trainers.registry.make_components`).
+"""
 
 from __future__ import annotations
 
-import dataclasses
 import functools
-import json
 import logging
-import random
 import shutil
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import torch
 from torchrl.trainers import ReplayBufferTrainer, Trainer, UpdateWeights
 
 from isodream_rl.csv_logs import csv_log_sizes, cut_csv_logs
 from isodream_rl.envs.builder import ground_truth_mask_keys
-from isodream_rl.modules.encoder import check_pixel_values, check_pixels
-from isodream_rl.trainers import trainer_state
-from isodream_rl.trainers.builders import (
-    close_logger,
-    env_factory,
-    make_adam,
-    make_behavior,
-    make_logger,
-    make_replay_buffer,
-    make_world_model_loss,
-)
-from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager, rng_state, set_rng_state
+from isodream_rl.trainers import trainer_state, world_model_run
+from isodream_rl.trainers.builders import close_logger, env_factory, make_logger
+from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager, set_rng_state
 from isodream_rl.trainers.collectors import make_collector
-from isodream_rl.trainers.config import ConfigError, RunConfig, config_from_dict, validate_config
+from isodream_rl.trainers.config import RunConfig, config_from_dict, validate_config
 from isodream_rl.trainers.disk_space import ReplayReservation
 from isodream_rl.trainers.evaluation import Evaluation, learning_summary, run_episodes, save_episode_gif
-from isodream_rl.trainers.hooks import (
-    EpisodeReturns,
-    PeriodicCheckpoint,
-    ReplayPreparation,
-    StopOnSignal,
-    Throughput,
+from isodream_rl.trainers.hooks import PeriodicCheckpoint, StopOnSignal, Throughput
+from isodream_rl.trainers.registry import make_components
+from isodream_rl.trainers.run_dir import hold_run_dir, resuming, write_run_config
+from isodream_rl.trainers.run_lifecycle import (
+    RunResult,
+    begin_run,
+    probe_action_dim,
+    resume_state,
+    seed_everything,
+    write_summary,
 )
-from isodream_rl.trainers.run_dir import check_same_run, hold_run_dir, resuming, write_run_config
-from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
 from isodream_rl.trainers.world_model_config import TORCHRL_BASELINES
+from isodream_rl.trainers.world_model_run import LatentProbe
 
 logger = logging.getLogger(__name__)
 
@@ -51,184 +45,7 @@ logger = logging.getLogger(__name__)
 STATE_KEYS = ("config", "models", "stepper", "counters", "hooks", "rng")
 
 
-@dataclass
-class RunResult:
-    """What a finished (or stopped) run produced."""
-
-    run_dir: Path
-    checkpoint: Path | None
-    logs: Path
-    pictures: Path
-    env_steps: int
-    updates: int
-    resumed_from: Path | None = None
-    metrics: dict[str, float] = field(default_factory=dict)
-    summary: dict | None = None
-    """The final evaluation next to the reference policies (``<run_dir>/summary.json``), if it ran."""
-
-
-def seed_everything(seed: int) -> None:
-    """Seed torch, numpy and python."""
-    torch.manual_seed(seed)
-    np.random.seed(seed)
-    random.seed(seed)
-
-
-def probe_action_dim(cfg: RunConfig) -> int:
-    """The width of the action of ``cfg``'s env (built once and closed). An ``env.factory`` env is reset once
-    too, and its first frame checked as the world model will check it.
-
-    Raises:
-        ConfigError: the env cannot be built from ``env.name`` and ``env.kwargs``, or the frames of an
-            ``env.factory`` env are not ``[3, 64, 64]`` uint8 or floats in ``[0, 1]`` (the message says why).
-    """
-    try:
-        env = env_factory(cfg)()
-    except (TypeError, ValueError, KeyError, ImportError) as err:
-        raise ConfigError(
-            f"invalid training configuration: env.name={cfg.env.name!r} with env.kwargs={dict(cfg.env.kwargs)} "
-            f"cannot be built: {err}"
-        ) from err
-    try:
-        if cfg.env.factory:
-            pixels = env.reset().get("pixels", None)
-            try:
-                if pixels is None:
-                    raise KeyError("its env returns no 'pixels'")
-                check_pixels(pixels, name="'pixels'")
-                check_pixel_values(pixels, name="'pixels'")
-            except (TypeError, ValueError, KeyError) as err:
-                message = err.args[0] if isinstance(err, KeyError) else err
-                raise ConfigError(
-                    f"invalid training configuration: env.factory={cfg.env.factory!r}: {message}"
-                ) from err
-        return int(env.action_spec.shape[-1])
-    finally:
-        env.close()
-
-
-class RunComponents:
-    """Models, losses, optimisers, stepper and replay buffer of a run (everything a checkpoint holds).
-
-    Args:
-        cfg: the run configuration.
-        action_dim: width of the env's action.
-        scratch_dir: folder of the replay buffer's memmap files.
-
-    Attributes:
-        model_loss, world_model, behavior (:class:`~isodream_rl.trainers.builders.Behavior`), stepper
-        (:class:`IsoDreamOptimizationStepper`), replay_buffer, preparation, returns (the replay and
-        episode-return hooks).
-    """
-
-    def __init__(self, cfg: RunConfig, *, action_dim: int, scratch_dir: Path) -> None:
-        train = cfg.train
-        self.model_loss = make_world_model_loss(cfg, action_dim=action_dim)
-        self.world_model = self.model_loss.world_model
-        self.behavior = make_behavior(cfg, self.world_model)
-        groups = self.behavior.actor_loss.parameter_groups()
-        self.stepper = IsoDreamOptimizationStepper(
-            model_loss=self.model_loss,
-            world_model_optimizer=make_adam(
-                groups["world_model"], lr=train.world_model_lr, eps=train.adam_eps
-            ),
-            actor_loss=self.behavior.actor_loss,
-            value_loss=self.behavior.value_loss,
-            actor_optimizer=make_adam(groups["actor"], lr=train.actor_lr, eps=train.adam_eps),
-            value_optimizer=make_adam(groups["value"], lr=train.value_lr, eps=train.adam_eps),
-            target_updater=self.behavior.target_updater,
-            sequence_length=train.sequence_length,
-            grad_clip=train.grad_clip,
-            max_nonfinite=train.max_nonfinite_updates,
-            world_model_warmup=train.world_model_warmup,
-        )
-        self.replay_buffer = make_replay_buffer(cfg, scratch_dir=scratch_dir)
-        self.preparation = ReplayPreparation(
-            num_envs=cfg.env.num_envs, capacity_per_env=train.buffer_size // cfg.env.num_envs
-        )
-        self.returns = EpisodeReturns()
-
-    def modules(self) -> dict[str, torch.nn.Module]:
-        return {
-            "world_model": self.world_model,
-            "actor_loss": self.behavior.actor_loss,
-            "value_loss": self.behavior.value_loss,
-        }
-
-    def state(
-        self, cfg: RunConfig, *, env_steps: int, trainer: Trainer | None, evaluation=None, wall_s: float = 0.0
-    ) -> dict:
-        return {
-            "config": dataclasses.asdict(cfg),
-            "models": {name: module.state_dict() for name, module in self.modules().items()},
-            "stepper": self.stepper.state_dict(),
-            "counters": {
-                "env_steps": env_steps,
-                "wall_s": wall_s,
-                "optim_count": trainer_state.optim_count(trainer) if trainer is not None else 0,
-                "last_log": trainer_state.log_marks(trainer) if trainer is not None else {},
-            },
-            "hooks": {
-                "preparation": self.preparation.state_dict(),
-                "returns": self.returns.state_dict(),
-                "evaluation": evaluation.state_dict() if evaluation is not None else None,
-            },
-            "rng": rng_state(),
-        }
-
-    def load_models(self, state: dict) -> None:
-        for name, module in self.modules().items():
-            module.load_state_dict(state["models"][name])
-
-
-def begin_run(cfg: RunConfig) -> tuple[float, Path, Path, Path]:
-    """What every mode does first, in the run folder that :func:`train` holds (see
-    :func:`~isodream_rl.trainers.run_dir.hold_run_dir`): check the config, set threads and seeds.
-    ``run_config.json`` is written later (:func:`~isodream_rl.trainers.run_dir.write_run_config`), once the run's
-    parts are built and a resumed run's checkpoint is found to match the config.
-
-    Returns:
-        ``(start time from time.perf_counter, run_dir, pictures folder, logs folder)``.
-
-    Raises:
-        ConfigError: an invalid configuration.
-    """
-    validate_config(cfg)
-    started = time.perf_counter()
-    run_dir = Path(cfg.run_dir)
-    torch.set_num_threads(cfg.train.threads)
-    seed_everything(cfg.train.seed)
-    return started, run_dir, run_dir / "pictures", run_dir / "logs"
-
-
-def resume_state(cfg: RunConfig, checkpoints: CheckpointManager, *, required_keys) -> tuple[dict, Path]:
-    """The newest readable checkpoint of a resumed run, once its configuration is found to match ``cfg``.
-
-    Raises:
-        CheckpointError: no readable checkpoint.
-        ConfigError: the checkpoint's run had settings that change the models or the data (listed).
-    """
-    state, path = checkpoints.load_latest(required_keys=required_keys)
-    check_same_run(state["config"], cfg)
-    return state, path
-
-
-def make_components(cfg: RunConfig, *, action_dim: int, scratch_dir: Path):
-    """The run's components for ``cfg.algo.name``: :class:`RunComponents` (Iso-Dream, its ablations and the
-    DreamerV2 baseline), or, for ``torchrl_dreamer`` and ``torchrl_dreamer_v3``, TorchRL's own Dreamer and
-    DreamerV3 pieces with the same interface (``isodream_rl.baselines``)."""
-    if cfg.algo.name == "torchrl_dreamer":
-        from isodream_rl.baselines.torchrl_dreamer import TorchRLDreamerComponents
-
-        return TorchRLDreamerComponents(cfg, action_dim=action_dim, scratch_dir=scratch_dir)
-    if cfg.algo.name == "torchrl_dreamer_v3":
-        from isodream_rl.baselines.torchrl_dreamer_v3 import TorchRLDreamerV3Components
-
-        return TorchRLDreamerV3Components(cfg, action_dim=action_dim, scratch_dir=scratch_dir)
-    return RunComponents(cfg, action_dim=action_dim, scratch_dir=scratch_dir)
-
-
-def train(cfg: RunConfig) -> RunResult:
+def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
     """Train (or resume) a run described by ``cfg``; see ``docs/recipes`` for the recipes.
 
     Steps: check the config; build env probe, world model + loss, behavior (actor, value, attention,
@@ -240,9 +57,16 @@ def train(cfg: RunConfig) -> RunResult:
     The run folder is held by this process while it trains (:func:`~isodream_rl.trainers.run_dir.hold_run_dir`);
     a resumed run cuts its CSV logs back to what they held at its checkpoint (:mod:`isodream_rl.csv_logs`).
 
+    Args:
+        cfg: the run's configuration.
+        probe: ``mode=world_model`` only: the latent probe it runs at the end of a sprites run
+            (``world_model.probe_episodes``); ``isodream-train`` passes
+            :func:`isodream_rl.recipes.latent_probe.probe`.
+
     Raises:
         ConfigError: invalid configuration (before anything is built), a run folder that holds another run or
-            cannot be written.
+            cannot be written, a world-model run on sprites with ``world_model.probe_episodes`` but no
+            ``probe``.
         RunDirBusyError: another live process uses the run folder.
         CheckpointError: ``resume`` without a readable checkpoint.
         DiskFullError: the disk filled up (the message names the checkpoint to resume from).
@@ -250,12 +74,10 @@ def train(cfg: RunConfig) -> RunResult:
     """
     validate_config(cfg)
     with hold_run_dir(cfg):
-        if cfg.mode == "world_model":
-            # the world model alone: its own loop, this run folder and checkpoint format (imported here, as it
-            # builds on this module)
-            from isodream_rl.trainers import world_model_run
-
-            return world_model_run.train(cfg)
+        if (
+            cfg.mode == "world_model"
+        ):  # the world model alone: its own loop, this run folder and checkpoint format
+            return world_model_run.train(cfg, probe=probe)
         return _train_rl(cfg)
 
 
@@ -449,15 +271,6 @@ def final_evaluation(
     summary.update(updates_per_env_step=1.0 / cfg.train.train_every, algo=cfg.algo.name, seed=cfg.train.seed)
     write_summary(run_dir, summary)
     return summary
-
-
-def write_summary(run_dir: str | Path, summary: dict) -> Path:
-    """Write ``<run_dir>/summary.json`` atomically (temporary file, then rename); the path written."""
-    path = Path(run_dir) / "summary.json"
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(summary, indent=2))
-    tmp.replace(path)
-    return path
 
 
 def _is_scalar(value) -> bool:

@@ -5,11 +5,12 @@ actions (the sprites scene by default; any env of the ``env`` group), trains
 :class:`~isodream_rl.modules.IsoDreamWorldModel` with :class:`~isodream_rl.objectives.IsoDreamModelLoss`
 through the trainer's :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` (no actor, no value),
 and every ``logging.eval_every`` updates scores it on held-out episodes
-(:func:`~isodream_rl.recipes.visualize.score_branches`: on every env with ground-truth masks (sprites,
+(:func:`~isodream_rl.evaluation.branches.score_branches`: on every env with ground-truth masks (sprites,
 highway, DMC), :func:`~isodream_rl.evaluation.decomposition_scores`, each branch against the agent, the
 distractors and the background; on sprites, each disc's coverage and reconstruction error too) and draws
 ``pictures/branches_<updates>.png``. It stops after ``world_model.updates`` updates, or once its wall-clock
-passes ``world_model.max_minutes``. At the end, on sprites, it probes what each branch's state knows (:func:`~isodream_rl.recipes.latent_probe.probe`) and
+passes ``world_model.max_minutes``. At the end, on sprites, it probes what each branch's state knows with the
+:class:`LatentProbe` it is given (``isodream-train`` gives :func:`~isodream_rl.recipes.latent_probe.probe`) and
 writes ``summary.json``. The run folder is an RL run's: ``logs/`` (the TorchRL logger),
 ``checkpoints/step_<updates>/`` (:class:`~isodream_rl.trainers.checkpoint.CheckpointManager`, which
 ``resume=true`` continues from), ``pictures/``.
@@ -27,6 +28,7 @@ import math
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any, Protocol
 
 import torch
 from tensordict import TensorDict
@@ -34,13 +36,16 @@ from tensordict.nn import TensorDictModule
 from tqdm import tqdm
 
 from isodream_rl.csv_logs import csv_log_sizes, cut_csv_logs
+from isodream_rl.data.sprites_episodes import (
+    collect_sprites_episodes,
+    held_random_actions,
+    make_window_buffer,
+)
 from isodream_rl.envs.builder import ground_truth_mask_keys
+from isodream_rl.evaluation.branches import branch_grid, save_png, score_branches
 from isodream_rl.evaluation.decomposition import TRUTH_KEYS
 from isodream_rl.modules import IsoDreamWorldModel
 from isodream_rl.objectives.pyramid import PyramidImageTerm
-from isodream_rl.recipes.latent_probe import probe
-from isodream_rl.recipes.sprites_data import collect_sprites_episodes, held_random_actions, make_window_buffer
-from isodream_rl.recipes.visualize import branch_grid, save_png, score_branches
 from isodream_rl.trainers.builders import (
     REPLAY_KEYS,
     action_dim_of,
@@ -54,12 +59,28 @@ from isodream_rl.trainers.builders import (
 from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager, rng_state, set_rng_state
 from isodream_rl.trainers.config import ConfigError, RunConfig, config_from_dict
 from isodream_rl.trainers.hooks import StopOnSignal
-from isodream_rl.trainers.run import RunResult, begin_run, probe_action_dim, resume_state, write_summary
 from isodream_rl.trainers.run_dir import resuming, write_run_config
+from isodream_rl.trainers.run_lifecycle import (
+    RunResult,
+    begin_run,
+    probe_action_dim,
+    resume_state,
+    write_summary,
+)
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
 from isodream_rl.trainers.world_model_config import TORCHRL_BASELINES
 
 logger = logging.getLogger(__name__)
+
+
+class LatentProbe(Protocol):
+    """What each branch's state of ``world_model`` knows: scores (``r2_<branch>_<sprite>``) on ``episodes`` fresh
+    sprites episodes from ``seed``, made with the scene :func:`probe_scene` gives
+    (:func:`isodream_rl.recipes.latent_probe.probe` is one)."""
+
+    def __call__(
+        self, world_model: IsoDreamWorldModel, *, episodes: int, seed: int, encoder: bool, **scene: Any
+    ) -> dict[str, float]: ...
 
 
 #: the ground-truth masks collected with the episodes of an env that has them
@@ -81,7 +102,7 @@ def collect_episodes(cfg: RunConfig, *, episodes: int, seed: int) -> TensorDict:
     id.
 
     Sprites is stepped directly, with its ground-truth masks
-    (:func:`~isodream_rl.recipes.sprites_data.collect_sprites_episodes`, 100x faster than through TorchRL);
+    (:func:`~isodream_rl.data.sprites_episodes.collect_sprites_episodes`, 100x faster than through TorchRL);
     any other env of ``cfg.env`` is rolled out through TorchRL (an episode that ends early is reset, marked by
     ``is_init``), with its ``("next", "mask_agent")`` and ``("next", "mask_distractors")`` where it has them
     (:func:`~isodream_rl.envs.builder.ground_truth_mask_keys`).
@@ -143,7 +164,7 @@ def ramp_weight(weight: float, update: int, start: int, length: int | None = Non
 
 
 def probe_scene(cfg: RunConfig, *, window: int | None = None) -> dict:
-    """The :func:`~isodream_rl.recipes.latent_probe.probe` keywords that make episodes like a sprites run's:
+    """The :class:`LatentProbe` keywords that make episodes like a sprites run's:
     its scene, action hold and window (``window`` overrides ``train.sequence_length``), episodes of
     ``world_model.episode_length`` steps rounded up to whole windows.
 
@@ -202,20 +223,39 @@ def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDream
     return model, cfg
 
 
+def wall_clock() -> float:
+    """The clock of the run's wall-clock budget (``world_model.max_minutes``), its ``seconds`` and its
+    ``updates_per_s``, in seconds: ``time.perf_counter()`` (a test replaces it to spend the budget in a known
+    number of updates)."""
+    return time.perf_counter()
+
+
 #: what ``state.pt`` of a world-model run's checkpoint holds (a checkpoint without one of them is unreadable)
 STATE_KEYS = ("config", "models", "stepper", "counters", "rng")
 
 
-def train(cfg: RunConfig) -> RunResult:
+def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
     """Train (or, with ``resume=true``, continue) the world model of ``cfg`` alone; see the module docstring.
 
+    Args:
+        cfg: the run's configuration (``mode=world_model``).
+        probe: the latent probe run at the end on sprites; needed there when ``world_model.probe_episodes > 0``.
+
     Raises:
-        ConfigError: invalid configuration (before anything is built), or ``resume`` with other settings.
+        ConfigError: invalid configuration (before anything is built), ``resume`` with other settings, or a
+            sprites run with ``world_model.probe_episodes`` and no ``probe``.
         CheckpointError: ``resume`` without a readable checkpoint.
         NonFiniteLossError: too many NaN/inf updates in a row.
     """
-    started, run_dir, pictures, logs = begin_run(cfg)
+    started = wall_clock()
+    _, run_dir, pictures, logs = begin_run(cfg)
     wm, train_cfg = cfg.world_model, cfg.train
+    if probe is None and wm.probe_episodes and _is_sprites(cfg):
+        raise ConfigError(
+            f"world_model.probe_episodes={wm.probe_episodes} needs the latent probe: pass "
+            "train(cfg, probe=isodream_rl.recipes.latent_probe.probe) (isodream-train does), or set "
+            "world_model.probe_episodes=0"
+        )
     checkpoints = CheckpointManager(run_dir / "checkpoints", keep=cfg.checkpoint.keep)
     # the episodes are made again from the settings: a changed scene or seed would continue on other data
     state, resumed_from = (
@@ -264,7 +304,7 @@ def train(cfg: RunConfig) -> RunResult:
 
     def wall_s() -> float:
         """The run's wall-clock so far, data collection included, summed over resumes."""
-        return wall_before + time.perf_counter() - started
+        return wall_before + wall_clock() - started
 
     def save() -> Path:
         return checkpoints.save(
@@ -306,7 +346,7 @@ def train(cfg: RunConfig) -> RunResult:
         total=wm.updates,
         disable=not cfg.logging.progress_bar,
     )
-    clock = time.perf_counter()
+    clock = wall_clock()
     # a resumed run whose budget was spent before its summary: scored and checkpointed as it is
     out_of_time = wall_s() >= budget
     if out_of_time:
@@ -328,7 +368,7 @@ def train(cfg: RunConfig) -> RunResult:
             last = done == wm.updates or out_of_time
             if update % cfg.logging.log_every == 0 or last:
                 metrics = {key: float(value) for key, value in values.items()}
-                metrics["updates_per_s"] = (done - first) / (time.perf_counter() - clock)
+                metrics["updates_per_s"] = (done - first) / (wall_clock() - clock)
                 for key, value in metrics.items():
                     log.log_scalar(key, value, step=update)
                 bar.set_postfix(loss=f"{metrics['loss_model_reco']:.1f}", mse=f"{metrics['reco_mse']:.4f}")

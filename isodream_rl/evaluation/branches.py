@@ -10,9 +10,9 @@ from PIL import Image, ImageDraw
 from tensordict import TensorDictBase
 from torch import nn
 
-from isodream_rl.evaluation import branch_assignment, score_decomposition
+from isodream_rl.data.sprites_episodes import episode_windows, model_input
+from isodream_rl.evaluation.decomposition import branch_assignment, score_decomposition
 from isodream_rl.modules.encoder import preprocess_pixels
-from isodream_rl.recipes.sprites_data import episode_windows, model_input
 
 #: Rows of :func:`branch_grid`: (label, key under "next" or root, kind).
 _ROWS = (
@@ -93,7 +93,7 @@ def score_branches(
     ``make_env(..., return_masks=True)``), the scores of
     :func:`~isodream_rl.evaluation.decomposition_scores` (each branch's pixels: the largest mask). On the
     sprites scene (``"distractor_ids"``, as
-    :func:`~isodream_rl.recipes.sprites_data.collect_sprites_episodes` writes them), per disc as well:
+    :func:`~isodream_rl.data.sprites_episodes.collect_sprites_episodes` writes them), per disc as well:
 
     * ``free_covers_distractor_{i}``: the fraction of distractor ``i``'s visible pixels the noncontrollable
       branch holds (which distractors the branch has taken, one by one);

@@ -1,0 +1,96 @@
+"""The parts of an Iso-Dream run (any of its variants, and the DreamerV2 baseline): models, losses, optimisers,
+stepper, replay buffer and the hooks whose state a checkpoint holds.
+
+:class:`RunComponents` is also the interface other algorithms give their parts (the TorchRL baselines of
+:mod:`isodream_rl.baselines` subclass it); :mod:`isodream_rl.trainers.registry` builds the one ``algo.name``
+names.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import torch
+from torchrl.trainers import Trainer
+
+from isodream_rl.trainers import trainer_state
+from isodream_rl.trainers.builders import make_adam, make_behavior, make_replay_buffer, make_world_model_loss
+from isodream_rl.trainers.checkpoint import rng_state
+from isodream_rl.trainers.config import RunConfig
+from isodream_rl.trainers.hooks import EpisodeReturns, ReplayPreparation
+from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
+
+
+class RunComponents:
+    """Models, losses, optimisers, stepper and replay buffer of a run (everything a checkpoint holds).
+
+    Args:
+        cfg: the run configuration.
+        action_dim: width of the env's action.
+        scratch_dir: folder of the replay buffer's memmap files.
+
+    Attributes:
+        model_loss, world_model, behavior (:class:`~isodream_rl.trainers.builders.Behavior`), stepper
+        (:class:`IsoDreamOptimizationStepper`), replay_buffer, preparation, returns (the replay and
+        episode-return hooks).
+    """
+
+    def __init__(self, cfg: RunConfig, *, action_dim: int, scratch_dir: Path) -> None:
+        train = cfg.train
+        self.model_loss = make_world_model_loss(cfg, action_dim=action_dim)
+        self.world_model = self.model_loss.world_model
+        self.behavior = make_behavior(cfg, self.world_model)
+        groups = self.behavior.actor_loss.parameter_groups()
+        self.stepper = IsoDreamOptimizationStepper(
+            model_loss=self.model_loss,
+            world_model_optimizer=make_adam(
+                groups["world_model"], lr=train.world_model_lr, eps=train.adam_eps
+            ),
+            actor_loss=self.behavior.actor_loss,
+            value_loss=self.behavior.value_loss,
+            actor_optimizer=make_adam(groups["actor"], lr=train.actor_lr, eps=train.adam_eps),
+            value_optimizer=make_adam(groups["value"], lr=train.value_lr, eps=train.adam_eps),
+            target_updater=self.behavior.target_updater,
+            sequence_length=train.sequence_length,
+            grad_clip=train.grad_clip,
+            max_nonfinite=train.max_nonfinite_updates,
+            world_model_warmup=train.world_model_warmup,
+        )
+        self.replay_buffer = make_replay_buffer(cfg, scratch_dir=scratch_dir)
+        self.preparation = ReplayPreparation(
+            num_envs=cfg.env.num_envs, capacity_per_env=train.buffer_size // cfg.env.num_envs
+        )
+        self.returns = EpisodeReturns()
+
+    def modules(self) -> dict[str, torch.nn.Module]:
+        return {
+            "world_model": self.world_model,
+            "actor_loss": self.behavior.actor_loss,
+            "value_loss": self.behavior.value_loss,
+        }
+
+    def state(
+        self, cfg: RunConfig, *, env_steps: int, trainer: Trainer | None, evaluation=None, wall_s: float = 0.0
+    ) -> dict:
+        return {
+            "config": dataclasses.asdict(cfg),
+            "models": {name: module.state_dict() for name, module in self.modules().items()},
+            "stepper": self.stepper.state_dict(),
+            "counters": {
+                "env_steps": env_steps,
+                "wall_s": wall_s,
+                "optim_count": trainer_state.optim_count(trainer) if trainer is not None else 0,
+                "last_log": trainer_state.log_marks(trainer) if trainer is not None else {},
+            },
+            "hooks": {
+                "preparation": self.preparation.state_dict(),
+                "returns": self.returns.state_dict(),
+                "evaluation": evaluation.state_dict() if evaluation is not None else None,
+            },
+            "rng": rng_state(),
+        }
+
+    def load_models(self, state: dict) -> None:
+        for name, module in self.modules().items():
+            module.load_state_dict(state["models"][name])

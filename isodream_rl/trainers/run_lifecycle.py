@@ -1,0 +1,121 @@
+"""What every mode of ``isodream-train`` does at the start and the end of a run, and what a run returns.
+
+``mode=rl`` (:mod:`isodream_rl.trainers.run`) and ``mode=world_model`` (:mod:`isodream_rl.trainers.world_model_run`)
+both begin with :func:`begin_run` (config check, threads, seeds), read the env's action width with
+:func:`probe_action_dim`, continue a resumed run from :func:`resume_state`, write ``summary.json`` with
+:func:`write_summary` and return a :class:`RunResult`.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from isodream_rl.modules.encoder import check_pixel_values, check_pixels
+from isodream_rl.trainers.builders import env_factory
+from isodream_rl.trainers.checkpoint import CheckpointManager
+from isodream_rl.trainers.config import ConfigError, RunConfig, validate_config
+from isodream_rl.trainers.run_dir import check_same_run
+
+
+@dataclass
+class RunResult:
+    """What a finished (or stopped) run produced."""
+
+    run_dir: Path
+    checkpoint: Path | None
+    logs: Path
+    pictures: Path
+    env_steps: int
+    updates: int
+    resumed_from: Path | None = None
+    metrics: dict[str, float] = field(default_factory=dict)
+    summary: dict | None = None
+    """The final evaluation next to the reference policies (``<run_dir>/summary.json``), if it ran."""
+
+
+def seed_everything(seed: int) -> None:
+    """Seed torch, numpy and python."""
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    random.seed(seed)
+
+
+def probe_action_dim(cfg: RunConfig) -> int:
+    """The width of the action of ``cfg``'s env (built once and closed). An ``env.factory`` env is reset once
+    too, and its first frame checked as the world model will check it.
+
+    Raises:
+        ConfigError: the env cannot be built from ``env.name`` and ``env.kwargs``, or the frames of an
+            ``env.factory`` env are not ``[3, 64, 64]`` uint8 or floats in ``[0, 1]`` (the message says why).
+    """
+    try:
+        env = env_factory(cfg)()
+    except (TypeError, ValueError, KeyError, ImportError) as err:
+        raise ConfigError(
+            f"invalid training configuration: env.name={cfg.env.name!r} with env.kwargs={dict(cfg.env.kwargs)} "
+            f"cannot be built: {err}"
+        ) from err
+    try:
+        if cfg.env.factory:
+            pixels = env.reset().get("pixels", None)
+            try:
+                if pixels is None:
+                    raise KeyError("its env returns no 'pixels'")
+                check_pixels(pixels, name="'pixels'")
+                check_pixel_values(pixels, name="'pixels'")
+            except (TypeError, ValueError, KeyError) as err:
+                message = err.args[0] if isinstance(err, KeyError) else err
+                raise ConfigError(
+                    f"invalid training configuration: env.factory={cfg.env.factory!r}: {message}"
+                ) from err
+        return int(env.action_spec.shape[-1])
+    finally:
+        env.close()
+
+
+def begin_run(cfg: RunConfig) -> tuple[float, Path, Path, Path]:
+    """What every mode does first, in the run folder that :func:`train` holds (see
+    :func:`~isodream_rl.trainers.run_dir.hold_run_dir`): check the config, set threads and seeds.
+    ``run_config.json`` is written later (:func:`~isodream_rl.trainers.run_dir.write_run_config`), once the run's
+    parts are built and a resumed run's checkpoint is found to match the config.
+
+    Returns:
+        ``(start time from time.perf_counter, run_dir, pictures folder, logs folder)``.
+
+    Raises:
+        ConfigError: an invalid configuration.
+    """
+    validate_config(cfg)
+    started = time.perf_counter()
+    run_dir = Path(cfg.run_dir)
+    torch.set_num_threads(cfg.train.threads)
+    seed_everything(cfg.train.seed)
+    return started, run_dir, run_dir / "pictures", run_dir / "logs"
+
+
+def resume_state(cfg: RunConfig, checkpoints: CheckpointManager, *, required_keys) -> tuple[dict, Path]:
+    """The newest readable checkpoint of a resumed run, once its configuration is found to match ``cfg``.
+
+    Raises:
+        CheckpointError: no readable checkpoint.
+        ConfigError: the checkpoint's run had settings that change the models or the data (listed).
+    """
+    state, path = checkpoints.load_latest(required_keys=required_keys)
+    check_same_run(state["config"], cfg)
+    return state, path
+
+
+def write_summary(run_dir: str | Path, summary: dict) -> Path:
+    """Write ``<run_dir>/summary.json`` atomically (temporary file, then rename); the path written."""
+    path = Path(run_dir) / "summary.json"
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(summary, indent=2))
+    tmp.replace(path)
+    return path
