@@ -235,6 +235,12 @@ def test_scene_comes_from_env_kwargs_and_a_wrong_one_is_a_config_error(tmp_path)
         train(tmp_path / "b", "+env.kwargs.distractor_colours=[cyan,magenta]")
 
 
+def test_a_sprites_run_that_probes_needs_the_probe_and_leaves_no_run_without_it(tmp_path):
+    with pytest.raises(ConfigError, match="latent probe"):
+        run_module.train(composed(f"run_dir={tmp_path}", "world_model.probe_episodes=4"))
+    assert not (tmp_path / "checkpoints").exists() and not (tmp_path / "run_config.json").exists()
+
+
 def test_the_three_yellow_discs_recipe_draws_three_yellow_discs():
     cfg = composed("exp=world_model_three_yellow")
     data = collect_episodes(cfg, episodes=1, seed=0)
