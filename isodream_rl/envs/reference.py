@@ -118,7 +118,8 @@ def run_reference_episodes(
     Episode ``k`` starts with ``env.reset(seed=seed + k)``, so every policy meets the same episodes.
 
     Returns:
-        ``(returns, metrics)``: one float and one :func:`~isodream_rl.envs.task_metrics.episode_metrics` dict per episode.
+        ``(returns, metrics)``: one float and one
+        :func:`~isodream_rl.envs.task_metrics.episode_metrics` dict per episode.
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
@@ -165,7 +166,8 @@ def reference_returns(
 
     Returns:
         ``{"random": ..., "constant": ..., "scripted": ...}``, each with ``return`` (mean), ``return_std``,
-        ``returns`` and the mean of each :func:`~isodream_rl.envs.task_metrics.episode_metrics` key; ``constant`` also has ``action``.
+        ``returns`` and the mean of each :func:`~isodream_rl.envs.task_metrics.episode_metrics` key;
+        ``constant`` also has ``action``.
     """
     # the TorchRL builders load on first use (isodream_rl/envs/__init__.py)
     from isodream_rl.envs.builder import make_gym_env

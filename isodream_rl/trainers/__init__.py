@@ -1,4 +1,4 @@
-"""Training recipes: configuration, TorchRL Trainer assembly, optimisation stepper, hooks, checkpoints."""
+"""Training: configuration, Trainer assembly, algorithm registry, optimisation stepper, hooks, checkpoints."""
 
 from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.components import RunComponents

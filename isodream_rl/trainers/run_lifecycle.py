@@ -81,7 +81,7 @@ def probe_action_dim(cfg: RunConfig) -> int:
 
 
 def begin_run(cfg: RunConfig) -> tuple[float, Path, Path, Path]:
-    """What every mode does first, in the run folder that :func:`train` holds (see
+    """What every mode does first, in the run folder that :func:`~isodream_rl.trainers.run.train` holds (see
     :func:`~isodream_rl.trainers.run_dir.hold_run_dir`): check the config, set threads and seeds.
     ``run_config.json`` is written later (:func:`~isodream_rl.trainers.run_dir.write_run_config`), once the run's
     parts are built and a resumed run's checkpoint is found to match the config.
