@@ -19,7 +19,7 @@ def use_huge_pages() -> None:
     """``THP_MEM_ALLOC_ENABLE=1``: PyTorch backs CPU tensors of 2 MB and more with transparent huge pages.
 
     A world-model update allocates and frees activations of ~10-100 MB many times; with 4 KB pages each fresh
-    one costs a page fault per page (a 92 MB buffer: ~50-90 ms to first touch instead of ~10 ms). PyTorch reads
+    one costs a page fault per page, and the update is slower (measured in docs/environment.md). PyTorch reads
     the variable once, at its first allocation, so this does nothing once torch is imported: the training entry
     points call it before importing torch. ``THP_MEM_ALLOC_ENABLE=0`` opts out.
     """

@@ -59,22 +59,27 @@ def test_every_env_algo_preset_composes_to_a_valid_config(env, algo):
 
 #: The exp files whose runs a bench records (not docs/results/world_model_demo.json): the bench.
 BENCH_RECIPES = {"decomposition": "bench/decomposition.py"}
+RESULTS = CONFIGS.parents[1] / "docs" / "results"
 
 
 @pytest.mark.parametrize("exp", EXPS)
-def test_every_exp_composes_to_a_valid_config_and_names_the_recorded_run_it_repeats(exp):
+def test_every_exp_composes_to_a_valid_config_and_its_results_page_names_the_recorded_runs(exp):
     cfg = composed(f"exp={exp}")
     validate_config(cfg)
     header = (CONFIGS / "exp" / f"{exp}.yaml").read_text()
+    # settings only: no run names or scores in the file, at most a pointer to the results page
+    assert not re.search(r"\bruns? [A-Z]+[0-9]+\b|Recorded|R²", header), header
     if exp in BENCH_RECIPES:
         assert cfg.mode == "world_model" and cfg.run_dir.startswith(f"runs/{exp}")
         assert BENCH_RECIPES[exp] in header and (CONFIGS.parents[1] / BENCH_RECIPES[exp]).exists()
         return
     assert cfg.mode == "world_model" and cfg.run_dir.startswith("runs/world_model")
-    recorded = json.loads((CONFIGS.parents[1] / "docs" / "results" / "world_model_demo.json").read_text())[
-        "runs"
-    ]
-    runs = re.findall(r"runs? ([A-Z]+[0-9]+)\b", header)
+    assert "see docs/results/world_model_demo.md" in header
+    recorded = json.loads((RESULTS / "world_model_demo.json").read_text())["runs"]
+    page = (RESULTS / "world_model_demo.md").read_text()
+    rows = [line for line in page.splitlines() if line.startswith("|") and re.search(rf"exp={exp}[` ]", line)]
+    assert len(rows) == 1, rows  # the page's table of recipes: one row per exp, the runs in its last cell
+    runs = re.findall(r"\b[A-Z]+[0-9]+\w*", rows[0].rstrip(" |").rsplit("|", 1)[1])
     assert runs and all(any(key.endswith(f" {run}") for key in recorded) for run in runs), runs
 
 

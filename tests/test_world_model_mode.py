@@ -396,16 +396,18 @@ def test_isodream_demo_is_isodream_train_exp_world_model(tmp_path):
     assert "run finished: 32 env steps, 2 updates" in out.stdout
     assert f"summary:     {Path('demo') / 'summary.json'}" in out.stdout
     assert json.loads((tmp_path / "demo" / "summary.json").read_text())["mode"] == "world_model"
-    # its former flags are refused with a pointer to their translation
-    former = subprocess.run(
-        [sys.executable, "-m", "isodream_rl.cli_demo", "--steps", "5"],
-        cwd=tmp_path,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert former.returncode != 0 and "docs/results/world_model_demo.md" in former.stderr
+    # an unknown flag, and an unknown key, are refused in one line
+    for wrong, says in ((["--steps", "5"], "unknown flag --steps"), (["steps=5"], "'steps' is no setting")):
+        refused = subprocess.run(
+            [sys.executable, "-m", "isodream_rl.cli_demo", *wrong],
+            cwd=tmp_path,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert refused.returncode == 2 and says in refused.stderr, refused.stderr[-3000:]
+        assert len(refused.stderr.strip().splitlines()) == 1, refused.stderr
 
 
 def test_sigterm_saves_a_checkpoint_and_stops_before_the_summary(tmp_path):

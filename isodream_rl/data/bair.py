@@ -105,7 +105,7 @@ class BAIRDataset(Dataset):
         num_frames: time steps per sequence to decode (BAIR: 30).
         camera: ``"image_aux1"`` or ``"image_main"``.
         image_size: side of the raw square images (BAIR: 64).
-        verify_crc: check every payload's CRC (~50 ms per BAIR record in numpy).
+        verify_crc: check every payload's CRC (slow in numpy; docs/recipes/video_prediction.md gives the cost).
 
     Examples:
         >>> ds = BAIRDataset("softmotion30_44k/test")  # doctest: +SKIP

@@ -31,8 +31,9 @@ def collect_sprites_episodes(
     ``num_distractors`` and ``scene`` (``num_backgrounds``, ``background_seed``, ``sprite_size``,
     ``distractor_colours``, ``agent_colour``, ``task``...) are :class:`~isodream_rl.envs.sprites.SpritesEnv`'s
     keywords (``num_backgrounds``: a fixed background pool; ``None``, the default, a new background per
-    episode). The gymnasium env is stepped directly (about 0.1 ms per step, 100x less than through a TorchRL
-    wrapper) and the result is laid out as TorchRL's collectors do it.
+    episode). The gymnasium env is stepped directly (cheaper per step than through a TorchRL wrapper;
+    ``bench/env_speed.py`` measures both, docs/results/env_speed.json) and the result is laid out as TorchRL's
+    collectors do it.
 
     Returns:
         a flat ``[episodes * steps]`` tensordict with ``"action"``, ``"is_init"``, ``"episode"`` and under

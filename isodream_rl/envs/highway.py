@@ -7,7 +7,7 @@ ego's roof (``view="first_person"``) or from an ego-centred top-down chase view 
 
 highway-env is slow at 20 Hz with 30 vehicles, so the simulation runs on :mod:`isodream_rl.envs.highway_sim`: the
 same road, vehicles and models specialised to straight lanes and vectorised over vehicles, with bit-identical
-trajectories, about 9x faster.
+trajectories and several times faster (measured in docs/envs/highway.md).
 """
 
 from __future__ import annotations

@@ -69,11 +69,12 @@ class ConvDecoder(nn.Module):
 def _transposed_conv(layer: nn.ConvTranspose2d, x: torch.Tensor) -> torch.Tensor:
     """``layer(x)`` with the bias added outside the convolution.
 
-    The same function, but PyTorch's CPU (oneDNN) transposed convolution computes its bias gradient
-    ~30x slower than a plain sum over ``grad``; at paper size that was ~0.3 s of every update per layer.
-    The in-place add is safe: the convolution's backward needs its input and weight, not its output.
-    The bias is cast to the output's dtype first (as autocast casts a convolution's bias): a float32 bias
-    added in place to a bfloat16 output takes a mixed-dtype path that cost ~0.1 s per layer per update.
+    The same function, but PyTorch's CPU (oneDNN) transposed convolution computes its bias gradient far more
+    slowly than a plain sum over ``grad``, a large share of an update at paper size (docs/architecture.md,
+    "Speed"; updates timed by ``bench/world_model_speed.py``). The in-place add is safe: the convolution's
+    backward needs its input and weight, not its output. The bias is cast to the output's dtype first (as
+    autocast casts a convolution's bias): a float32 bias added in place to a bfloat16 output takes a slower
+    mixed-dtype path.
     """
     out = F.conv_transpose2d(
         x,
@@ -97,8 +98,8 @@ def _add_channel_bias_(out: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
 
     A channels-last bf16/fp16 map with few channels (the RGB + logit layer) gets the bias as a ``[H * W * C]``
     pattern added to its ``[N, H * W * C]`` rows: broadcasting ``[C, 1, 1]`` there runs an inner loop of C
-    elements, and forward and backward took 60 ms instead of 15 at ``[800, 4, 64, 64]``. Everywhere else
-    (float32 included, where the pattern is the slower way) the plain broadcast.
+    elements, several times slower in forward and backward. Everywhere else (float32 included, where the
+    pattern is the slower way) the plain broadcast.
     """
     n, c, h, w = out.shape
     if c <= _FEW_CHANNELS and out.dtype in _REDUCED and memory_format_of(out) == torch.channels_last:

@@ -9,10 +9,10 @@ final name; older checkpoints are deleted only after the new one is verified.
 Loading checks the manifest (every file present, of its size and checksum, no file missing from it; a
 checkpoint without one is unverified), then the keys the caller needs in ``state.pt``; any failure makes that
 checkpoint unreadable and the previous one is tried, with a warning. Loading never writes to a checkpoint: the
-replay data are copied before TorchRL's ``loads`` opens them (it extends a short memmap file in place). The cost,
-measured on a 0.25 GB replay buffer (20k steps of 64x64 pixels, one busy core): ``dumps`` alone 0.3 s, with the
-manifest (SHA-256 at ~1.5 GB/s) and the flushes 0.8 s; verifying it at load 0.17 s. A full 100k-step buffer
-(1.2 GB) adds ~2.5 s per checkpoint.
+replay data are copied before TorchRL's ``loads`` opens them (it extends a short memmap file in place). The
+manifest's checksums and the flushes add to each checkpoint a cost that grows with the replay buffer, and the
+verification at load a smaller one (measured in docs/recipes/index.md, "Run folders, checkpoints, resume and
+faults").
 
 The replay data are written and read through memory maps, where a full disk is a SIGBUS, not an ``OSError``:
 the free space they need is checked first (:mod:`~isodream_rl.trainers.disk_space`), so a full disk is a

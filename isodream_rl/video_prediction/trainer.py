@@ -108,8 +108,9 @@ class TrainConfig:
     channels_last: bool = True
     """Channels-last convolutions (equal outputs, faster on CPU); ``--no-channels-last`` is the plain path."""
     precision: str = "fp32"
-    """``"bf16"``: convolutions under bf16 autocast (about 1.5x faster per iteration on a CPU with
-    ``avx512_bf16``, see ``docs/results/video_prediction_speed.json``); memories and losses stay fp32."""
+    """``"bf16"``: convolutions under bf16 autocast (faster per iteration on a CPU with ``avx512_bf16``;
+    measured by ``bench/video_prediction.py --speed``, docs/results/video_prediction_speed.json); memories and
+    losses stay fp32."""
     out_dir: str = "runs/video"
     logger: str = "csv"
     """``csv``, ``tensorboard`` (needs the ``logging`` extra) or ``""`` for none."""
