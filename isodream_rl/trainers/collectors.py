@@ -109,12 +109,13 @@ def make_collector(
     options = _backend_options(cfg)
     if options:
         kwargs["backend_options"] = options
-    if backend in ("ray", "distributed"):
-        # Each remote worker seeds its own env in its factory: torchrl 0.14's DistributedCollector.set_seed
-        # fails on the workers (it parses the seed message as a list); Ray's workers are seeded the same way.
-        makes = [functools.partial(_seeded, make, train.seed + i) for i in range(num_envs)]
-    else:
-        makes = make if backend == "direct" else [make] * num_envs
+    # Every env is seeded in its factory, before the collector's first reset: ``collector.set_seed`` after
+    # construction reseeds an env whose first observation the collector already holds (drawn unseeded), so the
+    # first episode of a run would differ between runs of one seed and start from a frame of another episode.
+    # (torchrl 0.14's DistributedCollector.set_seed also fails on its workers: it parses the seed as a list.)
+    makes = [functools.partial(_seeded, make, train.seed + i) for i in range(num_envs)]
+    if backend == "direct":
+        makes = makes[0]
     collector = Collector(
         makes,
         policy,
@@ -130,8 +131,6 @@ def make_collector(
         # The workers start from the pickled policy; this sets up the weight transfer the Trainer's
         # UpdateWeights hook uses after every batch.
         collector.update_policy_weights_()
-    else:
-        collector.set_seed(train.seed)
     # TorchRL's Trainer starts optimising once ``collected_frames >= collector.init_random_frames``; the remote
     # collectors pass the prefill to their workers without keeping it themselves.
     if not hasattr(collector, "init_random_frames"):
