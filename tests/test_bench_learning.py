@@ -172,13 +172,13 @@ def test_learning_bench_defaults_give_every_run_10k_updates():
     assert (args.env_steps - size["train"]["prefill_steps"]) / train_every == 10_000
 
 
-def test_learning_bench_accepts_torchrl_dreamer_v3_without_running_it_by_default(tmp_path, capsys):
+def test_learning_bench_runs_torchrl_dreamer_v3_by_default_and_accepts_the_older_dreamer(tmp_path, capsys):
     bench = load_bench("learning")
-    assert "torchrl_dreamer_v3" not in bench.build_parser().parse_args([]).algos
+    assert bench.build_parser().parse_args([]).algos == ["isodream", "dreamerv2", "torchrl_dreamer_v3"]
     runs, out = tmp_path / "runs", tmp_path / "learning.json"
     args = [
         "--algos",
-        "isodream,torchrl_dreamer_v3",
+        "isodream,torchrl_dreamer",
         "--runs",
         str(runs),
         "--json",
@@ -187,7 +187,7 @@ def test_learning_bench_accepts_torchrl_dreamer_v3_without_running_it_by_default
     ]
     bench.main(args)  # nothing to collect yet, and no "unknown algos"
     saved = json.loads(out.read_text())["algos"]
-    assert set(saved) == {"isodream", "torchrl_dreamer_v3"} and saved["torchrl_dreamer_v3"]["seeds"] == []
+    assert set(saved) == {"isodream", "torchrl_dreamer"} and saved["torchrl_dreamer"]["seeds"] == []
     with pytest.raises(SystemExit):
         bench.main(["--algos", "torchrl_dreamer_v4", "--collect-only", "--json", str(out)])
     assert "unknown algos ['torchrl_dreamer_v4']" in capsys.readouterr().err
