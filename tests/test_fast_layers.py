@@ -1,14 +1,24 @@
-"""The speed rewrites compute the same functions as the plain PyTorch layers they replace."""
+"""The CPU fast paths (``isodream_rl.modules.fast_paths``) compute the same functions as the reference forms they
+replace, and a whole world model gives the same losses and gradients with ``fast_paths`` on and off."""
 
 from __future__ import annotations
 
 import pytest
 import torch
+from tensordict import TensorDict
 from torch import nn
 
 from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
 from isodream_rl.modules.composition import MaskComposition
 from isodream_rl.modules.decoder import ConvDecoder
+from isodream_rl.modules.fast_paths import (
+    FastConvDecoder,
+    FusedMaskComposition,
+    fast_filter_window,
+    fused_compose_decoded,
+    paired_filter_window,
+)
+from isodream_rl.modules.rssm import filter_window
 
 
 def reference_decoder(decoder: ConvDecoder, latent: torch.Tensor) -> torch.Tensor:
@@ -27,11 +37,13 @@ def grads(module: nn.Module, latent: torch.Tensor, out: torch.Tensor, upstream: 
 @pytest.mark.parametrize("channels_last", [False, True])
 def test_decoder_matches_plain_transposed_convolutions_in_values_and_gradients(channels_last):
     torch.manual_seed(0)
-    decoder = ConvDecoder(in_features=12, out_channels=4, depth=4).double()
+    decoder = FastConvDecoder(in_features=12, out_channels=4, depth=4).double()
     if channels_last:
         decoder.to(memory_format=torch.channels_last)
     latent = torch.randn(5, 12, dtype=torch.float64, requires_grad=True)
     fast, ref = decoder(latent), reference_decoder(decoder, latent)
+    # the reference form is the plain layers
+    torch.testing.assert_close(ConvDecoder.forward(decoder, latent), ref)
     assert fast.shape == (5, 4, 64, 64)
     torch.testing.assert_close(fast, ref)
     upstream = torch.randn_like(ref)
@@ -45,7 +57,7 @@ def test_decoder_under_bf16_autocast_matches_the_plain_layers(channels_last):
     bias as a repeated pattern when channels-last): values and gradients as the plain layers under the same
     autocast, within bf16 rounding."""
     torch.manual_seed(0)
-    decoder = ConvDecoder(in_features=12, out_channels=4, depth=4)
+    decoder = FastConvDecoder(in_features=12, out_channels=4, depth=4)
     with torch.no_grad():  # biases large enough that adding one in the wrong place shows
         for module in decoder.modules():
             if isinstance(module, nn.ConvTranspose2d):
@@ -64,11 +76,12 @@ def test_decoder_under_bf16_autocast_matches_the_plain_layers(channels_last):
 
 
 def test_decoder_state_dict_keeps_the_layer_names_and_shapes():
-    decoder = ConvDecoder(in_features=12, out_channels=4, depth=4)
+    decoder = FastConvDecoder(in_features=12, out_channels=4, depth=4)
     shapes = {k: tuple(v.shape) for k, v in decoder.state_dict().items()}
     assert shapes["deconv.1.weight"] == (128, 16, 5, 5)
     assert shapes["deconv.7.weight"] == (4, 4, 6, 6) and shapes["deconv.7.bias"] == (4,)
     ConvDecoder(in_features=12, out_channels=4, depth=4).load_state_dict(decoder.state_dict())
+    FastConvDecoder(in_features=12, out_channels=4, depth=4).load_state_dict(decoder.state_dict())
 
 
 def test_single_threaded_rollout_has_the_loops_values_and_gradients_and_restores_the_thread_count():
@@ -82,16 +95,16 @@ def test_single_threaded_rollout_has_the_loops_values_and_gradients_and_restores
 
     def run(rollout):
         torch.manual_seed(0)
-        out = rollout(control, free, action, is_init)
+        out = rollout(wm.control_rssm, wm.free_rssm, control, free, action, is_init)
         loss = sum((v * torch.linspace(-1, 1, v.shape[-1], dtype=v.dtype)).sum() for v in out.values())
         return out, torch.autograd.grad(loss, [control, free, *rssm_params], allow_unused=True)
 
     previous = torch.get_num_threads()
     torch.set_num_threads(2)  # the wrapper is a no-op on one thread
     try:
-        fast_out, fast_grads = run(wm._rollout)
+        fast_out, fast_grads = run(fast_filter_window)
         assert torch.get_num_threads() == 2
-        ref_out, ref_grads = run(wm._rollout_loop)
+        ref_out, ref_grads = run(paired_filter_window)
     finally:
         torch.set_num_threads(previous)
     assert fast_out.keys() == ref_out.keys()
@@ -105,9 +118,9 @@ def test_single_threaded_rollout_has_the_loops_values_and_gradients_and_restores
 
 
 def test_paired_rollout_equals_the_branchwise_loop_in_values_and_gradients():
-    """filter_window's two paths: RSSMPair (both branches in one batched step) against filter_step (one
-    observe_step per branch and step): same outputs, same random draws, same gradients for every RSSM
-    parameter and both embedding projections."""
+    """paired_filter_window (RSSMPair: both branches in one batched step) against the reference filter_window
+    (filter_step: one observe_step per branch and step): same outputs, same random draws, same gradients for
+    every RSSM parameter and both embedding projections."""
     wm = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=3))
     params = [*wm.control_rssm.parameters(), *wm.free_rssm.parameters()]
     with torch.no_grad():  # non-trivial layer-norm affine parameters, different per branch
@@ -121,7 +134,8 @@ def test_paired_rollout_equals_the_branchwise_loop_in_values_and_gradients():
 
     def run(paired):
         torch.manual_seed(3)
-        out = wm._rollout_loop(control, free, action, is_init, paired=paired)
+        rollout = paired_filter_window if paired else filter_window
+        out = rollout(wm.control_rssm, wm.free_rssm, control, free, action, is_init)
         loss = sum((v * torch.linspace(-1, 1, v.shape[-1])).sum() for v in out.values())
         # posterior_embed_in is applied outside the loop (project_embedding): no gradient here
         return out, torch.autograd.grad(loss, [control, free, *params], allow_unused=True)
@@ -136,11 +150,29 @@ def test_paired_rollout_equals_the_branchwise_loop_in_values_and_gradients():
     for got, want in zip(paired_grads, plain_grads):
         if want is not None:
             torch.testing.assert_close(got, want)
+    # the model's filter (fast_paths=True by default) is the pair, on one thread
+    assert wm.filter_window is fast_filter_window
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        torch.manual_seed(3)
+        want = paired_filter_window(wm.control_rssm, wm.free_rssm, control, free, action, is_init)["state"]
+        torch.manual_seed(3)
+        got = wm.filter_window(wm.control_rssm, wm.free_rssm, control, free, action, is_init)["state"]
+    finally:
+        torch.set_num_threads(previous)
+    assert got.equal(want)
+    # the pair asked for where it cannot run: an error, not a silent fallback
+    with pytest.raises(ValueError, match="paired_filter_window"):
+        paired_filter_window(wm.control_rssm, wm.free_rssm, control, None, action, is_init)
+    # the model's fast filter falls back to the reference there (a lone branch)
     torch.manual_seed(3)
-    assert wm._rollout_loop(control, free, action, is_init)["state"].equal(paired["state"])
-    # the switch asks for the fast path where it cannot run: an error, not a silent fallback
-    with pytest.raises(ValueError, match="paired=True"):
-        wm._rollout_loop(control, None, action, is_init, paired=True)
+    alone = fast_filter_window(wm.control_rssm, None, control, None, action, is_init)
+    torch.manual_seed(3)
+    reference = filter_window(wm.control_rssm, None, control, None, action, is_init)
+    assert alone.keys() == reference.keys() and len(alone) == 7
+    for key in reference:
+        torch.testing.assert_close(alone[key], reference[key], msg=key)
 
 
 @pytest.mark.parametrize("channels_last", [False, True])
@@ -148,8 +180,9 @@ def test_paired_rollout_equals_the_branchwise_loop_in_values_and_gradients():
 @pytest.mark.parametrize("names", [("control", "free", "static"), ("control", "free"), ("control", "static")])
 @pytest.mark.parametrize("clamp_gradient", ["inward", "zero"])
 def test_fused_composition_matches_the_plain_operations(channels_last, clamp, names, clamp_gradient):
-    """compose_decoded (one autograd node) against split + clamp + softmax + products, values and gradients
-    from every output (composite, masks, components), in the decoders' memory format."""
+    """fused_compose_decoded (one autograd node) against the reference compose_decoded (split + clamp + softmax +
+    products), values and gradients from every output (composite, masks, components), in the decoders' memory
+    format."""
     torch.manual_seed(0)
     batch, time = 2, 3
     leads = {name: (batch, 1) if name == "static" else (batch, time) for name in names}
@@ -165,7 +198,10 @@ def test_fused_composition_matches_the_plain_operations(channels_last, clamp, na
 
     def run(fused):
         outputs = {n: raw[n].reshape(*leads[n], 4, 8, 8) for n in names}
-        composite, masks, colors = composition.compose_decoded(outputs, fused=fused)
+        if fused:
+            composite, masks, colors = fused_compose_decoded(composition, outputs)
+        else:
+            composite, masks, colors = composition.compose_decoded(outputs)
         loss = (composite * weights).sum()
         loss = loss + sum((m * mask_weights * (k + 1)).sum() for k, m in enumerate(masks.values()))
         loss = loss + sum(c.pow(2).sum() for c in colors.values())
@@ -187,10 +223,10 @@ def test_fused_composition_matches_the_plain_operations(channels_last, clamp, na
 def test_fused_composition_is_refused_where_it_does_not_apply():
     outputs = {n: torch.randn(2, 3, 4, 8, 8) for n in ("control", "free")}
     outputs["static"] = torch.randn(2, 1, 3, 8, 8)  # sigmoid mode: the background has no logit
-    composition = MaskComposition(mask_mode="sigmoid")
-    with pytest.raises(ValueError, match="fused=True"):
-        composition.compose_decoded(outputs, fused=True)
-    composite, _, _ = composition.compose_decoded(outputs)  # the reference, chosen by default here
+    with pytest.raises(ValueError, match="fused_compose_decoded"):
+        fused_compose_decoded(MaskComposition(mask_mode="sigmoid"), outputs)
+    composition = FusedMaskComposition(mask_mode="sigmoid")
+    composite, _, _ = composition.compose_decoded(outputs)  # the reference, chosen here
     assert composite.shape == (2, 3, 3, 8, 8)
 
 
@@ -198,7 +234,7 @@ def test_fused_composition_passes_only_the_gradients_asked_for():
     """Gradient from the composite alone, and from one mask alone, still matches the plain path."""
     torch.manual_seed(1)
     raw = {n: torch.randn(4, 4, 8, 8, requires_grad=True) for n in ("control", "free")}
-    composition = MaskComposition()
+    composition = FusedMaskComposition()
     outputs = {n: x.reshape(2, 2, 4, 8, 8) for n, x in raw.items()}
     _, masks, _ = composition.compose_decoded(outputs)
     got = torch.autograd.grad(masks["free"].sum() * 2 + masks["free"].pow(2).sum(), list(raw.values()))
@@ -224,7 +260,7 @@ def test_fused_composition_reads_bf16_decoder_outputs_and_composes_in_float32(ch
             lead[0] * lead[1], 4, 8, 8, dtype=torch.float32 if name == "static" else torch.bfloat16
         )
         raw[name] = (x.contiguous(memory_format=torch.channels_last) if channels_last else x).requires_grad_()
-    composition = MaskComposition(clamp_gradient="inward")
+    composition = FusedMaskComposition(clamp_gradient="inward")
     weights = torch.randn(2, 3, 3, 8, 8)
 
     def run(inputs):
@@ -268,7 +304,7 @@ def test_inward_clamp_passes_only_the_gradients_that_point_back_into_the_range()
         composition = MaskComposition(clamp_gradient="zero" if mode == "straight_through" else mode)
         outputs = {n: raw[n].reshape(*leads[n], 4, 8, 8) for n in names}
         if fused:
-            composite, _, _ = composition.compose_decoded(outputs)
+            composite, _, _ = fused_compose_decoded(composition, outputs)
         else:
             colors = {n: o[..., :3, :, :] for n, o in outputs.items()}
             if mode == "straight_through":  # clamped forward, identity backward: the gradient before gating
@@ -292,3 +328,66 @@ def test_inward_clamp_passes_only_the_gradients_that_point_back_into_the_range()
         assert (got[:, :3][outside] != 0).any()  # the inward one passes some
     with pytest.raises(ValueError, match="clamp_gradient"):
         MaskComposition(clamp_gradient="straight")
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        {},
+        {"mask_mode": "sigmoid"},  # the composition falls back to the reference
+        {"free_branch": False, "static_branch": False, "inverse_dynamics": False},  # DreamerV2: one branch
+        {"channels_last": False, "layer_norm_gru": False},  # planar decoders, cells that do not pair
+    ],
+    ids=["isodream", "sigmoid_masks", "dreamerv2", "nchw_gru"],
+)
+def test_a_world_model_gives_the_same_losses_and_gradients_with_and_without_fast_paths(overrides):
+    """Two world models with the same weights, fast_paths=True (the default) and False (the reference forms):
+    the same modules and state dict, and the same losses and gradients for every parameter on one batch with
+    a reset inside the window, under the same seed."""
+    from isodream_rl.objectives import IsoDreamModelLoss
+
+    torch.manual_seed(0)
+    fast = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2, **overrides))
+    reference = IsoDreamWorldModel(
+        WorldModelConfig.from_preset("tiny", action_dim=2, fast_paths=False, **overrides)
+    )
+    assert fast.state_dict().keys() == reference.state_dict().keys()
+    reference.load_state_dict(fast.state_dict())
+    assert type(fast.control_decoder) is FastConvDecoder and type(reference.control_decoder) is ConvDecoder
+    assert type(fast.composition) is FusedMaskComposition and type(reference.composition) is MaskComposition
+    assert fast.filter_window is fast_filter_window and reference.filter_window is filter_window
+    g = torch.Generator().manual_seed(1)
+    batch, time = 2, 6
+    is_init = torch.zeros(batch, time, 1, dtype=torch.bool)
+    is_init[1, 3] = True
+    td = TensorDict(
+        {
+            "action": torch.rand(batch, time, 2, generator=g) * 2 - 1,
+            "is_init": is_init,
+            ("next", "pixels"): torch.randint(
+                0, 256, (batch, time, 3, 64, 64), dtype=torch.uint8, generator=g
+            ),
+            ("next", "reward"): torch.randn(batch, time, 1, generator=g),
+            ("next", "terminated"): torch.zeros(batch, time, 1, dtype=torch.bool),
+        },
+        [batch, time],
+    )
+
+    def run(model):
+        loss = IsoDreamModelLoss(model)
+        torch.manual_seed(2)
+        losses, _ = loss(td.clone())
+        params = list(model.parameters())
+        grads = torch.autograd.grad(loss.total(losses), params, allow_unused=True)
+        return {k: v.detach() for k, v in losses.items() if k.startswith("loss_")}, grads
+
+    fast_losses, fast_grads = run(fast)
+    ref_losses, ref_grads = run(reference)
+    assert fast_losses.keys() == ref_losses.keys() and fast_losses
+    for key in ref_losses:
+        torch.testing.assert_close(fast_losses[key], ref_losses[key], rtol=1e-5, atol=1e-5, msg=key)
+    names = [name for name, _ in reference.named_parameters()]
+    assert [g is None for g in fast_grads] == [g is None for g in ref_grads]
+    for name, got, want in zip(names, fast_grads, ref_grads):
+        if want is not None:
+            torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5 * float(want.abs().max()), msg=name)

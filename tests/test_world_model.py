@@ -470,9 +470,9 @@ def test_total_loss_falls_when_overfitting_one_batch(precision, steps, lr):
 
 
 def test_decoder_matmul_first_layer_equals_the_transposed_convolution():
-    from isodream_rl.modules import ConvDecoder
+    from isodream_rl.modules.fast_paths import FastConvDecoder
 
-    decoder = ConvDecoder(in_features=20, out_channels=4, depth=4)
+    decoder = FastConvDecoder(in_features=20, out_channels=4, depth=4)
     latent = torch.randn(3, 20)
     reference = decoder.deconv(decoder.linear(latent)[:, :, None, None])
     torch.testing.assert_close(decoder(latent), reference, rtol=1e-5, atol=1e-5)

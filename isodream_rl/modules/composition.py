@@ -18,16 +18,13 @@ A softmax saturates: a branch whose mask went to ~0 on a region gets ~0 gradient
 its logit. The logits' gradients are always the exact ones: lifting them towards a shut-out branch made
 training diverge on the sprites scene (docs/results/world_model_demo.md).
 
-:meth:`MaskComposition.compose_decoded` composes straight from the decoders' ``RGB + logit`` outputs, in one
-of two implementations selected by its ``fused`` switch: the reference, the operations one by one
-(:meth:`MaskComposition.bound` and :meth:`MaskComposition.forward`), and the CPU fast path for softmax mode,
-the whole composition as one autograd function with a hand-written backward (:class:`_SoftmaxComposition`),
-faster on CPU (measured by ``bench/world_model_speed.py``; docs/architecture.md, "Speed").
+:meth:`MaskComposition.compose_decoded` composes straight from the decoders' ``RGB + logit`` outputs, the
+operations one by one (:meth:`MaskComposition.bound`, then :meth:`MaskComposition.forward`): the reference
+form. The world model builds :class:`~isodream_rl.modules.fast_paths.FusedMaskComposition` instead when
+``WorldModelConfig.fast_paths`` is set (the same function, one autograd node in softmax mode).
 """
 
 from __future__ import annotations
-
-import math
 
 import torch
 from torch import nn
@@ -145,20 +142,16 @@ class MaskComposition(nn.Module):
         return composite, masks
 
     def compose_decoded(
-        self, outputs: dict[str, torch.Tensor], *, fused: bool | None = None
+        self, outputs: dict[str, torch.Tensor]
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict[str, torch.Tensor]]:
-        """Eq. 4 from the decoders' raw outputs.
+        """Eq. 4 from the decoders' raw outputs: :meth:`bound`, then :meth:`forward`.
 
         Args:
             outputs: branch name -> decoder output ``[*lead, C, H, W]`` with ``C = 4`` (RGB + mask logit)
                 or ``C = 3`` (no logit: a lone controllable branch, the static branch in sigmoid mode);
                 the ``lead`` shapes broadcast (``[B, T]`` dynamic branches, ``[B, 1]`` background). Any
-                floating dtype: a bf16/fp16 decoder output is read as it is and composed in float32 (its
-                gradient is returned in its own dtype and memory format).
-            fused: ``True``: :class:`_SoftmaxComposition` (the CPU fast path, softmax mode with a logit per
-                branch); ``False``: :meth:`bound` and :meth:`forward`, the operations one by one (the
-                reference); ``None`` (default): the fast path wherever it applies. Both give the same values
-                and gradients.
+                floating dtype: a bf16/fp16 decoder output is composed in float32 (its gradient is returned
+                in its own dtype).
 
         Returns:
             ``(composite, masks, colors)``: the composite ``[*N, 3, H, W]``, the masks ``[*N, 1, H, W]`` and
@@ -166,141 +159,18 @@ class MaskComposition(nn.Module):
             Gradients flow from all three.
         """
         names = [name for name in BRANCHES if name in outputs]
-        can_fuse = (
-            self.mask_mode == "softmax" and len(names) >= 2 and all(outputs[n].shape[-3] == 4 for n in names)
-        )
-        if fused and not can_fuse:
-            raise ValueError(
-                "fused=True needs softmax masks and a mask logit for each of two or more branches"
-            )
-        if not can_fuse or fused is False:
-            outputs = {n: outputs[n].to(_compute_dtype(outputs[n].dtype)) for n in names}
-            colors = {n: outputs[n][..., :3, :, :] for n in names}
-            logits = {n: outputs[n][..., 3:, :, :] for n in names if outputs[n].shape[-3] == 4}
-            colors = self.bound(colors)
-            composite, masks = self(colors, logits, bounded=True)
-            return composite, masks, colors
-        bounds = PIXEL_RANGE if self.clamp_components else None
-        leads = [tuple(outputs[n].shape[:-3]) for n in names]
-        flat = [outputs[n].reshape(-1, *outputs[n].shape[-3:]) for n in names]
-        composite, stacked, *colors = _SoftmaxComposition.apply(
-            bounds, self.clamp_gradient == "inward", leads, *flat
-        )
-        return composite, dict(zip(names, stacked.split(1, dim=-3))), dict(zip(names, colors))
+        outputs = {n: outputs[n].to(compute_dtype(outputs[n].dtype)) for n in names}
+        colors = {n: outputs[n][..., :3, :, :] for n in names}
+        logits = {n: outputs[n][..., 3:, :, :] for n in names if outputs[n].shape[-3] == 4}
+        colors = self.bound(colors)
+        composite, masks = self(colors, logits, bounded=True)
+        return composite, masks, colors
 
 
-def _compute_dtype(*dtypes: torch.dtype) -> torch.dtype:
+def compute_dtype(*dtypes: torch.dtype) -> torch.dtype:
     """float32, or a wider floating dtype among ``dtypes``: the composition and the image loss never run in
     bf16/fp16."""
     out = torch.float32
     for dtype in dtypes:
         out = torch.promote_types(out, dtype)
     return out
-
-
-def memory_format_of(x: torch.Tensor) -> torch.memory_format:
-    """``torch.channels_last`` for a 4-d tensor stored channels-last (and not also contiguous), else contiguous."""
-    if x.dim() == 4 and not x.is_contiguous() and x.is_contiguous(memory_format=torch.channels_last):
-        return torch.channels_last
-    return torch.contiguous_format
-
-
-class _SoftmaxComposition(torch.autograd.Function):
-    """Softmax-mode eq. 4 as one autograd node, forward and backward on planar (NCHW) tensors.
-
-    Forward, per pixel: ``c_i = clamp(rgb_i)``, ``m = softmax(l)`` over branches, ``y = sum_i m_i c_i``.
-    Backward, with ``g = dL/dy`` and ``q_i = <g, c_i> + dL/dm_i`` (sum over RGB):
-    ``dL/drgb_i = (g m_i + dL/dc_i) * [rgb_i in range]`` and ``dL/dl_i = m_i (q_i - sum_j m_j q_j)``.
-
-    Autograd through the separate operations costs ~25 passes over ``[N, 3, 64, 64]`` tensors, many of
-    them broadcasting a mask over the innermost channel of a channels-last decoder output (a 3-wide inner
-    loop). Here each decoder output is made planar once and its gradient is returned in the output's own
-    memory format, so the transposed convolutions get the layout they were run in.
-
-    Inputs: ``bounds`` (clamp range or ``None``), the ``lead`` shape of each branch, then each branch's
-    output flattened to ``[prod(lead), 4, H, W]``.
-    """
-
-    @staticmethod
-    def forward(ctx, bounds, inward, leads, *raw):
-        shape = torch.broadcast_shapes(*leads)
-        ctx.inward = inward
-        size = raw[0].shape[-2:]
-        ctx.formats = [memory_format_of(r) for r in raw]
-        ctx.dtypes = [r.dtype for r in raw]
-        ctx.leads, ctx.bounds = leads, bounds
-        dtype = _compute_dtype(*ctx.dtypes)
-        colors = []
-        for r, lead in zip(raw, leads):
-            # written planar (and in float32) whatever the decoder's layout and dtype, in one pass: the
-            # products below then run over whole planes
-            color = r.new_empty(r.shape[0], 3, *size, dtype=dtype).copy_(r[:, :3])
-            if bounds is not None:
-                color.clamp_(*bounds)
-            colors.append(color.view(*lead, 3, *size))
-        logits = raw[0].new_empty(*shape, len(raw), *size, dtype=dtype)
-        for i, (r, lead) in enumerate(zip(raw, leads)):
-            logits[..., i : i + 1, :, :].copy_(r[:, 3:].reshape(*lead, 1, *size).expand(*shape, 1, *size))
-        masks = torch.softmax(logits, dim=-3)
-        composite = colors[0] * masks[..., 0:1, :, :]
-        for i in range(1, len(colors)):
-            composite.addcmul_(colors[i], masks[..., i : i + 1, :, :])
-        ctx.save_for_backward(masks, *colors)
-        ctx.set_materialize_grads(False)
-        return (composite, masks, *colors)
-
-    @staticmethod
-    def backward(ctx, grad_composite, grad_masks, *grad_colors):
-        masks, *colors = ctx.saved_tensors
-        size = masks.shape[-2:]
-        grads = []
-        q = []
-        for i, color in enumerate(colors):
-            m_i = masks[..., i : i + 1, :, :]
-            g = None
-            if grad_composite is not None:
-                g = (grad_composite * m_i).sum_to_size(color.shape)
-            if grad_colors[i] is not None:
-                g = grad_colors[i].clone() if g is None else g.add_(grad_colors[i])
-            if g is not None and ctx.bounds is not None:
-                if ctx.inward:
-                    g = g.mul_(inward_pass(g, color, *ctx.bounds))
-                else:
-                    # zero outside the range; a clamped colour sits exactly on a bound, an unclamped one inside
-                    g = torch.ops.aten.hardtanh_backward.grad_input(g, color, *ctx.bounds, grad_input=g)
-            grads.append(g)
-            q_i = None
-            if grad_composite is not None:
-                q_i = grad_composite[..., 0:1, :, :] * color[..., 0:1, :, :]
-                for c in (1, 2):
-                    q_i = q_i.addcmul_(grad_composite[..., c : c + 1, :, :], color[..., c : c + 1, :, :])
-            if grad_masks is not None:
-                g_m = grad_masks[..., i : i + 1, :, :]
-                q_i = g_m.clone() if q_i is None else q_i.add_(g_m)
-            q.append(q_i)
-        logits = [None] * len(colors)
-        if any(q_i is not None for q_i in q):
-            q = [torch.zeros_like(masks[..., :1, :, :]) if q_i is None else q_i for q_i in q]
-            # dL/dl_i = m_i (q_i - sum_j m_j q_j), the softmax's Jacobian
-            mean = q[0] * masks[..., 0:1, :, :]
-            for i in range(1, len(q)):
-                mean.addcmul_(q[i], masks[..., i : i + 1, :, :])
-            logits = [
-                (q[i] - mean).mul_(masks[..., i : i + 1, :, :]).sum_to_size(*lead, 1, *size)
-                for i, lead in enumerate(ctx.leads)
-            ]
-        out = []
-        for rgb, logit, lead, memory_format, dtype in zip(grads, logits, ctx.leads, ctx.formats, ctx.dtypes):
-            if rgb is None and logit is None:
-                out.append(None)
-                continue
-            count = math.prod(lead)
-            # allocated in the decoder output's layout and dtype, filled with two strided copies
-            grad = torch.empty(count, 4, *size, dtype=dtype, device=masks.device, memory_format=memory_format)
-            for part, value in ((grad[:, :3], rgb), (grad[:, 3:], logit)):
-                if value is None:
-                    part.zero_()
-                else:
-                    part.copy_(value.reshape(count, -1, *size))
-            out.append(grad)
-        return (None, None, None, *out)

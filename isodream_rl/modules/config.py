@@ -94,6 +94,9 @@ class WorldModelConfig:
     """``"bf16"`` runs convolutions and MLPs under bf16 autocast; GRUs and losses stay fp32."""
     channels_last: bool = True
     """Channels-last memory format for the convolutions (faster on CPU oneDNN and GPU tensor cores)."""
+    fast_paths: bool = True
+    """The CPU fast paths of ``modules/fast_paths.py`` (same values as the reference within float tolerance;
+    ``False``: the reference forms)."""
 
     def __post_init__(self):
         if self.action_dim < 1:

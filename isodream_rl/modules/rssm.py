@@ -12,26 +12,16 @@ is the noncontrollable branch ``GRU_z(h', z)`` with no action input and its own 
 
 Why not TorchRL's ``RSSMPrior`` / ``RSSMPosterior``: they fix a softplus std and a plain ``nn.GRUCell``
 (the authors use sigmoid2 and a layer-norm GRU), and their posterior projects ``[h, e]`` inside the
-time loop, whereas we project the embeddings of the whole window at once, outside the loop (the
-embedding half of that first linear layer is the expensive part).
+time loop, whereas we project the embeddings of the whole window at once, outside the loop (one product
+for the window instead of one per step).
 
-The joint two-branch filter with ``is_init`` resets is here too, in two implementations selected by one
-switch (``filter_window(..., paired=...)``): the reference, :func:`filter_step` per branch and step, and
-the CPU fast path, :class:`RSSMPair`, both branches' step as one batched computation. The controllable
-cell ``GRU_s(h, s, a)`` and the action-free cell ``GRU_z(h', z)`` have the same layer shapes except for the
-action input, so one filtering step of both is the same sequence of matrix products on a leading branch
-dimension of size 2: ``bmm`` over stacked weights instead of two calls per layer (the action-free cell's
-transition input is padded with zero columns where the action would be). At paper size this halves the ~30
-small operations per time step of the window's loop, which runs on one thread (:func:`single_threaded`).
-The pair stacks the cells' own parameters at each call (``torch.stack`` is differentiable), so modules,
-parameter names and checkpoints are unchanged, and the two paths give the same values, random draws and
-gradients.
+The joint two-branch filter with ``is_init`` resets is here too: :func:`filter_step`, one step of both
+branches, and :func:`filter_window`, a window of them. These are the reference forms; the world model runs
+:func:`~isodream_rl.modules.fast_paths.fast_filter_window` instead when ``WorldModelConfig.fast_paths`` is
+set (the same function: both branches' step as one batched computation, on one thread).
 """
 
 from __future__ import annotations
-
-import contextlib
-from collections.abc import Callable, Iterable, Iterator
 
 import torch
 from torch import nn
@@ -229,83 +219,6 @@ class ActionFreeRSSM(RSSMCell):
         super().__init__(action_dim=0, **kwargs)
 
 
-@contextlib.contextmanager
-def _num_threads(count: int) -> Iterator[None]:
-    previous = torch.get_num_threads()
-    if previous == count:
-        yield
-        return
-    torch.set_num_threads(count)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
-
-
-class _SingleThreaded(torch.autograd.Function):
-    """Runs ``fn`` forward and its graph backward with one intra-op thread (see :func:`single_threaded`)."""
-
-    @staticmethod
-    def forward(ctx, fn, keys: list, num_args: int, *tensors: torch.Tensor):
-        args = [t.detach().requires_grad_() if t.requires_grad else t for t in tensors[:num_args]]
-        with torch.enable_grad(), _num_threads(1):
-            outputs = fn(*args)
-        keys.extend(outputs)
-        ctx.set_materialize_grads(False)
-        ctx.inner = (args + list(tensors[num_args:]), [outputs[k] for k in keys])
-        return tuple(outputs[k].detach() for k in keys)
-
-    @staticmethod
-    def backward(ctx, *grads: torch.Tensor | None):
-        inputs, outputs = ctx.inner
-        del ctx.inner
-        pairs = [(o, g) for o, g in zip(outputs, grads) if g is not None and o.requires_grad]
-        wanted = [i for i, t in enumerate(inputs) if t.requires_grad]
-        result: list[torch.Tensor | None] = [None] * len(inputs)
-        if pairs and wanted:
-            with _num_threads(1):
-                got = torch.autograd.grad(
-                    [o for o, _ in pairs],
-                    [inputs[i] for i in wanted],
-                    [g for _, g in pairs],
-                    allow_unused=True,
-                )
-            for i, g in zip(wanted, got):
-                result[i] = g
-        return (None, None, None, *result)
-
-
-def single_threaded(
-    fn: Callable[..., dict[str, torch.Tensor]],
-    args: Iterable[torch.Tensor],
-    parameters: Iterable[torch.Tensor],
-) -> dict[str, torch.Tensor]:
-    """``fn(*args)`` (a recurrent rollout returning a dict of tensors), forward and backward on one thread.
-
-    A time loop over a ``[B, .]`` state runs thousands of tiny operations (``16 x 200`` matrices at paper
-    size) that gain nothing from several threads; each one that does go parallel (MKL products,
-    layer norm, reductions) waits for every thread of the pool, and on a machine whose cores are shared
-    with other processes that wait is a scheduler time slice (milliseconds) per operation. This runs the
-    loop's forward and, through a custom autograd function, its backward with ``torch.set_num_threads(1)``,
-    restoring the previous count afterwards; the convolutions outside keep all threads. The result is the
-    same function with the same gradients. Limitation: the inner graph is freed by the first backward, so
-    a second backward through it (``retain_graph=True``) is not supported.
-
-    Args:
-        fn: the rollout; it reads ``parameters`` through its closure.
-        args: its tensor arguments (gradients flow back to those that require them).
-        parameters: the parameters ``fn`` uses, so that their gradients are produced.
-    """
-    args, parameters = list(args), [p for p in parameters if p.requires_grad]
-    needs_graph = torch.is_grad_enabled() and any(t.requires_grad for t in args + parameters)
-    if torch.get_num_threads() == 1 or not needs_graph:
-        with _num_threads(1):
-            return fn(*args)
-    keys: list[str] = []
-    outputs = _SingleThreaded.apply(fn, keys, len(args), *args, *parameters)
-    return dict(zip(keys, outputs))
-
-
 def filter_step(
     control: RSSMCell,
     free: RSSMCell | None,
@@ -350,50 +263,23 @@ def filter_window(
     free_proj: torch.Tensor | None,
     action: torch.Tensor,
     is_init: torch.Tensor | None,
-    *,
-    paired: bool | None = None,
 ) -> dict[str, torch.Tensor]:
-    """Both branches filtered over a ``[B, T]`` window from zero states (eq. 3).
+    """Both branches filtered over a ``[B, T]`` window from zero states (eq. 3): :func:`filter_step` per step.
 
     Args:
         control, free: the two cells (``free`` may be ``None``).
         control_proj, free_proj: projected embeddings ``[B, T, hidden]`` (``free_proj`` ``None`` without ``free``).
         action: ``a_t`` ``[B, T, A]``.
         is_init: ``[B, T, 1]`` bool resets, or ``None``.
-        paired: ``True``: :class:`RSSMPair` (the CPU fast path); ``False``: :func:`filter_step` per step
-            (the reference); ``None`` (default): the pair where :func:`can_pair` holds.
 
     Returns:
         the keys of :func:`filter_step`, each ``[B, T, .]``.
     """
-    can = free_proj is not None and can_pair(control, free)
-    if paired and not can:
-        raise ValueError(
-            "paired=True needs two pairable cells (see can_pair) and the free branch's embeddings"
-        )
     batch, time = action.shape[:2]
     # unbind, not [:, t]: its backward is one stack, where indexing writes a zero-filled window per step
     actions = action.unbind(1)
     resets = [None] * time if is_init is None else is_init.bool().unbind(1)
     state, belief = control.initial((batch,), device=action.device)
-    if can and paired is not False:
-        pair = RSSMPair(control, free)
-        free_state, free_belief = free.initial((batch,), device=action.device)
-        state, belief = torch.stack([state, free_state]), torch.stack([belief, free_belief])
-        projections = torch.stack([control_proj, free_proj]).unbind(2)
-        steps = []
-        for t in range(time):
-            act = actions[t]
-            if resets[t] is not None:
-                keep = (~resets[t]).to(action.dtype)
-                state, belief, act = state * keep, belief * keep, act * keep
-            out = pair.observe_step(state, belief, act, projections[t])
-            steps.append(out)
-            state, belief = out["state"], out["belief"]
-        result = {}
-        for key in OUT_KEYS:
-            result[key], result[f"free_{key}"] = torch.stack([s[key] for s in steps], dim=2).unbind(0)
-        return result
     previous = {"state": state, "belief": belief}
     if free is not None:
         previous["free_state"], previous["free_belief"] = free.initial((batch,), device=action.device)
@@ -406,111 +292,3 @@ def filter_window(
         )
         steps.append(previous)
     return {k: torch.stack([s[k] for s in steps], dim=1) for k in steps[0]}
-
-
-OUT_KEYS = (
-    "belief",
-    "prior_mean",
-    "prior_std",
-    "prior_state",
-    "posterior_mean",
-    "posterior_std",
-    "state",
-)
-
-
-def can_pair(control: RSSMCell, free: RSSMCell | None) -> bool:
-    """Whether :class:`RSSMPair` applies: two layer-norm-GRU cells of equal sizes, the second action-free."""
-    return (
-        free is not None
-        and isinstance(control.gru, LayerNormGRUCell)
-        and isinstance(free.gru, LayerNormGRUCell)
-        and free.action_dim == 0
-        and (control.state_dim, control.belief_dim, control.min_std)
-        == (free.state_dim, free.belief_dim, free.min_std)
-        and control.transition_in.out_features == free.transition_in.out_features
-        and control.gru.norm.eps == free.gru.norm.eps
-    )
-
-
-class RSSMPair:
-    """One filtering step of the controllable and the action-free branch, batched over the two (the fast
-    path of :func:`filter_window`).
-
-    Args:
-        control: the :class:`~isodream_rl.modules.rssm.ActionConditionedRSSM`.
-        free: the :class:`~isodream_rl.modules.rssm.ActionFreeRSSM` (:func:`can_pair` must hold).
-
-    Build one per rollout (it stacks the current weights); tensors carry a leading branch dimension
-    ``[2, B, .]``, index 0 the controllable branch and 1 the noncontrollable one.
-    """
-
-    def __init__(self, control: RSSMCell, free: RSSMCell):
-        if not can_pair(control, free):
-            raise ValueError("RSSMPair needs two layer-norm-GRU cells of equal sizes, the second action-free")
-        self.action_dim = control.action_dim
-        self.state_dim = control.state_dim
-        self.min_std = control.min_std
-        self.eps = control.gru.norm.eps
-        cells = (control, free)
-        free_in = F.pad(free.transition_in.weight, (0, self.action_dim))
-        self.transition_weight = torch.stack([control.transition_in.weight, free_in]).transpose(1, 2)
-        self.transition_bias = torch.stack([c.transition_in.bias for c in cells])[:, None]
-        self.gru_weight = torch.stack([c.gru.linear.weight for c in cells]).transpose(1, 2)
-        self.norm_weight = torch.stack([c.gru.norm.weight for c in cells])[:, None]
-        self.norm_bias = torch.stack([c.gru.norm.bias for c in cells])[:, None]
-        # prior_net[0] and posterior_belief_in both read h_t: one product for the two
-        self.belief_weight = torch.stack(
-            [torch.cat([c.prior_net[0].weight, c.posterior_belief_in.weight]) for c in cells]
-        ).transpose(1, 2)
-        self.belief_bias = torch.stack(
-            [torch.cat([c.prior_net[0].bias, c.posterior_belief_in.bias]) for c in cells]
-        )[:, None]
-        self.hidden = control.prior_net[0].out_features
-        # prior_net[2] (control, free) and posterior_out (control, free): one product over four
-        self.out_weight = torch.stack(
-            [control.prior_net[2].weight, free.prior_net[2].weight]
-            + [control.posterior_out.weight, free.posterior_out.weight]
-        ).transpose(1, 2)
-        self.out_bias = torch.stack(
-            [control.prior_net[2].bias, free.prior_net[2].bias]
-            + [control.posterior_out.bias, free.posterior_out.bias]
-        )[:, None]
-
-    def observe_step(
-        self,
-        state: torch.Tensor,
-        belief: torch.Tensor,
-        action: torch.Tensor,
-        projected_embedding: torch.Tensor,
-    ) -> dict[str, torch.Tensor]:
-        """``[2, B, S]`` states, ``[2, B, D]`` beliefs, ``[B, A]`` action, ``[2, B, hidden]`` projected embeddings.
-
-        Returns the keys of :meth:`RSSMCell.observe_step`, each ``[2, B, .]``.
-        """
-        batch = state.shape[1]
-        padded = torch.cat([action[None], torch.zeros_like(action)[None]]).to(state.dtype)
-        x = F.elu(torch.baddbmm(self.transition_bias, torch.cat([state, padded], -1), self.transition_weight))
-        # layer-norm GRU (LayerNormGRUCell) with per-branch affine parameters
-        parts = torch.bmm(torch.cat([x, belief], -1), self.gru_weight)
-        parts = F.layer_norm(parts, parts.shape[-1:], eps=self.eps)
-        belief = gru_gates(torch.addcmul(self.norm_bias, parts, self.norm_weight), belief)
-        hidden = torch.baddbmm(self.belief_bias, belief, self.belief_weight)
-        prior_hidden = F.elu(hidden[..., : self.hidden])
-        post_hidden = F.elu(hidden[..., self.hidden :] + projected_embedding)
-        raw = torch.baddbmm(self.out_bias, torch.cat([prior_hidden, post_hidden]), self.out_weight)
-        mean, std = raw.chunk(2, dim=-1)
-        std = sigmoid2_std(std, self.min_std)
-        # the draws of RSSMCell.observe_step, branch after branch: control prior, control posterior, ...
-        noise = [torch.randn(batch, self.state_dim, dtype=std.dtype, device=std.device) for _ in range(4)]
-        eps = torch.stack([noise[0], noise[2], noise[1], noise[3]])
-        sample = torch.addcmul(mean, std, eps)
-        return {
-            "belief": belief,
-            "prior_mean": mean[:2],
-            "prior_std": std[:2],
-            "prior_state": sample[:2],
-            "posterior_mean": mean[2:],
-            "posterior_std": std[2:],
-            "state": sample[2:],
-        }

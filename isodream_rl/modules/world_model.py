@@ -18,14 +18,10 @@ from isodream_rl.modules.composition import MaskComposition
 from isodream_rl.modules.config import WorldModelConfig
 from isodream_rl.modules.decoder import ConvDecoder
 from isodream_rl.modules.encoder import IMAGE_SHAPE, BranchedEncoder, check_pixel_values, check_pixels
+from isodream_rl.modules.fast_paths import FastConvDecoder, FusedMaskComposition, fast_filter_window
 from isodream_rl.modules.heads import make_discount_head, make_reward_head
 from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
-from isodream_rl.modules.rssm import (
-    ActionConditionedRSSM,
-    ActionFreeRSSM,
-    filter_window,
-    single_threaded,
-)
+from isodream_rl.modules.rssm import ActionConditionedRSSM, ActionFreeRSSM, filter_window
 
 
 def _next(key: str) -> tuple[str, str]:
@@ -60,6 +56,12 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         root gets ``"background"`` o^b ``[B, T, 3, 64, 64]`` (one image per window, expanded over ``T``).
         Images are in ``[-0.5, 0.5]`` space, the targets' ``x / 255 - 0.5``.
 
+    ``config.fast_paths`` picks, once, how the decoders, the composition and the filter are computed: the CPU
+    fast paths of :mod:`~isodream_rl.modules.fast_paths` (``True``) or the reference forms (``False``:
+    :class:`~isodream_rl.modules.decoder.ConvDecoder`, :class:`~isodream_rl.modules.composition.MaskComposition`,
+    :func:`~isodream_rl.modules.rssm.filter_window`). Both have the same parameters and state dict and give the
+    same values and gradients within float tolerance.
+
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
@@ -77,6 +79,8 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         super().__init__()
         self.config = cfg = config
         self.check_inputs = check_inputs
+        fast = cfg.fast_paths
+        decoder_class = FastConvDecoder if fast else ConvDecoder
         heads = (
             ("control",) + (("free",) if cfg.free_branch else ()) + (("static",) if cfg.static_branch else ())
         )
@@ -93,20 +97,22 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         }
         self.control_rssm = ActionConditionedRSSM(action_dim=cfg.action_dim, **rssm_kwargs)
         self.free_rssm = ActionFreeRSSM(**rssm_kwargs) if cfg.free_branch else None
+        # the joint filter of both branches over a window (eq. 3), called as filter_window(control, free, ...)
+        self.filter_window = fast_filter_window if fast else filter_window
         feature_dim = cfg.state_dim + cfg.belief_dim
         single = not (cfg.free_branch or cfg.static_branch)
         # A lone controllable branch needs no mask channel: it is the whole image (DreamerV2).
-        self.control_decoder = ConvDecoder(
+        self.control_decoder = decoder_class(
             in_features=feature_dim, out_channels=3 if single else 4, depth=cfg.depth, device=device
         )
         self.free_decoder = (
-            ConvDecoder(in_features=feature_dim, out_channels=4, depth=cfg.depth, device=device)
+            decoder_class(in_features=feature_dim, out_channels=4, depth=cfg.depth, device=device)
             if cfg.free_branch
             else None
         )
         # The static branch has a mask logit of its own only in softmax mode.
         self.static_decoder = (
-            ConvDecoder(
+            decoder_class(
                 in_features=cfg.static_frames * embed,
                 out_channels=4 if cfg.mask_mode == "softmax" else 3,
                 depth=cfg.depth,
@@ -117,7 +123,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         )
         if cfg.static_mask_bias and cfg.static_branch and cfg.mask_mode == "softmax":
             self.shift_static_mask_bias(cfg.static_mask_bias)
-        self.composition = MaskComposition(
+        self.composition = (FusedMaskComposition if fast else MaskComposition)(
             mask_mode=cfg.mask_mode,
             clamp_components=cfg.clamp_components,
             clamp_gradient=cfg.clamp_gradient,
@@ -258,24 +264,6 @@ class IsoDreamWorldModel(TensorDictModuleBase):
                 raise ValueError("'action' holds NaN or inf values: check the policy or the replay data")
         return pixels, action.float(), is_init
 
-    def _rollout(self, control_proj, free_proj, action, is_init) -> dict[str, torch.Tensor]:
-        """The filtering loop over the window, on one thread (see :func:`~isodream_rl.modules.rssm.single_threaded`)."""
-        given = {"control_proj": control_proj, "free_proj": free_proj, "action": action, "is_init": is_init}
-        names = [k for k, v in given.items() if v is not None]
-        rssms = [m for m in (self.control_rssm, self.free_rssm) if m is not None]
-
-        def run(*tensors: torch.Tensor) -> dict[str, torch.Tensor]:
-            return self._rollout_loop(**{**dict.fromkeys(given), **dict(zip(names, tensors))})
-
-        return single_threaded(run, [given[k] for k in names], [p for m in rssms for p in m.parameters()])
-
-    def _rollout_loop(
-        self, control_proj, free_proj, action, is_init, *, paired: bool | None = None
-    ) -> dict[str, torch.Tensor]:
-        return filter_window(
-            self.control_rssm, self.free_rssm, control_proj, free_proj, action, is_init, paired=paired
-        )
-
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         cfg = self.config
         pixels, action, is_init = self._check_inputs(tensordict)
@@ -293,8 +281,13 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             static_out = None
             if self.static_decoder is not None:
                 static_out = self.static_background(features.reshape(batch, time, *features.shape[1:]))
-        latents = self._rollout(
-            control_proj.float(), None if free_proj is None else free_proj.float(), action, is_init
+        latents = self.filter_window(
+            self.control_rssm,
+            self.free_rssm,
+            control_proj.float(),
+            None if free_proj is None else free_proj.float(),
+            action,
+            is_init,
         )
 
         control_input = latents["prior_state" if cfg.decoder_input == "paper" else "state"]
