@@ -192,4 +192,3 @@ def probe(
                 x_fit, y_fit, x[half:][test], centres[half:, s][test], ridge=penalty, per_feature=dense
             )
     return scores
-
