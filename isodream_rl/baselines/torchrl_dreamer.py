@@ -501,8 +501,9 @@ class TorchRLDreamerOptimizationStepper(ZeroStateStepper):
     Per :meth:`step` on a flat ``[B * T]`` replay sample (``"action"``, ``"is_init"``, uint8
     ``("next", "pixels")``, ``("next", "reward")``):
 
-    1. :meth:`prepare` (:class:`~isodream_rl.baselines.common.ZeroStateStepper`): pixels to floats in [0, 1] (the example's ``ToTensorImage``), zero ``"state"``/``"belief"``
-       (the example's primer values), on the training device; reshaped to windows ``[B, T]``;
+    1. :meth:`prepare` (:class:`~isodream_rl.baselines.common.ZeroStateStepper`): pixels to floats in [0, 1]
+       (the example's ``ToTensorImage``), zero ``"state"``/``"belief"`` (the example's primer values), on the
+       training device; reshaped to windows ``[B, T]``;
     2. ``DreamerModelLoss`` -> backward of ``kl + reco + reward`` -> clip -> world-model Adam step;
     3. ``DreamerActorLoss`` on the world-model output flattened to ``[B * T]`` (imagination from the root
        ``state``/``belief`` each step consumed, as the example) -> backward -> clip -> actor Adam step;
