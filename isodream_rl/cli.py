@@ -1,4 +1,5 @@
-"""Console entry points: ``isodream-train`` (Hydra overrides) and ``isodream-eval`` (a checkpoint's returns).
+"""Console entry points: ``isodream-train`` (Hydra overrides), ``isodream-eval`` (a checkpoint's returns) and the
+latent probe of a world-model run.
 
 Examples::
 
@@ -13,12 +14,13 @@ A user error is one line on stderr and exit status 2; ``--debug`` (or ``HYDRA_FU
 traceback (``isodream_rl/user_errors.py``).
 
 ``python -m isodream_rl.cli ...`` runs ``isodream-train``; ``python -m isodream_rl.cli eval ...`` runs
-``isodream-eval``.
+``isodream-eval``; ``python -m isodream_rl.cli probe RUN_DIR [--encoder]`` runs :func:`probe_run`.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 
 from isodream_rl.process_settings import use_huge_pages
@@ -33,7 +35,7 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 import isodream_rl.baselines  # noqa: E402, F401  (registers algo=torchrl_dreamer and torchrl_dreamer_v3)
 from isodream_rl.cli_overrides import check_overrides  # noqa: E402
 from isodream_rl.configs import register_dmc_envs  # noqa: E402
-from isodream_rl.recipes.latent_probe import probe  # noqa: E402
+from isodream_rl.evaluation.latent_probe import probe  # noqa: E402
 from isodream_rl.run_lock import RunDirBusyError  # noqa: E402
 from isodream_rl.trainers import run as run_module  # noqa: E402
 from isodream_rl.trainers.checkpoint import CheckpointError  # noqa: E402
@@ -41,6 +43,7 @@ from isodream_rl.trainers.config import ConfigError, RunConfig  # noqa: E402
 from isodream_rl.trainers.disk_space import DiskFullError  # noqa: E402
 from isodream_rl.trainers.run_lifecycle import RunResult  # noqa: E402
 from isodream_rl.trainers.stepper import NonFiniteLossError  # noqa: E402
+from isodream_rl.trainers.world_model_run import load_world_model, probe_scene  # noqa: E402
 from isodream_rl.user_errors import log_to_stderr, report_user_errors, take_debug_flag  # noqa: E402
 
 ConfigStore.instance().store(name="run_schema", node=RunConfig)
@@ -120,8 +123,47 @@ def evaluate(argv: list[str] | None = None) -> None:
         print(f"video: {args.video}")
 
 
+def probe_run(argv: list[str] | None = None) -> dict[str, float]:
+    """``python -m isodream_rl.cli probe RUN_DIR [--encoder] [--episodes N] [--window T] [--json PATH]``: the
+    latent probe (:func:`isodream_rl.evaluation.latent_probe.probe`) of a world-model checkpoint, on sprites
+    episodes made like the run's from seeds it never trains on.
+
+    Returns:
+        The held-out R^2 per branch and sprite (``r2_<branch>_<sprite>``), also printed as JSON.
+    """
+    parser = argparse.ArgumentParser(
+        prog="python -m isodream_rl.cli probe",
+        description="Which sprites can be read off each branch's latent state of a world-model run.",
+    )
+    parser.add_argument(
+        "checkpoint",
+        help="a run folder of isodream-train on sprites (its newest readable checkpoint) or one of its "
+        "checkpoints/step_* folders",
+    )
+    parser.add_argument("--episodes", type=int, default=32, help="probe episodes (half fit, half score)")
+    parser.add_argument("--window", type=int, default=None, help="default: the run's train.sequence_length")
+    parser.add_argument(
+        "--encoder",
+        action="store_true",
+        help="also probe the encoder's shared trunk and branch embeddings (r2_trunk_*, r2_embed_*)",
+    )
+    parser.add_argument("--json", default=None, help="also write the scores here")
+    args = parser.parse_args(argv)
+    model, cfg = load_world_model(args.checkpoint)
+    scene = probe_scene(cfg, window=args.window)
+    scores = probe(model, episodes=args.episodes, seed=cfg.train.seed + 1000, encoder=args.encoder, **scene)
+    text = json.dumps({k: round(v, 3) for k, v in scores.items()}, indent=2)
+    print(text)
+    if args.json:
+        with open(args.json, "w") as f:
+            f.write(text + "\n")
+    return scores
+
+
 if __name__ == "__main__":
     if len(sys.argv) > 1 and sys.argv[1] == "eval":
         evaluate(sys.argv[2:])
+    elif len(sys.argv) > 1 and sys.argv[1] == "probe":
+        probe_run(sys.argv[2:])
     else:
         train()

@@ -11,16 +11,9 @@ from __future__ import annotations
 
 import sys
 
-from hydra._internal.utils import get_args_parser
-
 from isodream_rl import cli
-from isodream_rl.user_errors import DEBUG_FLAG, USER_ERROR
-
-
-def unknown_flag(args: list[str]) -> str | None:
-    """The first argument of ``args`` that looks like a flag but is neither Hydra's nor ``--debug``, if any."""
-    _, unknown = get_args_parser().parse_known_args([arg for arg in args if arg != DEBUG_FLAG])
-    return next((arg for arg in unknown if arg.startswith("-")), None)
+from isodream_rl.cli_overrides import unknown_flag
+from isodream_rl.user_errors import USER_ERROR
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -8,7 +8,9 @@ word: the run trains with the default and ignores the key. :func:`check_override
 - a key under the schema (:class:`~isodream_rl.trainers.config.RunConfig`) that is no setting, with or without
   ``+``/``++``, naming the closest setting and the valid ones;
 - a group option that does not exist, naming the closest and the valid ones;
-- whatever else composing the configuration as Hydra will refuses (a value of the wrong type), in one line.
+- whatever else composing the configuration as Hydra will refuses (a value of the wrong type), in one line;
+- a flag that is none of Hydra's (``--steps 300``: Hydra prints its usage block), naming the flag and the closest
+  setting.
 
 Keys inside the free-form settings (``env.kwargs``, ``model.overrides``, ``train.slurm_kwargs``) are left to
 what reads them (``validate_config`` checks ``model.overrides``), ``hydra.*`` to Hydra.
@@ -22,12 +24,14 @@ from difflib import get_close_matches
 from pathlib import Path
 
 from hydra import compose, initialize_config_dir
+from hydra._internal.utils import get_args_parser
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.override_parser.types import OverrideType
 from hydra.errors import HydraException, MissingConfigException
 from omegaconf.errors import OmegaConfBaseException
 
 from isodream_rl.trainers.config import ConfigError, RunConfig
+from isodream_rl.user_errors import DEBUG_FLAG
 
 CONFIGS = Path(__file__).parent / "configs"
 #: the config groups (``env=...``, ``size=...``): the folders of ``configs/``
@@ -93,13 +97,39 @@ def _first_line(err: BaseException) -> str:
     return next((line.strip() for line in str(err).splitlines() if line.strip()), type(err).__name__)
 
 
+def unknown_flag(args: list[str]) -> str | None:
+    """The first argument of ``args`` that looks like a flag (starts with ``-``) but is none of Hydra's
+    (``--help``, ``--cfg job``, ``-m``, ...) nor ``--debug``, if any."""
+    known = get_args_parser()._option_string_actions  # Hydra's flags, as its own parser reads them
+    return next(
+        (arg for arg in args if arg.startswith("-") and arg.partition("=")[0] not in {*known, DEBUG_FLAG}),
+        None,
+    )
+
+
+def _flag_problem(flag: str) -> str:
+    """One line on the unknown ``flag``: the closest setting, and how settings are given."""
+    name, _, value = flag.partition("=")
+    by_name = {setting.rpartition(".")[2]: setting for setting in _all_settings()}
+    close = get_close_matches(name.lstrip("-").replace("-", "_"), list(by_name), 1)
+    return (
+        f"unknown flag {flag}"
+        + (f" (did you mean {by_name[close[0]]}={value or '...'}?)" if close else "")
+        + ": settings are key=value overrides (train.total_steps=300, size=tiny); "
+        "isodream-train --help lists them"
+    )
+
+
 def check_overrides(args: list[str]) -> None:
     """Check the Hydra overrides ``args`` of ``isodream-train`` (see the module docstring); a command line with
-    flags other than ``-m``/``--multirun`` is left to Hydra, a sweep is checked for its keys only.
+    Hydra's other flags is left to Hydra, a sweep is checked for its keys only.
 
     Raises:
-        ConfigError: one line naming the override, what is wrong and the valid names.
+        ConfigError: one line naming the override or flag, what is wrong and the valid names.
     """
+    flag = unknown_flag(args)
+    if flag is not None:
+        raise ConfigError(_flag_problem(flag))
     if any(arg.startswith("-") and arg not in _PLAIN_FLAGS for arg in args):
         return
     lines = [arg for arg in args if arg not in _PLAIN_FLAGS]

@@ -181,6 +181,18 @@ def test_impossible_combination_fails_in_the_cli_before_training(tmp_path):
     assert not list(tmp_path.glob("runs/*/checkpoints"))
 
 
+@pytest.mark.parametrize(
+    "flag, hint",
+    [(["--steps", "300"], "train.total_steps=...?"), (["--steps=300"], "train.total_steps=300?")],
+)
+def test_an_unknown_flag_is_one_line_naming_it_not_hydras_usage(flag, hint, tmp_path):
+    out = run_cli([*flag, *TINY], tmp_path, timeout=120)
+    assert out.returncode == 2, out.stderr[-2000:]
+    assert out.stderr.strip().splitlines() == [out.stderr.strip()], out.stderr  # one line
+    assert out.stderr.startswith(f"isodream-train: unknown flag {flag[0]} (did you mean {hint})")
+    assert "key=value" in out.stderr and "usage:" not in out.stderr
+
+
 def test_every_algo_trains_on_sprites_and_evaluates(tmp_path, capsys):
     sweep = ",".join(ALGOS)
     args = ["-m", f"algo={sweep}", *TINY, "train.total_steps=40", "train.prefill_steps=20"]

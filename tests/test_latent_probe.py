@@ -1,12 +1,13 @@
-"""The latent probe (isodream_rl/recipes/latent_probe.py): sprite centres, ridge R^2, tiny models and the
-checkpoints of both modes of isodream-train."""
+"""The latent probe (isodream_rl/evaluation/latent_probe.py; its command, isodream_rl/cli.py:probe_run): sprite
+centres, ridge R^2, tiny models and the checkpoints of both modes of isodream-train."""
 
 import pytest
 import torch
 from tensordict import TensorDict
 
+from isodream_rl.cli import probe_run
+from isodream_rl.evaluation.latent_probe import probe, ridge_cv, ridge_r2, sprite_centres
 from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
-from isodream_rl.recipes.latent_probe import main, probe, ridge_cv, ridge_r2, sprite_centres
 from isodream_rl.trainers import CheckpointError, train
 from isodream_rl.trainers.world_model_run import load_world_model, probe_scene
 from tests.test_cli import composed
@@ -66,13 +67,13 @@ def test_the_cli_probes_a_world_model_run_on_its_scene_and_writes_json(tmp_path)
         "episode_length": 16,
     }
     expected = probe(model, episodes=4, seed=1003, **scene)
-    out = main([str(tmp_path), "--episodes", "4", "--json", str(tmp_path / "p.json")])
+    out = probe_run([str(tmp_path), "--episodes", "4", "--json", str(tmp_path / "p.json")])
     assert out == expected and (tmp_path / "p.json").stat().st_size > 0
     # one checkpoint folder of the run reads the same
-    assert main([str(tmp_path / "checkpoints" / "step_00000002"), "--episodes", "4"]) == expected
+    assert probe_run([str(tmp_path / "checkpoints" / "step_00000002"), "--episodes", "4"]) == expected
     torch.save({"config": {}, "model": {}}, tmp_path / "world_model.pt")
     with pytest.raises(CheckpointError, match="no longer"):
-        main([str(tmp_path / "world_model.pt")])
+        probe_run([str(tmp_path / "world_model.pt")])
 
 
 def test_the_cli_probes_the_world_model_of_a_reinforcement_learning_run(tmp_path):
@@ -80,7 +81,7 @@ def test_the_cli_probes_the_world_model_of_a_reinforcement_learning_run(tmp_path
     overrides += ["logging.progress_bar=false"]
     overrides += ["train.frames_per_batch=10", "logging.final_eval_episodes=0", f"run_dir={tmp_path}"]
     train(composed(*overrides))
-    scores = main([str(tmp_path), "--episodes", "2"])  # windows of train.sequence_length (10) steps
+    scores = probe_run([str(tmp_path), "--episodes", "2"])  # windows of train.sequence_length (10) steps
     assert "r2_free_agent" in scores and all(v <= 1.0 for v in scores.values())
 
 

@@ -22,7 +22,7 @@ LAYERS: tuple[frozenset[str], ...] = (
     frozenset({"objectives"}),
     frozenset({"evaluation"}),
     frozenset({"trainers"}),
-    frozenset({"baselines", "recipes", "video_prediction"}),
+    frozenset({"baselines", "video_prediction"}),
     # the console entry points and their configuration
     frozenset({"cli", "cli_demo", "cli_overrides", "configs"}),
 )

@@ -1,7 +1,8 @@
 """``algo=torchrl_dreamer_v3``: TorchRL's DreamerV3 behind the run interface (sizes, settings, stepper, policy,
-keys, input errors, an exact resume, train + resume)."""
+keys, input errors, an exact resume). What it shares with ``algo=torchrl_dreamer`` (shared weights, non-finite
+skipping, the policy's carried state, train + resume) is tested for both in ``tests/test_torchrl_dreamer.py``, whose
+helpers this file uses."""
 
-import json
 import math
 from pathlib import Path
 
@@ -18,60 +19,19 @@ from torchrl.trainers.algorithms import DreamerV3Optimizer
 import isodream_rl.cli  # noqa: F401  (registers the config schema)
 from isodream_rl.baselines import DreamerV3Settings, DreamerV3Widths, TorchRLDreamerV3Components
 from isodream_rl.baselines.torchrl_dreamer_v3 import dreamer_v3_model_loss, make_torchrl_dreamer_v3
-from isodream_rl.envs import make_env
-from isodream_rl.trainers import CheckpointManager, ConfigError, RunConfig, train, validate_config
+from isodream_rl.trainers import CheckpointManager, ConfigError, RunConfig, validate_config
 from isodream_rl.trainers.builders import make_world_model_loss
 from isodream_rl.trainers.checkpoint import set_rng_state
 from isodream_rl.trainers.hooks import ReplayPreparation
+from tests.test_torchrl_dreamer import A, B, T, env_batch, replay_batch, tiny_config
 
 CONFIGS = Path(isodream_rl.cli.__file__).parent / "configs"
-A, B, T = 2, 2, 8
-
-
-def tiny_config(tmp_path, **train_changes) -> RunConfig:
-    cfg = RunConfig(run_dir=str(tmp_path), size_name="tiny")
-    cfg.algo.name, cfg.algo.policy_input = "torchrl_dreamer_v3", "controllable"
-    cfg.algo.free_branch = cfg.algo.static_branch = cfg.algo.inverse_dynamics = False
-    cfg.model.size, cfg.model.actor_units, cfg.model.value_units = "tiny", 16, 16
-    cfg.train.batch_size, cfg.train.sequence_length, cfg.train.buffer_size = B, T, 200
-    cfg.train.prefill_steps, cfg.train.frames_per_batch, cfg.train.total_steps = 20, 20, 60
-    cfg.train.threads = 1
-    for name, value in train_changes.items():
-        setattr(cfg.train, name, value)
-    cfg.algo.horizon = 3
-    cfg.logging.progress_bar, cfg.logging.eval_every, cfg.logging.final_eval_episodes = False, 0, 1
-    cfg.logging.log_every = 20
-    cfg.logging.video_length, cfg.logging.video_context = 6, 3
-    cfg.env.kwargs = {"task": "reach", "max_steps": 20}
-    return cfg
+ALGO = "torchrl_dreamer_v3"
 
 
 def composed(*overrides) -> RunConfig:
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         return OmegaConf.to_object(compose(config_name="config", overrides=list(overrides)))
-
-
-def replay_batch(*, init_at: int | None = None, done_at: int | None = None) -> TensorDict:
-    """A flat ``[B * T]`` sample with the replay buffer's keys (root ``"pixels"`` is not stored)."""
-    is_init = torch.zeros(B, T, 1, dtype=torch.bool)
-    is_init[:, 0] = True  # SliceSampler marks every window start
-    done = torch.zeros(B, T, 1, dtype=torch.bool)
-    if init_at is not None:
-        is_init[:, init_at] = True
-    if done_at is not None:
-        done[:, done_at] = True
-    return TensorDict(
-        {
-            "action": torch.rand(B * T, A) * 2 - 1,
-            "is_init": is_init.reshape(B * T, 1),
-            ("next", "pixels"): torch.randint(0, 256, (B * T, 3, 64, 64), dtype=torch.uint8),
-            ("next", "reward"): torch.randn(B * T, 1),
-            ("next", "done"): done.reshape(B * T, 1),
-            ("next", "terminated"): torch.zeros(B * T, 1, dtype=torch.bool),
-            ("next", "truncated"): done.reshape(B * T, 1),
-        },
-        [B * T],
-    )
 
 
 def loss_batch(components, **changes) -> TensorDict:
@@ -93,7 +53,7 @@ def params_of(stepper, name: str) -> list[torch.Tensor]:
 @pytest.fixture(scope="module")
 def components(tmp_path_factory):
     torch.manual_seed(0)
-    cfg = tiny_config(tmp_path_factory.mktemp("run"))
+    cfg = tiny_config(tmp_path_factory.mktemp("run"), ALGO)
     return TorchRLDreamerV3Components(cfg, action_dim=A, scratch_dir=tmp_path_factory.mktemp("scratch"))
 
 
@@ -110,7 +70,7 @@ class TestComposition:
         check_env_specs(learner.model_based_env)
 
     def test_widths_follow_dreamerv3s_size_rule(self, components):
-        widths = DreamerV3Widths.from_run(tiny_config("unused"))
+        widths = DreamerV3Widths.from_run(tiny_config("unused", ALGO))
         assert (widths.hidden, widths.deter, widths.classes) == (32, 256, 2)  # tiny: hidden_dim 16 x 1.875
         prior = components.learner.world_model[2].rssm_prior.module
         assert prior.recurrent_model == "block_gru" and prior.rnn_hidden_dim == 256
@@ -159,11 +119,9 @@ class TestComposition:
         }
         assert [g["lr"] for g in optimizer.param_groups] == [RunConfig().train.world_model_lr]
 
-    def test_policy_and_imagination_share_the_trained_weights(self, components):
+    def test_every_trained_parameter_is_in_one_optimiser(self, components):
+        """(The policy and imagination share the trained weights: tests/test_torchrl_dreamer.py.)"""
         trained = {id(p) for module in components.modules().values() for p in module.parameters()}
-        learner = components.learner
-        assert {id(p) for p in components.behavior.policy.parameters()} <= trained
-        assert {id(p) for p in learner.model_based_env.parameters()} <= trained
         groups = {
             name: {id(p) for p in params_of(components.stepper, name)} for name in ("world_model", "actor")
         }
@@ -200,20 +158,9 @@ class TestStepper:
         for name in stepper.optimizers:
             assert any(not torch.equal(a, b) for a, b in zip(params_of(stepper, name), before[name])), name
 
-    def test_nonfinite_update_is_skipped(self, components):
-        stepper = components.stepper
-        params = [p.detach().clone() for p in components.learner.world_model.parameters()]
-        batch = replay_batch()
-        batch["next", "reward"][0] = math.nan
-        metrics = stepper.step(None, batch)
-        assert metrics["nonfinite_skipped"] == 1 and stepper.nonfinite_in_a_row == 1
-        assert all(torch.equal(a, b) for a, b in zip(components.learner.world_model.parameters(), params))
-        stepper.step(None, replay_batch())
-        assert stepper.nonfinite_in_a_row == 0
-
     def test_world_model_warmup_trains_the_world_model_alone(self, tmp_path):
         torch.manual_seed(0)
-        cfg = tiny_config(tmp_path, world_model_warmup=2)
+        cfg = tiny_config(tmp_path, ALGO, world_model_warmup=2)
         parts = TorchRLDreamerV3Components(cfg, action_dim=A, scratch_dir=tmp_path / "scratch")
         stepper = parts.stepper
         actor = [p.detach().clone() for p in params_of(stepper, "actor")]
@@ -226,10 +173,6 @@ class TestStepper:
         assert counts == {"world_model": 2, "actor": 0, "value": 0}
         assert math.isfinite(stepper.step(None, replay_batch())["loss_actor"])
         assert stepper.optimizers["actor"].param_groups[0]["step"] == 1
-
-    def test_sample_not_a_multiple_of_the_window_is_rejected(self, components):
-        with pytest.raises(ValueError, match="not a multiple of the window length"):
-            components.stepper.step(None, replay_batch()[:-1])
 
 
 PIXELS = torch.randint(0, 256, (B, T, 3, 64, 64), dtype=torch.uint8)
@@ -326,48 +269,16 @@ class TestKeys:
 
 
 class TestPolicy:
-    def env_batch(self, policy, n=3, is_init=False):
-        td = policy.make_tensordict_primer().primers.zero().expand(n).clone()
-        td.update(
-            {
-                "pixels": torch.randint(0, 256, (n, 3, 64, 64), dtype=torch.uint8),
-                "is_init": torch.full((n, 1), is_init),
-            }
-        )
-        return td
+    """(Acting, the reset at ``is_init`` and a primed env: tests/test_torchrl_dreamer.py, for both baselines.)"""
 
-    def test_acts_and_writes_the_next_recurrent_state(self, components):
-        policy = components.behavior.policy
-        out = policy(self.env_batch(policy))
-        learner = components.learner
-        S = learner.world_model[2].rssm_prior.module.num_categoricals * 2
-        assert out["action"].shape == (3, A) and out["action"].abs().max() <= 1
-        assert out["next", "state"].shape == (3, S) and out["next", "belief"].shape == (3, 256)
+    def test_carries_the_action_and_samples_one_hot_categoricals(self, components):
+        out = components.behavior.policy(env_batch(components.behavior.policy))
         torch.testing.assert_close(out["next", "previous_action"], out["action"])
         assert out["next", "state"].reshape(3, -1, 2).sum(-1).eq(1).all()  # one-hot categoricals
-        assert "encoded_latents" not in out.keys() and "loc" not in out.keys()
-
-    def test_resets_the_carried_state_at_is_init(self, components):
-        policy = components.behavior.policy
-        fresh = self.env_batch(policy, is_init=True)
-        stale = fresh.clone()
-        stale["state"], stale["belief"] = torch.rand(3, stale["state"].shape[-1]), torch.randn(3, 256)
-        stale["previous_action"] = torch.ones(3, A)
-        with set_exploration_type(ExplorationType.DETERMINISTIC):
-            torch.manual_seed(0)
-            a = policy(fresh.clone())
-            torch.manual_seed(0)
-            b = policy(stale.clone())
-            stale["is_init"][:] = False
-            torch.manual_seed(0)
-            c = policy(stale.clone())
-        torch.testing.assert_close(a["action"], b["action"])
-        torch.testing.assert_close(a["next", "belief"], b["next", "belief"])
-        assert not torch.allclose(a["next", "belief"], c["next", "belief"])
 
     def test_evaluation_takes_the_actors_mean(self, components):
         policy = components.behavior.policy
-        td = self.env_batch(policy)
+        td = env_batch(policy)
         with set_exploration_type(ExplorationType.DETERMINISTIC):
             torch.manual_seed(0)
             a = policy(td.clone())
@@ -381,20 +292,11 @@ class TestPolicy:
         torch.testing.assert_close(a["next", "state"], c["next", "state"])
         assert not torch.allclose(a["action"], c["action"])
 
-    def test_runs_in_a_primed_env(self, components):
-        policy = components.behavior.policy
-        env = make_env("sprites", task="reach", max_steps=20)
-        env.append_transform(policy.make_tensordict_primer())
-        rollout = env.rollout(5, policy)
-        assert rollout["belief"][0].abs().max() == 0  # primer zeros at reset
-        torch.testing.assert_close(rollout["belief"][1:], rollout["next", "belief"][:-1])
-        torch.testing.assert_close(rollout["previous_action"][1:], rollout["action"][:-1])
-
 
 def test_resume_is_exact(tmp_path):
     """Components restored from a checkpoint continue with the uninterrupted run's metrics, bit for bit (optimiser
     moments and counters, slow critic, return statistics, random generators)."""
-    cfg = tiny_config(tmp_path / "run")
+    cfg = tiny_config(tmp_path / "run", ALGO)
     manager = CheckpointManager(tmp_path / "checkpoints", keep=2)
     torch.manual_seed(0)
     live = TorchRLDreamerV3Components(cfg, action_dim=A, scratch_dir=tmp_path / "scratch_a")
@@ -429,31 +331,15 @@ def test_resume_is_exact(tmp_path):
     assert [update(restored) for _ in range(2)] == after
 
 
-def test_train_writes_a_summary_and_resumes(tmp_path):
-    cfg = tiny_config(tmp_path)
-    result = train(cfg)
-    assert result.env_steps == 60 and result.updates > 0
-    summary = json.loads((tmp_path / "summary.json").read_text())
-    assert summary["algo"] == "torchrl_dreamer_v3" and summary["eval_episodes"] == 1
-    assert math.isfinite(summary["eval_return"])
-    assert math.isfinite(result.metrics["loss_model_reco"]) and math.isfinite(result.metrics["loss_actor"])
-    assert result.checkpoint is not None and result.checkpoint.exists()
-
-    cfg.resume, cfg.train.total_steps = True, 80
-    resumed = train(cfg)
-    assert resumed.resumed_from == result.checkpoint
-    assert resumed.env_steps == 80 and resumed.updates > result.updates
-
-
 def test_bf16_is_refused_in_one_line(tmp_path):
-    cfg = tiny_config(tmp_path)
+    cfg = tiny_config(tmp_path, ALGO)
     cfg.model.overrides = {"precision": "bf16"}
     with pytest.raises(ConfigError, match="fp32 only.*drop the override"):
         DreamerV3Widths.from_run(cfg)
 
 
 def test_world_model_mode_is_refused(tmp_path):
-    cfg = tiny_config(tmp_path)
+    cfg = tiny_config(tmp_path, ALGO)
     cfg.mode = "world_model"
     with pytest.raises(ConfigError, match="mode=world_model trains Iso-Dream's world model"):
         validate_config(cfg)

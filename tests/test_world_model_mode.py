@@ -18,7 +18,7 @@ import isodream_rl.cli
 from isodream_rl.data.sprites_episodes import collect_sprites_episodes, episode_windows
 from isodream_rl.envs.sprites import DISTRACTOR_COLOURS
 from isodream_rl.evaluation.branches import score_branches
-from isodream_rl.recipes.latent_probe import probe
+from isodream_rl.evaluation.latent_probe import probe
 from isodream_rl.trainers import (
     CheckpointError,
     CheckpointManager,

@@ -4,6 +4,9 @@
 ``algo=torchrl_dreamer_v3``: TorchRL's DreamerV3 at Iso-Dream's parameter count
 (:mod:`isodream_rl.baselines.torchrl_dreamer_v3`).
 
+What both share around TorchRL's pieces (the acting policy's carried state, the stepper's replay preparation, the
+run parts' replay side and checkpoint check, imagination's specs) is in :mod:`isodream_rl.baselines.common`.
+
 Importing this package registers both with the trainers' algorithm registry (:mod:`isodream_rl.trainers.registry`);
 ``isodream-train`` imports it.
 """

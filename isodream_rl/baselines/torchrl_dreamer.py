@@ -23,7 +23,6 @@ Local pieces, where TorchRL's did not fit:
 from __future__ import annotations
 
 import contextlib
-import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,7 +38,6 @@ from tensordict.nn import (
 )
 from torch import nn
 from torchrl.data import Bounded, Composite, Unbounded
-from torchrl.envs import TensorDictPrimer
 from torchrl.envs.model_based.dreamer import DreamerEnv
 from torchrl.envs.utils import ExplorationType, exploration_type, set_exploration_type
 from torchrl.modules import (
@@ -62,16 +60,16 @@ from torchrl.modules import (
 from torchrl.objectives import DreamerActorLoss, DreamerModelLoss, DreamerValueLoss
 from torchrl.objectives.utils import ValueEstimators
 
-from isodream_rl.modules.config import SIZE_PRESETS
-from isodream_rl.modules.policy import carried_state_primer, read_acting_inputs
-from isodream_rl.trainers.builders import make_adam, make_replay_buffer
-from isodream_rl.trainers.components import RunComponents
+from isodream_rl.baselines.common import (
+    BaselineComponents,
+    CarriedStatePolicy,
+    ZeroStateStepper,
+    latent_dreamer_env,
+    preset_widths,
+)
+from isodream_rl.trainers.builders import make_adam
 from isodream_rl.trainers.config import RunConfig
-from isodream_rl.trainers.hooks import EpisodeReturns, ReplayPreparation
 from isodream_rl.trainers.registry import register_algorithm
-from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
-
-logger = logging.getLogger(__name__)
 
 #: The size-preset fields this baseline reads (``SIZE_PRESETS`` merged with ``model.overrides``).
 SIZE_KEYS = ("depth", "state_dim", "belief_dim", "hidden_dim", "units")
@@ -84,13 +82,7 @@ _SAMPLING = (None, ExplorationType.RANDOM)
 def dreamer_sizes(cfg: RunConfig) -> dict[str, int]:
     """Widths of the run's size preset, ``model.overrides`` applied: ``depth`` (TorchRL's ``channels``),
     ``state_dim``, ``belief_dim`` (``rnn_hidden_dim``), ``hidden_dim``, ``units`` (reward MLP)."""
-    if cfg.model.size not in SIZE_PRESETS:
-        raise ValueError(f"unknown size preset {cfg.model.size!r}; valid: {sorted(SIZE_PRESETS)}")
-    overrides = dict(cfg.model.overrides)
-    ignored = sorted(set(overrides) - set(SIZE_KEYS) - {"precision"})
-    if ignored:
-        logger.info("torchrl_dreamer ignores the Iso-Dream model overrides %s", ignored)
-    return {k: int(overrides.get(k, SIZE_PRESETS[cfg.model.size][k])) for k in SIZE_KEYS}
+    return preset_widths(cfg, SIZE_KEYS, algo="torchrl_dreamer")
 
 
 # ---------------------------------------------------------------------------------------------- world model
@@ -189,8 +181,7 @@ def _world_model(
 def _model_based_env(
     *, prior: RSSMPrior, reward: nn.Module, action_spec: Bounded, state_dim: int, belief_dim: int, device
 ) -> DreamerEnv:
-    """The example's imagination env (``DreamerEnv``, no decoder); the specs that ``set_specs_from_env`` would
-    copy from the primed env, set by hand (the components know the action width, not the env)."""
+    """The example's imagination env (``DreamerEnv``, no decoder), its specs set by :func:`latent_dreamer_env`."""
     transition = SafeSequential(
         SafeModule(prior, in_keys=["state", "belief", "action"], out_keys=["_", "_", "state", "belief"])
     )
@@ -203,30 +194,24 @@ def _model_based_env(
             distribution_kwargs={"scale": 1.0, "event_dim": 1},
         ),
     )
-    env = DreamerEnv(
-        world_model=WorldModelWrapper(transition, reward_head),
-        prior_shape=torch.Size([state_dim]),
-        belief_shape=torch.Size([belief_dim]),
+    return latent_dreamer_env(
+        WorldModelWrapper(transition, reward_head),
+        action_spec=action_spec,
+        state_dim=state_dim,
+        belief_dim=belief_dim,
         device=device,
     )
-    latent = Composite(
-        state=Unbounded((state_dim,), device=device), belief=Unbounded((belief_dim,), device=device)
-    )
-    env.action_spec = action_spec
-    env.observation_spec = latent.clone()
-    env.state_spec = latent.clone()
-    env.reward_spec = Unbounded((1,), device=device)
-    return env
 
 
 # ---------------------------------------------------------------------------------------------- behaviour
-class TorchRLDreamerPolicy(TensorDictModuleBase):
+class TorchRLDreamerPolicy(CarriedStatePolicy):
     """Acting policy around TorchRL's Dreamer acting sequence (the example's ``actor_realworld`` + noise).
 
     ``module`` is a ``TensorDictSequential``: ``ObsEncoder`` (float ``"pixels"`` -> ``"encoded_latents"``),
     ``RSSMPosterior`` (``"belief"``, ``"encoded_latents"`` -> ``"state"``), ``DreamerActor`` + ``TanhNormal``
     (-> ``"action"``), ``RSSMPrior`` (-> ``("next", "belief")``), then ``AdditiveGaussianModule``. This wrapper
-    feeds it and keeps the env's tensordict clean:
+    (a :class:`~isodream_rl.baselines.common.CarriedStatePolicy`, carrying ``"state"``/``"belief"``) feeds it and
+    keeps the env's tensordict clean:
 
     - uint8 ``"pixels"`` ``[*B, 3, 64, 64]`` become floats in [0, 1] (TorchRL's example: ``ToTensorImage``);
     - the carried ``"state"``/``"belief"`` restart from zeros where ``"is_init"``;
@@ -237,7 +222,7 @@ class TorchRLDreamerPolicy(TensorDictModuleBase):
       belief with the actor's action from before the noise is added (the env gets the noisy one);
     - only ``"action"`` (in [-1, 1]) and the next recurrent state ``("next", "state")``,
       ``("next", "belief")`` are written, following TorchRL's recurrent convention; prime the env with
-      :meth:`make_tensordict_primer`.
+      :meth:`make_tensordict_primer` (as TorchRL's example primes its env).
 
     Runs without gradients, on the device of ``module``'s parameters; any batch shape (or none).
 
@@ -258,56 +243,49 @@ class TorchRLDreamerPolicy(TensorDictModuleBase):
         pixels_key: str = "pixels",
         action_key: str = "action",
     ) -> None:
-        super().__init__()
-        self.module = module
+        super().__init__(
+            module,
+            widths={"state": state_dim, "belief": belief_dim},
+            pixels_key=pixels_key,
+            action_key=action_key,
+        )
         self.state_dim, self.belief_dim = state_dim, belief_dim
-        self.pixels_key, self.action_key = pixels_key, action_key
-        self.in_keys = [pixels_key, "is_init", "state", "belief"]
-        self.out_keys = [action_key, ("next", "state"), ("next", "belief")]
 
-    def recurrent_spec(self) -> Composite:
-        """Specs of the carried keys (unbatched): ``"state"`` ``[S]``, ``"belief"`` ``[D]``."""
-        device = next(self.module.parameters()).device
-        return Composite(
-            state=Unbounded((self.state_dim,), device=device),
-            belief=Unbounded((self.belief_dim,), device=device),
-        )
-
-    def make_tensordict_primer(self) -> TensorDictPrimer:
-        """A ``TensorDictPrimer`` adding ``"state"``/``"belief"`` (zeros at reset) to an env or a batch of envs,
-        as TorchRL's example primes its env."""
-        return carried_state_primer(self.recurrent_spec())
-
-    @torch.no_grad()
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        batch = tensordict.batch_size
-        device = next(self.module.parameters()).device
-        pixels, carried, reset = read_acting_inputs(
-            tensordict,
-            owner="TorchRLDreamerPolicy",
-            pixels_key=self.pixels_key,
-            carried_keys=["state", "belief"],
-            device=device,
-        )
-        if pixels.dtype != torch.uint8:
-            raise ValueError(f"{self.pixels_key!r} must be uint8 [*B, 3, 64, 64], got {pixels.dtype}")
-        n = pixels.shape[0]
+    def act(
+        self, pixels: torch.Tensor, carried: dict[str, torch.Tensor], reset: torch.Tensor | None
+    ) -> dict[str, torch.Tensor]:
+        """The acting sequence on float pixels, the carried state zeroed where ``reset``; the posterior's mean
+        outside exploration."""
         if reset is not None:
             carried = {k: v.masked_fill(reset, 0.0) for k, v in carried.items()}
         work = TensorDict(
-            {"pixels": pixels.to(device).float().div(255), **carried},
-            batch_size=[n],
-            device=device,
+            {"pixels": pixels.float().div(255), **carried}, batch_size=[pixels.shape[0]], device=pixels.device
         )
         if exploration_type() not in _SAMPLING:
             work.set("posterior_noise", torch.zeros_like(carried["state"]))
         self.module(work)
+        return {
+            self.action_key: work.get(self.action_key),
+            "state": work.get("state"),
+            "belief": work.get(("next", "belief")),
+        }
 
-        out_device = tensordict.device if tensordict.device is not None else pixels.device
-        tensordict.set(self.action_key, work.get(self.action_key).to(out_device).reshape(*batch, -1))
-        tensordict.set(("next", "state"), work.get("state").to(out_device).reshape(*batch, -1))
-        tensordict.set(("next", "belief"), work.get(("next", "belief")).to(out_device).reshape(*batch, -1))
-        return tensordict
+
+def _tanh_normal_actor(actor: DreamerActor, action_spec: Bounded) -> SafeProbabilisticTensorDictSequential:
+    """The example's actor head: ``DreamerActor`` on ``"state"``, ``"belief"`` -> ``"loc"``, ``"scale"`` ->
+    ``TanhNormal(tanh_loc=True)`` ``"action"``, sampled by default (``InteractionType.RANDOM``)."""
+    loc_scale = Composite(loc=Unbounded(action_spec.shape), scale=Unbounded(action_spec.shape))
+    return SafeProbabilisticTensorDictSequential(
+        SafeModule(actor, in_keys=["state", "belief"], out_keys=["loc", "scale"], spec=loc_scale),
+        SafeProbabilisticModule(
+            in_keys=["loc", "scale"],
+            out_keys=["action"],
+            default_interaction_type=InteractionType.RANDOM,
+            distribution_class=TanhNormal,
+            distribution_kwargs={"tanh_loc": True},
+            spec=Composite(action=action_spec.clone().cpu()),
+        ),
+    )
 
 
 def _acting_sequence(
@@ -326,7 +304,6 @@ def _acting_sequence(
     this makes an unset exploration type act the same), and the posterior reads ``"posterior_noise"`` (as the
     example's world model does) so that :class:`TorchRLDreamerPolicy` can take its mean.
     """
-    loc_scale = Composite(loc=Unbounded(action_spec.shape), scale=Unbounded(action_spec.shape))
     real_world = SafeSequential(
         SafeModule(encoder, in_keys=["pixels"], out_keys=["encoded_latents"]),
         TensorDictModule(
@@ -335,17 +312,7 @@ def _acting_sequence(
             out_keys=["_", "_", "state"],
             out_to_in_map=True,
         ),
-        SafeProbabilisticTensorDictSequential(
-            SafeModule(actor, in_keys=["state", "belief"], out_keys=["loc", "scale"], spec=loc_scale),
-            SafeProbabilisticModule(
-                in_keys=["loc", "scale"],
-                out_keys=["action"],
-                default_interaction_type=InteractionType.RANDOM,
-                distribution_class=TanhNormal,
-                distribution_kwargs={"tanh_loc": True},
-                spec=Composite(action=action_spec.clone().cpu()),
-            ),
-        ),
+        _tanh_normal_actor(actor, action_spec),
         SafeModule(
             prior, in_keys=["state", "belief", "action"], out_keys=["_", "_", "_", ("next", "belief")]
         ),
@@ -470,18 +437,7 @@ def make_torchrl_dreamer(
     actor_module = DreamerActor(
         out_features=action_dim, depth=3, num_cells=actor_units, activation_class=nn.ELU, device=device
     )
-    loc_scale = Composite(loc=Unbounded((action_dim,)), scale=Unbounded((action_dim,)))
-    actor = SafeProbabilisticTensorDictSequential(
-        SafeModule(actor_module, in_keys=["state", "belief"], out_keys=["loc", "scale"], spec=loc_scale),
-        SafeProbabilisticModule(
-            in_keys=["loc", "scale"],
-            out_keys=["action"],
-            default_interaction_type=InteractionType.RANDOM,
-            distribution_class=TanhNormal,
-            distribution_kwargs={"tanh_loc": True},
-            spec=Composite(action=action_spec.clone().cpu()),
-        ),
-    )
+    actor = _tanh_normal_actor(actor_module, action_spec)
     value = ProbabilisticTensorDictSequential(
         TensorDictModule(
             MLP(
@@ -539,14 +495,15 @@ def make_torchrl_dreamer(
 
 
 # ---------------------------------------------------------------------------------------------- optimisation
-class TorchRLDreamerOptimizationStepper(IsoDreamOptimizationStepper):
+class TorchRLDreamerOptimizationStepper(ZeroStateStepper):
     """One update of TorchRL's Dreamer example's training loop, as a TorchRL ``OptimizationStepper``.
 
     Per :meth:`step` on a flat ``[B * T]`` replay sample (``"action"``, ``"is_init"``, uint8
     ``("next", "pixels")``, ``("next", "reward")``):
 
-    1. :meth:`prepare`: pixels to floats in [0, 1] (the example's ``ToTensorImage``), zero ``"state"``/``"belief"``
-       (the example's primer values), on the training device; reshaped to windows ``[B, T]``;
+    1. :meth:`prepare` (:class:`~isodream_rl.baselines.common.ZeroStateStepper`): pixels to floats in [0, 1]
+       (the example's ``ToTensorImage``), zero ``"state"``/``"belief"`` (the example's primer values), on the
+       training device; reshaped to windows ``[B, T]``;
     2. ``DreamerModelLoss`` -> backward of ``kl + reco + reward`` -> clip -> world-model Adam step;
     3. ``DreamerActorLoss`` on the world-model output flattened to ``[B * T]`` (imagination from the root
        ``state``/``belief`` each step consumed, as the example) -> backward -> clip -> actor Adam step;
@@ -604,36 +561,26 @@ class TorchRLDreamerOptimizationStepper(IsoDreamOptimizationStepper):
             value_optimizer=value_optimizer,
             grad_clip=grad_clip,
             max_nonfinite=max_nonfinite,
+            state_dim=state_dim,
+            belief_dim=belief_dim,
+            device=device,
         )
-        self.state_dim, self.belief_dim = state_dim, belief_dim
-        self.device = torch.device(device)
         self.autocast_dtype = autocast_dtype
 
-    def prepare(self, sub_batch: TensorDictBase) -> TensorDictBase:
-        """What ``DreamerModelLoss`` reads, from a flat ``[N]`` replay sample.
-
-        Returns:
-            ``[N]`` tensordict on the training device: ``"action"``, ``"is_init"`` ``[N, 1]``,
-            ``("next", "pixels")`` float ``[N, 3, 64, 64]`` in [0, 1], ``("next", "reward")`` ``[N, 1]``, and zero
-            ``"state"`` ``[N, S]``/``"belief"`` ``[N, D]`` (only each window's first step is read; the rollout
-            carries its own state from there).
-        """
-        n = sub_batch.numel()
+    def loss_inputs(self, sub_batch: TensorDictBase) -> TensorDictBase:
+        """What ``DreamerModelLoss`` reads of a flat ``[N]`` replay sample: ``"action"``, ``"is_init"`` ``[N, 1]``,
+        ``("next", "pixels")`` float ``[N, 3, 64, 64]`` in [0, 1], ``("next", "reward")`` ``[N, 1]`` (:meth:`prepare`
+        adds zero ``"state"``/``"belief"``: only each window's first step is read; the rollout carries its own
+        state from there)."""
         return TensorDict(
             {
                 "action": sub_batch.get("action").float(),
                 "is_init": sub_batch.get("is_init").bool(),
                 ("next", "pixels"): sub_batch.get(("next", "pixels")).float().div(255),
                 ("next", "reward"): sub_batch.get(("next", "reward")).float(),
-                "state": torch.zeros(n, self.state_dim),
-                "belief": torch.zeros(n, self.belief_dim),
             },
-            batch_size=[n],
-        ).to(self.device)
-
-    def step(self, trainer, sub_batch: TensorDictBase) -> TensorDictBase:
-        """One update on a flat ``[B * T]`` replay sample; returns detached scalar metrics (fixed key set)."""
-        return super().step(trainer, self.prepare(sub_batch.reshape(-1)))
+            batch_size=[sub_batch.numel()],
+        )
 
     def _autocast(self):
         if self.autocast_dtype is None:
@@ -680,7 +627,7 @@ class TorchRLDreamerOptimizationStepper(IsoDreamOptimizationStepper):
 
 # ---------------------------------------------------------------------------------------------- run components
 @register_algorithm("torchrl_dreamer")
-class TorchRLDreamerComponents(RunComponents):
+class TorchRLDreamerComponents(BaselineComponents):
     """Models, losses, optimisers, stepper and replay buffer of an ``algo=torchrl_dreamer`` run.
 
     The interface of :class:`~isodream_rl.trainers.components.RunComponents` over TorchRL's Dreamer
@@ -701,6 +648,8 @@ class TorchRLDreamerComponents(RunComponents):
         dreamer_world_model (the ``WorldModelWrapper``), behavior (:class:`TorchRLDreamerBehavior`), stepper
         (:class:`TorchRLDreamerOptimizationStepper`), replay_buffer, preparation, returns.
     """
+
+    algo = "torchrl_dreamer"
 
     def __init__(
         self,
@@ -751,11 +700,7 @@ class TorchRLDreamerComponents(RunComponents):
             device=train.device,
             autocast_dtype=torch.bfloat16 if precision == "bf16" else None,
         )
-        self.replay_buffer = make_replay_buffer(cfg, scratch_dir=scratch_dir)
-        self.preparation = ReplayPreparation(
-            num_envs=cfg.env.num_envs, capacity_per_env=train.buffer_size // cfg.env.num_envs
-        )
-        self.returns = EpisodeReturns()
+        self.set_replay_parts(cfg, scratch_dir=scratch_dir)
 
     def modules(self) -> dict[str, nn.Module]:
         """The trained modules, by checkpoint name (the policy, imagination env and losses share them)."""
@@ -764,13 +709,3 @@ class TorchRLDreamerComponents(RunComponents):
             "actor": self.behavior.actor,
             "value": self.behavior.value,
         }
-
-    def load_models(self, state: dict) -> None:
-        """Load the weights saved by :meth:`state` (checkpoint key ``"models"``)."""
-        missing = set(self.modules()) - set(state["models"])
-        if missing:
-            raise KeyError(
-                f"the checkpoint has no {sorted(missing)} weights: it was not written by an "
-                "algo=torchrl_dreamer run"
-            )
-        super().load_models(state)

@@ -87,7 +87,6 @@ must be its own optimiser (above).
 
 from __future__ import annotations
 
-import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -103,8 +102,7 @@ from tensordict.nn import (
     TensorDictSequential,
 )
 from torch import nn
-from torchrl.data import Bounded, Composite, Unbounded
-from torchrl.envs import TensorDictPrimer
+from torchrl.data import Bounded
 from torchrl.envs.model_based.dreamer import DreamerEnv
 from torchrl.modules import (
     DreamerV3ImageDecoder,
@@ -122,25 +120,24 @@ from torchrl.objectives import DreamerV3ActorLoss, DreamerV3Loss, DreamerV3Model
 from torchrl.objectives.utils import SoftUpdate, ValueEstimators
 from torchrl.trainers.algorithms import DreamerV3Optimizer
 
-from isodream_rl.modules.config import SIZE_PRESETS
+from isodream_rl.baselines.common import (
+    BaselineComponents,
+    CarriedStatePolicy,
+    ZeroStateStepper,
+    latent_dreamer_env,
+    preset_widths,
+)
 from isodream_rl.modules.encoder import check_pixel_values, check_pixels
-from isodream_rl.modules.policy import carried_state_primer, read_acting_inputs
-from isodream_rl.trainers.builders import make_replay_buffer
-from isodream_rl.trainers.components import RunComponents
 from isodream_rl.trainers.config import ConfigError, RunConfig
-from isodream_rl.trainers.hooks import EpisodeReturns, ReplayPreparation
 from isodream_rl.trainers.registry import register_algorithm
-from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper, loss_sum
-
-logger = logging.getLogger(__name__)
+from isodream_rl.trainers.stepper import loss_sum
 
 #: ``hidden`` of DreamerV3's size rule per unit of our preset's ``hidden_dim`` (fitted to Iso-Dream's counts).
 HIDDEN_PER_HIDDEN_DIM = 1.875
 #: The size-preset field this baseline reads (``SIZE_PRESETS`` merged with ``model.overrides``).
 SIZE_KEYS = ("hidden_dim",)
-#: The observation key and the carried acting state.
+#: The observation key of the world model.
 PIXELS = ("next", "pixels")
-CARRIED = ("state", "belief", "previous_action")
 #: The parameter groups, each with its own optimiser and learning rate.
 GROUPS = ("world_model", "actor", "value")
 
@@ -226,19 +223,13 @@ class DreamerV3Widths:
             ValueError: an unknown size preset.
             ConfigError: a precision other than fp32.
         """
-        if cfg.model.size not in SIZE_PRESETS:
-            raise ValueError(f"unknown size preset {cfg.model.size!r}; valid: {sorted(SIZE_PRESETS)}")
-        overrides = dict(cfg.model.overrides)
-        precision = overrides.pop("precision", "fp32")
+        hidden_dim = preset_widths(cfg, SIZE_KEYS, algo="torchrl_dreamer_v3")["hidden_dim"]
+        precision = dict(cfg.model.overrides).get("precision", "fp32")
         if precision != "fp32":
             raise ConfigError(
                 f"invalid training configuration: algo=torchrl_dreamer_v3 trains in fp32 only (TorchRL's DreamerV3 "
                 f"autocasts on CUDA only), got model.overrides.precision={precision!r}: drop the override"
             )
-        ignored = sorted(set(overrides) - set(SIZE_KEYS))
-        if ignored:
-            logger.info("torchrl_dreamer_v3 ignores the Iso-Dream model overrides %s", ignored)
-        hidden_dim = int(overrides.get("hidden_dim", SIZE_PRESETS[cfg.model.size]["hidden_dim"]))
         hidden = 8 * max(1, round(HIDDEN_PER_HIDDEN_DIM * hidden_dim / 8))
         return cls(hidden=hidden, actor_units=cfg.model.actor_units, value_units=cfg.model.value_units)
 
@@ -382,10 +373,10 @@ def _world_model(parts: DreamerV3Parts, *, action_dim: int, num_bins: int) -> Te
 def _model_based_env(
     parts: DreamerV3Parts, *, action_dim: int, state_dim: int, belief_dim: int, num_bins: int, device
 ) -> DreamerEnv:
-    """Imagination: the prior steps ``state``/``belief``, the reward head gives the (decoded) reward. The specs
-    that ``set_specs_from_env`` would copy from a primed env, set by hand (the components know no env)."""
-    env = DreamerEnv(
-        world_model=WorldModelWrapper(
+    """Imagination: the prior steps ``state``/``belief``, the reward head gives the (decoded) reward; the specs
+    set by :func:`~isodream_rl.baselines.common.latent_dreamer_env`."""
+    return latent_dreamer_env(
+        WorldModelWrapper(
             TensorDictModule(
                 parts.prior, in_keys=["state", "belief", "action"], out_keys=["_", "state", "belief"]
             ),
@@ -394,18 +385,11 @@ def _model_based_env(
                 TensorDictModule(SymExpTwoHot(num_bins), in_keys=["reward_logits"], out_keys=["reward"]),
             ),
         ),
-        prior_shape=torch.Size([state_dim]),
-        belief_shape=torch.Size([belief_dim]),
+        action_spec=Bounded(-1.0, 1.0, (action_dim,), device=device),
+        state_dim=state_dim,
+        belief_dim=belief_dim,
         device=device,
     )
-    latent = Composite(
-        state=Unbounded((state_dim,), device=device), belief=Unbounded((belief_dim,), device=device)
-    )
-    env.action_spec = Bounded(-1.0, 1.0, (action_dim,), device=device)
-    env.observation_spec = latent.clone()
-    env.state_spec = latent.clone()
-    env.reward_spec = Unbounded((1,), device=device)
-    return env
 
 
 # ---------------------------------------------------------------------------------------------- behaviour
@@ -491,7 +475,7 @@ def _value(*, latent: int, units: int, num_bins: int, device) -> TensorDictSeque
     )
 
 
-class TorchRLDreamerV3Policy(TensorDictModuleBase):
+class TorchRLDreamerV3Policy(CarriedStatePolicy):
     """Acting policy around TorchRL's DreamerV3 acting sequence (encoder, ``RSSMStateEstimatorV3``, actor).
 
     At each env step: ``DreamerV3ImageEncoder`` on uint8 ``"pixels"`` ``[*B, 3, 64, 64]``;
@@ -501,8 +485,9 @@ class TorchRLDreamerV3Policy(TensorDictModuleBase):
     to [-1, 1]. The posterior samples its categoricals in both cases, as TorchRL's estimator does.
 
     Writes ``"action"`` and, following TorchRL's recurrent convention, ``("next", "state")``, ``("next",
-    "belief")`` and ``("next", "previous_action")``; prime the env with :meth:`make_tensordict_primer`. Runs
-    without gradients, on the device of ``module``'s parameters; any batch shape (or none).
+    "belief")`` and ``("next", "previous_action")``; prime the env with :meth:`make_tensordict_primer` (a
+    :class:`~isodream_rl.baselines.common.CarriedStatePolicy`). Runs without gradients, on the device of
+    ``module``'s parameters; any batch shape (or none).
 
     Args:
         module: the acting sequence described above (reads ``"pixels"``, ``"is_init"`` and the carried keys;
@@ -524,53 +509,32 @@ class TorchRLDreamerV3Policy(TensorDictModuleBase):
         pixels_key: str = "pixels",
         action_key: str = "action",
     ) -> None:
-        super().__init__()
-        self.module = module
-        self.widths = {"state": state_dim, "belief": belief_dim, "previous_action": action_dim}
-        self.pixels_key, self.action_key = pixels_key, action_key
-        self.in_keys = [pixels_key, "is_init", *CARRIED]
-        self.out_keys = [action_key, *(("next", key) for key in CARRIED)]
-
-    def recurrent_spec(self) -> Composite:
-        """Specs of the carried keys (unbatched): ``"state"`` ``[S]``, ``"belief"`` ``[D]``, ``"previous_action"``
-        ``[A]``."""
-        device = next(self.module.parameters()).device
-        return Composite({key: Unbounded((width,), device=device) for key, width in self.widths.items()})
-
-    def make_tensordict_primer(self) -> TensorDictPrimer:
-        """A ``TensorDictPrimer`` adding the carried keys (zeros at reset) to an env or a batch of envs."""
-        return carried_state_primer(self.recurrent_spec())
-
-    @torch.no_grad()
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        batch = tensordict.batch_size
-        device = next(self.module.parameters()).device
-        pixels, carried, reset = read_acting_inputs(
-            tensordict,
-            owner="TorchRLDreamerV3Policy",
-            pixels_key=self.pixels_key,
-            carried_keys=list(CARRIED),
-            device=device,
+        super().__init__(
+            module,
+            widths={"state": state_dim, "belief": belief_dim, "previous_action": action_dim},
+            pixels_key=pixels_key,
+            action_key=action_key,
         )
-        if pixels.dtype != torch.uint8:
-            raise ValueError(f"{self.pixels_key!r} must be uint8 [*B, 3, 64, 64], got {pixels.dtype}")
+
+    def act(
+        self, pixels: torch.Tensor, carried: dict[str, torch.Tensor], reset: torch.Tensor | None
+    ) -> dict[str, torch.Tensor]:
+        """The acting sequence (which resets the carried keys at ``is_init`` itself); the action clamped to
+        [-1, 1], also the next ``previous_action``."""
         n = pixels.shape[0]
         if reset is None:
-            reset = torch.zeros(n, 1, dtype=torch.bool, device=device)
+            reset = torch.zeros(n, 1, dtype=torch.bool, device=pixels.device)
         work = TensorDict(
-            {"pixels": pixels.to(device), "is_init": reset, **carried}, batch_size=[n], device=device
+            {"pixels": pixels, "is_init": reset, **carried}, batch_size=[n], device=pixels.device
         )
         self.module(work)
         action = work.get("action").clamp(-1.0, 1.0)
-        out_device = tensordict.device if tensordict.device is not None else pixels.device
-        tensordict.set(self.action_key, action.to(out_device).reshape(*batch, -1))
-        for key, value in (
-            ("state", work.get("state")),
-            ("belief", work.get("belief")),
-            ("previous_action", action),
-        ):
-            tensordict.set(("next", key), value.to(out_device).reshape(*batch, -1))
-        return tensordict
+        return {
+            self.action_key: action,
+            "state": work.get("state"),
+            "belief": work.get("belief"),
+            "previous_action": action,
+        }
 
 
 @dataclass
@@ -709,11 +673,12 @@ def make_torchrl_dreamer_v3(
 
 
 # ---------------------------------------------------------------------------------------------- optimisation
-class TorchRLDreamerV3OptimizationStepper(IsoDreamOptimizationStepper):
+class TorchRLDreamerV3OptimizationStepper(ZeroStateStepper):
     """One DreamerV3 update (TorchRL's ``DreamerV3OptimizationStepper``'s, eager) as the run's stepper.
 
     Per :meth:`step` on a flat ``[B * T]`` replay sample: :meth:`prepare` (zero root ``"state"``/``"belief"``, as
-    TorchRL's reproduction sets them; on the training device), windows ``[B, T]``, then ``DreamerV3Loss`` (world
+    TorchRL's reproduction sets them; on the training device: a
+    :class:`~isodream_rl.baselines.common.ZeroStateStepper`), windows ``[B, T]``, then ``DreamerV3Loss`` (world
     model, imagination from every posterior, actor, critic, replay critic), one backward of the sum of its
     ``loss_*`` terms, one step of each ``DreamerV3Optimizer`` and of the slow critic's ``SoftUpdate``. During the
     first ``world_model_warmup`` updates only ``DreamerV3ModelLoss`` runs and only the world model's optimiser
@@ -759,22 +724,18 @@ class TorchRLDreamerV3OptimizationStepper(IsoDreamOptimizationStepper):
             grad_clip=math.inf,
             max_nonfinite=max_nonfinite,
             world_model_warmup=world_model_warmup,
+            state_dim=state_dim,
+            belief_dim=belief_dim,
+            device=device,
         )
         self.optimizers = {name: optimizers[name] for name in GROUPS}
         self.loss_module = loss_module
-        self.state_dim, self.belief_dim = state_dim, belief_dim
-        self.device = torch.device(device)
 
-    def prepare(self, sub_batch: TensorDictBase) -> TensorDictBase:
-        """What ``DreamerV3Loss`` reads, from a flat ``[N]`` replay sample.
-
-        Returns:
-            ``[N]`` tensordict on the training device: ``"action"``, ``"is_init"``, ``("next", "pixels")`` (as
-            stored, uint8), ``("next", "reward")``, ``("next", "done")``, ``("next", "terminated")``, and zero
-            ``"state"`` ``[N, S]`` / ``"belief"`` ``[N, D]`` (the rollout reads each window's first step).
-        """
-        n = sub_batch.numel()
-        batch = sub_batch.select(
+    def loss_inputs(self, sub_batch: TensorDictBase) -> TensorDictBase:
+        """What ``DreamerV3Loss`` reads of a flat ``[N]`` replay sample: ``"action"``, ``"is_init"``, ``("next",
+        "pixels")`` (as stored, uint8), ``("next", "reward")``, ``("next", "done")``, ``("next", "terminated")``
+        (:meth:`prepare` adds zero ``"state"`` / ``"belief"``: the rollout reads each window's first step)."""
+        return sub_batch.select(
             "action",
             "is_init",
             PIXELS,
@@ -783,13 +744,6 @@ class TorchRLDreamerV3OptimizationStepper(IsoDreamOptimizationStepper):
             ("next", "terminated"),
             strict=False,
         )
-        batch.set("state", torch.zeros(n, self.state_dim))
-        batch.set("belief", torch.zeros(n, self.belief_dim))
-        return batch.to(self.device)
-
-    def step(self, trainer, sub_batch: TensorDictBase) -> TensorDictBase:
-        """One update on a flat ``[B * T]`` replay sample; returns detached scalar metrics (fixed key set)."""
-        return super().step(trainer, self.prepare(sub_batch.reshape(-1)))
 
     def _losses(self, batch: TensorDictBase, *, world_model_only: bool) -> TensorDictBase:
         if world_model_only:
@@ -830,7 +784,7 @@ class TorchRLDreamerV3Behavior:
 
 
 @register_algorithm("torchrl_dreamer_v3")
-class TorchRLDreamerV3Components(RunComponents):
+class TorchRLDreamerV3Components(BaselineComponents):
     """Models, losses, optimiser, stepper and replay buffer of an ``algo=torchrl_dreamer_v3`` run.
 
     The interface of :class:`~isodream_rl.trainers.components.RunComponents` over TorchRL's DreamerV3
@@ -850,6 +804,8 @@ class TorchRLDreamerV3Components(RunComponents):
         open-loop prediction in the evaluation), behavior (:class:`TorchRLDreamerV3Behavior`), stepper
         (:class:`TorchRLDreamerV3OptimizationStepper`), replay_buffer, preparation, returns.
     """
+
+    algo = "torchrl_dreamer_v3"
 
     def __init__(
         self,
@@ -895,11 +851,7 @@ class TorchRLDreamerV3Components(RunComponents):
             world_model_warmup=train.world_model_warmup,
             device=train.device,
         )
-        self.replay_buffer = make_replay_buffer(cfg, scratch_dir=scratch_dir)
-        self.preparation = ReplayPreparation(
-            num_envs=cfg.env.num_envs, capacity_per_env=train.buffer_size // cfg.env.num_envs
-        )
-        self.returns = EpisodeReturns()
+        self.set_replay_parts(cfg, scratch_dir=scratch_dir)
 
     def modules(self) -> dict[str, nn.Module]:
         """The trained modules and the return normalisation's statistics, by checkpoint name (imagination, the
@@ -910,13 +862,3 @@ class TorchRLDreamerV3Components(RunComponents):
             "value_loss": self.learner.value_loss,
             "return_norm": self.learner.actor_loss.retnorm,
         }
-
-    def load_models(self, state: dict) -> None:
-        """Load the weights saved by :meth:`state` (checkpoint key ``"models"``)."""
-        missing = set(self.modules()) - set(state["models"])
-        if missing:
-            raise KeyError(
-                f"the checkpoint has no {sorted(missing)} weights: it was not written by an "
-                "algo=torchrl_dreamer_v3 run"
-            )
-        super().load_models(state)

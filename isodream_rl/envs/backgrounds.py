@@ -27,7 +27,7 @@ SPLITS = ("train", "eval")
 VIDEO_SOURCES = ("natural", "procedural")
 
 # Shorter side a still is kept at (the pan/zoom window is a fraction of it): a 0.35x zoom still samples
-# ~90 px into a 64 px frame, and the antialiased crop-resize costs ~0.3 ms per frame (2.4 ms at 512).
+# ~90 px into a 64 px frame, and the antialiased crop-resize grows with the still's size.
 _STILL_SHORT_SIDE = 256
 # Clips are decoded once per process and kept in memory, so they are stored small.
 _CLIP_HEIGHT = 144
@@ -264,7 +264,7 @@ def _read_source(name: str) -> np.ndarray:
 
 @functools.cache
 def _pil_frames(name: str) -> tuple[Image.Image, ...]:
-    # Converted once: building PIL images of a 250-frame clip on every reset would cost tens of ms.
+    # Converted once per process rather than on every reset (a clip holds 250 frames).
     return tuple(Image.fromarray(frame) for frame in load_source(name))
 
 

@@ -23,9 +23,9 @@ Any other registered gymnasium id with a ``Box`` action space works too: its ``r
 64x64, is the observation (``RenderedPixels``), so ``make_env("Pendulum-v1")`` trains like the built-in envs.
 
 ``GymPixelsEnv`` is a small ``EnvBase`` rather than TorchRL's ``GymWrapper``: it writes CHW pixels and the
-info masks directly (the wrapper needs a ``PermuteTransform`` and an info-dict reader, 0.4-0.6 ms more CPU
-per step, about 20 %, measured on sprites), and ``set_seed`` seeds the next reset exactly as
-``gymnasium.Env.reset(seed=)`` does, where ``GymWrapper`` resets once at ``set_seed`` time.
+info masks directly (the wrapper needs a ``PermuteTransform`` and an info-dict reader, which cost CPU every
+step: docs/envs/index.md), and ``set_seed`` seeds the next reset exactly as ``gymnasium.Env.reset(seed=)``
+does, where ``GymWrapper`` resets once at ``set_seed`` time.
 """
 
 from __future__ import annotations

@@ -12,6 +12,7 @@ import dataclasses
 from pathlib import Path
 
 import torch
+from torchrl.data import TensorDictReplayBuffer
 from torchrl.trainers import Trainer
 
 from isodream_rl.trainers import trainer_state
@@ -20,6 +21,24 @@ from isodream_rl.trainers.checkpoint import rng_state
 from isodream_rl.trainers.config import RunConfig
 from isodream_rl.trainers.hooks import EpisodeReturns, ReplayPreparation
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
+
+
+def make_replay_parts(
+    cfg: RunConfig, *, scratch_dir: Path
+) -> tuple[TensorDictReplayBuffer, ReplayPreparation, EpisodeReturns]:
+    """The replay side every algorithm's run shares: the replay buffer
+    (:func:`~isodream_rl.trainers.builders.make_replay_buffer`, memmap files under ``scratch_dir``), the hook that
+    prepares collected batches for it (``env.num_envs`` envs, ``train.buffer_size`` split evenly between them) and
+    the episode-return hook.
+
+    Returns:
+        ``(replay_buffer, preparation, returns)``.
+    """
+    replay_buffer = make_replay_buffer(cfg, scratch_dir=scratch_dir)
+    preparation = ReplayPreparation(
+        num_envs=cfg.env.num_envs, capacity_per_env=cfg.train.buffer_size // cfg.env.num_envs
+    )
+    return replay_buffer, preparation, EpisodeReturns()
 
 
 class RunComponents:
@@ -57,11 +76,7 @@ class RunComponents:
             max_nonfinite=train.max_nonfinite_updates,
             world_model_warmup=train.world_model_warmup,
         )
-        self.replay_buffer = make_replay_buffer(cfg, scratch_dir=scratch_dir)
-        self.preparation = ReplayPreparation(
-            num_envs=cfg.env.num_envs, capacity_per_env=train.buffer_size // cfg.env.num_envs
-        )
-        self.returns = EpisodeReturns()
+        self.replay_buffer, self.preparation, self.returns = make_replay_parts(cfg, scratch_dir=scratch_dir)
 
     def modules(self) -> dict[str, torch.nn.Module]:
         return {

@@ -9,7 +9,7 @@ each sprite's centre (the centroid of its ground-truth pixels), and reports the 
 and branch: near 1, the branch knows where the sprite is; at or below 0 (worse than the mean
 position), it does not.
 
-    python -m isodream_rl.recipes.latent_probe runs/world_model
+    python -m isodream_rl.cli probe runs/world_model
 
 With ``encoder=True`` (CLI ``--encoder``) the same read-out is also fitted one step earlier, on the
 encoder: ``trunk`` (the shared trunk ``Enc_theta``'s feature map, 2x2 average-pooled and flattened),
@@ -19,22 +19,19 @@ rather than each by its own, and their ridge penalty is chosen by cross-validati
 sprite the trunk carries but ``embed_free`` does not is dropped by the noncontrollable head, before its RSSM.
 
 The episodes are made like the run's (its scene, ``env.kwargs``, action hold and window, read from the
-checkpoint's configuration), from seeds it never trains on. ``isodream-train exp=world_model`` runs the same
-probe at the end of training (its CLI hands :func:`probe` to the trainer) and reports it as ``probe_r2_*`` in
-its ``summary.json``.
+checkpoint's configuration by :func:`isodream_rl.trainers.world_model_run.probe_scene`), from seeds it never
+trains on. ``isodream-train exp=world_model`` runs the same probe at the end of training (its CLI hands
+:func:`probe` to the trainer) and reports it as ``probe_r2_*`` in its ``summary.json``.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 from typing import Any
 
 import torch
 
 from isodream_rl.data.sprites_episodes import collect_sprites_episodes, episode_windows, model_input
 from isodream_rl.modules import IsoDreamWorldModel
-from isodream_rl.trainers.world_model_run import load_world_model, probe_scene
 
 
 def sprite_centres(truth, num_distractors: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -195,35 +192,3 @@ def probe(
                 x_fit, y_fit, x[half:][test], centres[half:, s][test], ridge=penalty, per_feature=dense
             )
     return scores
-
-
-def main(argv: list[str] | None = None) -> dict[str, float]:
-    """``python -m isodream_rl.recipes.latent_probe RUN_DIR [--encoder] [--episodes N] [--json PATH]``."""
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument(
-        "checkpoint",
-        help="a run folder of isodream-train on sprites (its newest readable checkpoint) or one of its "
-        "checkpoints/step_* folders",
-    )
-    p.add_argument("--episodes", type=int, default=32, help="probe episodes (half fit, half score)")
-    p.add_argument("--window", type=int, default=None, help="default: the run's train.sequence_length")
-    p.add_argument(
-        "--encoder",
-        action="store_true",
-        help="also probe the encoder's shared trunk and branch embeddings (r2_trunk_*, r2_embed_*)",
-    )
-    p.add_argument("--json", default=None, help="also write the scores here")
-    args = p.parse_args(argv)
-    model, cfg = load_world_model(args.checkpoint)
-    scene = probe_scene(cfg, window=args.window)
-    scores = probe(model, episodes=args.episodes, seed=cfg.train.seed + 1000, encoder=args.encoder, **scene)
-    text = json.dumps({k: round(v, 3) for k, v in scores.items()}, indent=2)
-    print(text)
-    if args.json:
-        with open(args.json, "w") as f:
-            f.write(text + "\n")
-    return scores
-
-
-if __name__ == "__main__":
-    main()
