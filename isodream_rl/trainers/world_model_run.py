@@ -26,7 +26,6 @@ import functools
 import logging
 import math
 import time
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -45,7 +44,6 @@ from isodream_rl.envs.builder import ground_truth_mask_keys
 from isodream_rl.evaluation.branches import branch_grid, save_png, score_branches
 from isodream_rl.evaluation.decomposition import TRUTH_KEYS
 from isodream_rl.modules import IsoDreamWorldModel
-from isodream_rl.objectives.pyramid import PyramidImageTerm
 from isodream_rl.trainers.builders import (
     REPLAY_KEYS,
     action_dim_of,
@@ -139,28 +137,6 @@ def collect_episodes(cfg: RunConfig, *, episodes: int, seed: int) -> TensorDict:
     data = torch.cat(rollouts)
     data["episode"] = torch.arange(episodes).repeat_interleave(steps)
     return data
-
-
-def schedule_value(points: Sequence[Sequence[float]], update: int) -> float:
-    """The piecewise-linear schedule of ``[update, value]`` points (updates increasing) at ``update``: linear
-    from 0 at update 0 through the points (a point at update 0 sets the start), the last value held after the
-    last point; 0 before update 0."""
-    if not points or update < 0:
-        return 0.0
-    for (u0, v0), (u1, v1) in zip([(0, 0.0), *points], points):
-        if update < u1:
-            return v0 + (v1 - v0) * max(0.0, update - u0) / (u1 - u0)
-    return float(points[-1][1])
-
-
-def ramp_weight(weight: float, update: int, start: int, length: int | None = None) -> float:
-    """0 before update ``start``, then linearly up to ``weight`` at update ``start + length`` (``length``
-    defaults to ``start``; ``start = 0``: ``weight`` throughout)."""
-    if not start:
-        return weight
-    length = start if length is None else length
-    # length <= 0: the weight jumps from 0 to its value at update start
-    return schedule_value([(start, 0.0), (start + max(length, 0), weight)], update)
 
 
 def probe_scene(cfg: RunConfig, *, window: int | None = None) -> dict:
@@ -270,12 +246,7 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
     seen = data[: held_out.shape[0]]
     buffer = make_window_buffer(data, batch_size=batch_size, window=window)
 
-    pyramid = (
-        [PyramidImageTerm(levels=wm.pyramid_levels, lambda_reco_pyramid=wm.lambda_reco_pyramid)]
-        if wm.lambda_reco_pyramid
-        else []
-    )
-    loss = make_world_model_loss(cfg, action_dim=data["action"].shape[-1], extra_terms=pyramid)
+    loss = make_world_model_loss(cfg, action_dim=data["action"].shape[-1])
     world_model = loss.world_model
     stepper = IsoDreamOptimizationStepper(
         model_loss=loss,
@@ -337,7 +308,6 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
         return scores, save_png(branch_grid(out, sample=0, steps=window), picture)
 
     last_checkpoint, picture, scores, metrics = resumed_from, None, {}, {}
-    schedule = wm.static_mask_bias_schedule
     bar = tqdm(
         range(first, wm.updates),
         desc=f"world model ({cfg.model.size}, {world_model.config.precision})",
@@ -354,14 +324,6 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
         last_checkpoint = save()
     with StopOnSignal() as signals:
         for update in [] if out_of_time else bar:
-            # the bias holds the schedule's offset of the previous update (a resumed model too): move it on
-            change = schedule_value(schedule, update) - schedule_value(schedule, update - 1)
-            if change:
-                world_model.shift_static_mask_bias(change)
-            if pyramid and wm.reco_pyramid_from:
-                pyramid[0].lambda_reco_pyramid = ramp_weight(
-                    wm.lambda_reco_pyramid, update, wm.reco_pyramid_from, wm.ramp_updates
-                )
             values = stepper.step(None, buffer.sample().to(train_cfg.device))
             done = update + 1
             out_of_time = wall_s() >= budget
