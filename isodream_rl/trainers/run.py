@@ -74,9 +74,7 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
     """
     validate_config(cfg)
     with hold_run_dir(cfg):
-        if (
-            cfg.mode == "world_model"
-        ):  # the world model alone: its own loop, this run folder and checkpoint format
+        if cfg.mode == "world_model":  # the world model alone, on episodes collected first, in the same loop
             return world_model_run.train(cfg, probe=probe)
         return _train_rl(cfg)
 

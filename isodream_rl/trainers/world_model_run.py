@@ -11,7 +11,9 @@ distractors and the background; on sprites, each disc's coverage and reconstruct
 ``pictures/branches_<updates>.png``. It stops after ``world_model.updates`` updates, or once its wall-clock
 passes ``world_model.max_minutes``. At the end, on sprites, it probes what each branch's state knows with the
 :class:`LatentProbe` it is given (``isodream-train`` gives :func:`~isodream_rl.recipes.latent_probe.probe`) and
-writes ``summary.json``. The run folder is an RL run's: ``logs/`` (the TorchRL logger),
+writes ``summary.json``. The loop is the RL run's
+(:func:`~isodream_rl.trainers.run_lifecycle.train_with_checkpoints`: TorchRL's ``Trainer``, fed by
+:class:`FixedData`, no new env steps), and so is the run folder: ``logs/`` (the TorchRL logger),
 ``checkpoints/step_<updates>/`` (:class:`~isodream_rl.trainers.checkpoint.CheckpointManager`, which
 ``resume=true`` continues from), ``pictures/``.
 
