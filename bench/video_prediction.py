@@ -222,9 +222,9 @@ def _table(variants: dict, copy_last: dict) -> str:
 def _copy_last_frame(args: argparse.Namespace) -> tuple[dict[str, float], dict[str, list[float]]]:
     """Scores of repeating the last observed frame, the floor every variant should clear: summary and curves."""
     from isodream_rl.video_prediction.metrics import FrameMetrics
-    from isodream_rl.video_prediction.trainer import TrainConfig, build_split
+    from isodream_rl.video_prediction.trainer import VideoTrainConfig, build_split
 
-    config = TrainConfig(
+    config = VideoTrainConfig(
         seed=args.data_seed, test_sequences=args.test_sequences, train_sequences=args.train_sequences
     )
     metrics = FrameMetrics()
@@ -585,7 +585,7 @@ def main() -> int:
     )
     _save_validation_curves(args.json.with_name(args.json.stem + "_validation.png"), out["history"])
     if "isodream" in out["variants"]:
-        model, config_, _ = load_checkpoint(_run_dir(args, "isodream", args.seeds[0]) / "checkpoint.pt")
+        model, config_, _ = load_checkpoint(_run_dir(args, "isodream", args.seeds[0]))
         clip = build_split(config_, "test")[0]
         rows = showcase_rows(model, clip["frames"], clip["actions"], context=config_.context)
         save_showcase(args.json.with_name(args.json.stem + "_showcase.png"), rows)

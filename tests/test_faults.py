@@ -730,10 +730,10 @@ def test_video_train_refuses_a_used_out_dir(video_run, tmp_path, capsys, said):
     said(line.replace(str(tmp_path) + "/", ""))
     assert snapshot(out_dir) == before
     assert main([*args, "--iterations", "3", "--out-dir", str(out_dir), "--resume"]) == 0
-    assert read_checkpoint(out_dir / "checkpoint.pt")["iteration"] == 3
+    assert read_checkpoint(out_dir)["iteration"] == 3
     assert_one_timeline(out_dir)
     assert main([*args, "--iterations", "1", "--out-dir", str(out_dir), "--overwrite"]) == 0
-    assert read_checkpoint(out_dir / "checkpoint.pt")["iteration"] == 1
+    assert read_checkpoint(out_dir)["iteration"] == 1
     assert max(max(rows) for rows in logged_steps(out_dir).values()) == 1
     assert not (out_dir / LOCK_FILE).exists()
 
@@ -753,7 +753,7 @@ def test_video_cli_names_an_unreadable_file_in_one_line(case, video_run, tmp_pat
                 *TINY_VIDEO]  # fmt: skip
     else:
         path = tmp_path / "checkpoint.pt"
-        data = (video_run[0] / "checkpoint.pt").read_bytes()
+        data = (video_run[0] / "checkpoints" / "step_00000002" / "state.pt").read_bytes()
         path.write_bytes(data[: len(data) // 3] if case.startswith("truncated") else os.urandom(len(data)))
         argv = ["eval", "--checkpoint", str(path)]
     line = video_error(argv, capsys)

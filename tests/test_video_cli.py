@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from isodream_rl.video_prediction.cli import main
-from isodream_rl.video_prediction.trainer import TrainConfig, load_checkpoint
+from isodream_rl.video_prediction.trainer import VideoTrainConfig, load_checkpoint
 from tests.conftest import write_tiny_bair
 
 
@@ -37,13 +37,13 @@ def test_train_then_eval_writes_checkpoint_logs_metrics_and_figures(bair_root, t
     result = json.loads((out / "result.json").read_text())
     assert result["iterations"] == 2 and set(result["metrics"]) >= {"psnr_2", "ssim_3", "psnr_uint8_3"}
     assert len(result["curves"]["psnr"]) == 3
-    assert (out / "checkpoint.pt").exists() and not list(out.glob(".*.tmp"))
+    assert (out / "checkpoints" / "step_00000002").is_dir() and not list(out.rglob("*.tmp"))
     assert list((out / "logs").rglob("loss_image.csv"))
 
-    model, config, state = load_checkpoint(out / "checkpoint.pt")
+    model, config, state = load_checkpoint(out)
     assert config.variant == "isodream" and state["iteration"] == 2
     assert model.config.precision == "bf16" and model.config.channels_last
-    eval_args = ["eval", "--checkpoint", str(out / "checkpoint.pt"), "--horizons", "3", "--no-balls",
+    eval_args = ["eval", "--checkpoint", str(out), "--horizons", "3", "--no-balls",
                  "--json", str(tmp_path / "e.json"), "--showcase", str(tmp_path / "s.png"),
                  "--curves", str(tmp_path / "c.png")]  # fmt: skip
     assert main(eval_args) == 0
@@ -53,13 +53,13 @@ def test_train_then_eval_writes_checkpoint_logs_metrics_and_figures(bair_root, t
 
 def test_config_rejects_inconsistent_protocol():
     with pytest.raises(ValueError, match="train_frames"):
-        TrainConfig(train_frames=40)
+        VideoTrainConfig(train_frames=40)
     with pytest.raises(ValueError, match="data_path"):
-        TrainConfig(dataset="bair")
+        VideoTrainConfig(dataset="bair")
     with pytest.raises(ValueError, match="precision"):
-        TrainConfig(precision="fp16")
+        VideoTrainConfig(precision="fp16")
     with pytest.raises(KeyError, match="unknown"):
-        TrainConfig.from_dict({"colour": 1})
+        VideoTrainConfig.from_dict({"colour": 1})
 
 
 def test_resumed_training_equals_uninterrupted_and_keeps_the_validation_curve(bair_root, tmp_path):
@@ -76,8 +76,8 @@ def test_resumed_training_equals_uninterrupted_and_keeps_the_validation_curve(ba
     )
     assert main([*common, "--iterations", "4", "--out-dir", str(split), "--resume",
                  "--result-json", str(tmp_path / "b.json")]) == 0  # fmt: skip
-    a, _, state_a = load_checkpoint(straight / "checkpoint.pt")
-    b, _, state_b = load_checkpoint(split / "checkpoint.pt")
+    a, _, state_a = load_checkpoint(straight)
+    b, _, state_b = load_checkpoint(split)
     assert state_a["iteration"] == state_b["iteration"] == 4
     for (name, p), q in zip(a.state_dict().items(), b.state_dict().values()):
         torch.testing.assert_close(p, q, rtol=0, atol=0, msg=name)

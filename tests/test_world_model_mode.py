@@ -27,7 +27,7 @@ from isodream_rl.trainers import (
     world_model_run,
 )
 from isodream_rl.trainers import run as run_module
-from isodream_rl.trainers.world_model_run import collect_episodes, ramp_weight, schedule_value
+from isodream_rl.trainers.world_model_run import collect_episodes
 from tests.conftest import cli_process
 
 CONFIGS = Path(isodream_rl.cli.__file__).parent / "configs"
@@ -112,7 +112,7 @@ def test_the_world_model_exp_holds_the_demos_defaults():
     assert (cfg.model.size, cfg.algo.name, cfg.model.overrides) == ("small", "isodream", {})
     wm = cfg.world_model
     assert (wm.updates, wm.episodes, wm.episode_length, wm.held_out_episodes) == (3000, 60, 96, 4)
-    assert (wm.action_hold, wm.probe_episodes, wm.lambda_reco_pyramid) == (8, 32, 0.0)
+    assert (wm.action_hold, wm.probe_episodes) == (8, 32)
     assert cfg.env.kwargs == {"task": "none", "max_steps": 200, "num_backgrounds": 8, "background_seed": 0}
     assert (cfg.logging.log_every, cfg.logging.eval_every) == (20, 200)
     # the demo's loss: reward head on [s, h] at weight 1 (the sprites RL preset's are (s, z) and 2)
@@ -136,47 +136,6 @@ def test_held_random_actions_make_the_agent_travel():
     assert travel(held) > 1.5 * travel(jitter)
     with pytest.raises(ValueError, match="action_hold"):
         collect_sprites_episodes(episodes=1, steps=8, action_hold=0)
-
-
-def test_late_term_weight_waits_then_ramps_up():
-    weights = [ramp_weight(2.0, step, 100) for step in (0, 99, 100, 150, 200, 300)]
-    assert weights == pytest.approx([0.0, 0.0, 0.0, 1.0, 2.0, 2.0])
-    assert ramp_weight(2.0, 0, 0) == 2.0
-    # a late start with a ramp of its own length (world_model.ramp_updates), and a step switch-on
-    weights = [ramp_weight(2.0, step, 4000, 1000) for step in (3999, 4000, 4500, 5000, 9000)]
-    assert weights == pytest.approx([0.0, 0.0, 1.0, 2.0, 2.0])
-    assert [ramp_weight(2.0, step, 10, 0) for step in (9, 10)] == [0.0, 2.0]
-
-
-def test_schedule_is_piecewise_linear_from_zero_and_held_after_its_last_point():
-    raise_ = [[2500, 0], [3500, 3]]
-    assert [schedule_value(raise_, s) for s in (0, 2500, 3000, 3500, 9000)] == [0.0, 0.0, 1.5, 3.0, 3.0]
-    dip = [[0, -3], [1000, -3], [2000, 0]]
-    assert [schedule_value(dip, s) for s in (0, 999, 1500, 2000, 5000)] == [-3.0, -3.0, -1.5, 0.0, 0.0]
-    assert [schedule_value([[100, 2]], s) for s in (0, 50, 100)] == [0.0, 1.0, 2.0]
-    assert schedule_value([], 10) == 0.0
-    assert schedule_value(dip, -1) == 0.0  # before update 0: nothing applied yet
-    for bad in ("[[3500,3],[2500,0]]", "[[1,2],[1,3]]", "[[-1,0]]", "[[100]]"):
-        with pytest.raises(ConfigError, match="static_mask_bias_schedule"):
-            run_module.train(composed(f"world_model.static_mask_bias_schedule={bad}"))
-
-
-def test_logs_the_pyramid_term_once_it_starts(tmp_path):
-    train(
-        tmp_path,
-        "world_model.updates=41",
-        "logging.eval_every=41",
-        "world_model.lambda_reco_pyramid=1",
-        "world_model.reco_pyramid_from=30",
-        "world_model.ramp_updates=5",
-    )
-    (csv,) = tmp_path.rglob("loss_model_reco_pyramid.csv")
-    logged = {
-        int(float(step)): float(value)
-        for step, value in (line.split(",")[:2] for line in csv.read_text().split())
-    }
-    # logged every 20 updates; its weight is zero up to update 30, then ramps up over 5 updates
-    assert logged[0] == 0.0 and logged[20] == 0.0 and logged[40] > 0.0
 
 
 def test_the_single_branch_baseline_is_scored_by_disc_reconstruction_and_probed(tmp_path):
@@ -246,31 +205,6 @@ def test_the_three_yellow_discs_recipe_draws_three_yellow_discs():
     data = collect_episodes(cfg, episodes=1, seed=0)
     discs = data["next", "pixels"].permute(0, 2, 3, 1)[data["next", "distractor_ids"] > 0]  # [pixels, RGB]
     assert (discs == torch.tensor(DISTRACTOR_COLOURS["yellow"], dtype=torch.uint8)).all(-1).all()
-
-
-def _static_mask_bias(run_dir) -> torch.Tensor:
-    model = latest_state(run_dir)["models"]["world_model"]
-    (bias,) = [
-        v for k, v in model.items() if k.startswith("static_decoder.") and k.endswith("bias") and v[3] > 1
-    ]
-    return bias
-
-
-def test_raises_the_background_prior_on_schedule_and_across_a_resume(tmp_path):
-    # lr 0: the parameters move only by the raise, so the bias shows exactly how much of it was applied
-    small = ["train.world_model_lr=0", "logging.eval_every=2"]
-    raise_ = "world_model.static_mask_bias_schedule=[[1,0],[3,2]]"
-    train(tmp_path / "plain", *small, "world_model.updates=4")
-    train(tmp_path / "raised", *small, raise_, "world_model.updates=4")
-    plain = _static_mask_bias(tmp_path / "plain")
-    assert torch.allclose(_static_mask_bias(tmp_path / "raised") - plain, torch.tensor([0.0, 0.0, 0.0, 2.0]))
-    # half-way (updates 0, 1, 2 ran: 1.0 of the raise at update 2), then resumed: 2.0 in all, not more
-    train(tmp_path / "half", *small, raise_, "world_model.updates=3")
-    assert torch.allclose(_static_mask_bias(tmp_path / "half") - plain, torch.tensor([0.0, 0.0, 0.0, 1.0]))
-    train(tmp_path / "half", *small, raise_, "world_model.updates=4", "resume=true")
-    assert torch.allclose(_static_mask_bias(tmp_path / "half"), _static_mask_bias(tmp_path / "raised"))
-    with pytest.raises(ConfigError, match="static_mask_bias_schedule"):
-        train(tmp_path / "sigmoid", raise_, "+model.overrides.mask_mode=sigmoid")
 
 
 def test_how_often_it_evaluates_does_not_change_the_training(tmp_path):

@@ -182,9 +182,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
     def shift_static_mask_bias(self, delta: float) -> None:
         """Add ``delta`` to the bias of the background's mask logit (softmax mode), in place.
 
-        The constructor applies ``config.static_mask_bias`` this way; a training loop can raise it later
-        (a background prior that grows once the dynamic branches' components have structure: see
-        ``isodream-train`` ``world_model.static_mask_bias_schedule``). The bias stays a learned parameter.
+        The constructor applies ``config.static_mask_bias`` this way. The bias stays a learned parameter.
 
         Raises:
             ValueError: without the static branch or outside softmax mode (the background has no logit).

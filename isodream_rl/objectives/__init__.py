@@ -1,10 +1,9 @@
-"""Iso-Dream objectives: world-model loss (eq. 5), inverse-dynamics loss, KL balancing, pyramid image term."""
+"""Iso-Dream objectives: world-model loss (eq. 5), inverse-dynamics loss, KL balancing."""
 
 from isodream_rl.objectives.actor import IsoDreamActorLoss, lambda_returns
 from isodream_rl.objectives.imagination import IsoDreamImagination
 from isodream_rl.objectives.inverse_dynamics import InverseDynamicsLoss
 from isodream_rl.objectives.kl import balanced_kl, gaussian_kl
-from isodream_rl.objectives.pyramid import PyramidImageTerm, pyramid_squared_error
 from isodream_rl.objectives.value import IsoDreamValueLoss, make_target_updater
 from isodream_rl.objectives.world_model import IsoDreamModelLoss
 
@@ -14,10 +13,8 @@ __all__ = [
     "IsoDreamImagination",
     "IsoDreamModelLoss",
     "IsoDreamValueLoss",
-    "PyramidImageTerm",
     "balanced_kl",
     "gaussian_kl",
     "lambda_returns",
     "make_target_updater",
-    "pyramid_squared_error",
 ]

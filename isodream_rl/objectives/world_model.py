@@ -57,8 +57,7 @@ class IsoDreamModelLoss(LossModule):
         extra_terms: terms added to eq. 5 (none by default, the paper's loss), each a callable (an
             ``nn.Module`` to have its parameters and device follow the loss) taking the composite ``o^``
             and the target ``o``, both ``[B, T, 3, 64, 64]`` in the ``[-0.5, 0.5]`` range, and returning a
-            mapping of ``loss_*`` scalars, e.g.
-            :class:`~isodream_rl.objectives.pyramid.PyramidImageTerm`.
+            mapping of ``loss_*`` scalars.
 
     Inputs are checked at the world model's boundary (:class:`~isodream_rl.modules.IsoDreamWorldModel`,
     ``check_inputs``): float pixels outside ``[0, 1]``, NaN/inf pixels or actions, a missing ``is_init`` and

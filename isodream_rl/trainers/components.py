@@ -8,7 +8,6 @@ names.
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import torch
@@ -17,9 +16,9 @@ from torchrl.trainers import Trainer
 
 from isodream_rl.trainers import trainer_state
 from isodream_rl.trainers.builders import make_adam, make_behavior, make_replay_buffer, make_world_model_loss
-from isodream_rl.trainers.checkpoint import rng_state
 from isodream_rl.trainers.config import RunConfig
 from isodream_rl.trainers.hooks import EpisodeReturns, ReplayPreparation
+from isodream_rl.trainers.run_lifecycle import run_state
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
 
 
@@ -88,23 +87,23 @@ class RunComponents:
     def state(
         self, cfg: RunConfig, *, env_steps: int, trainer: Trainer | None, evaluation=None, wall_s: float = 0.0
     ) -> dict:
-        return {
-            "config": dataclasses.asdict(cfg),
-            "models": {name: module.state_dict() for name, module in self.modules().items()},
-            "stepper": self.stepper.state_dict(),
-            "counters": {
+        """The run's checkpoint state (:func:`~isodream_rl.trainers.run_lifecycle.run_state`)."""
+        return run_state(
+            cfg,
+            models=self.modules(),
+            stepper=self.stepper,
+            counters={
                 "env_steps": env_steps,
                 "wall_s": wall_s,
                 "optim_count": trainer_state.optim_count(trainer) if trainer is not None else 0,
                 "last_log": trainer_state.log_marks(trainer) if trainer is not None else {},
             },
-            "hooks": {
+            hooks={
                 "preparation": self.preparation.state_dict(),
                 "returns": self.returns.state_dict(),
                 "evaluation": evaluation.state_dict() if evaluation is not None else None,
             },
-            "rng": rng_state(),
-        }
+        )
 
     def load_models(self, state: dict) -> None:
         for name, module in self.modules().items():

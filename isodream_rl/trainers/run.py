@@ -16,33 +16,33 @@ from pathlib import Path
 import torch
 from torchrl.trainers import ReplayBufferTrainer, Trainer, UpdateWeights
 
-from isodream_rl.csv_logs import csv_log_sizes, cut_csv_logs
+from isodream_rl.csv_logs import csv_log_sizes
 from isodream_rl.envs.builder import ground_truth_mask_keys
 from isodream_rl.trainers import trainer_state, world_model_run
 from isodream_rl.trainers.builders import close_logger, env_factory, make_logger
-from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager, set_rng_state
+from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.collectors import make_collector
 from isodream_rl.trainers.config import RunConfig, config_from_dict, validate_config
 from isodream_rl.trainers.disk_space import ReplayReservation
 from isodream_rl.trainers.evaluation import Evaluation, learning_summary, run_episodes, save_episode_gif
-from isodream_rl.trainers.hooks import PeriodicCheckpoint, StopOnSignal, Throughput
+from isodream_rl.trainers.hooks import Throughput
 from isodream_rl.trainers.registry import make_components
 from isodream_rl.trainers.run_dir import hold_run_dir, resuming, write_run_config
 from isodream_rl.trainers.run_lifecycle import (
+    STATE_KEYS,
     RunResult,
     begin_run,
     probe_action_dim,
+    restore_run_state,
     resume_state,
     seed_everything,
+    train_with_checkpoints,
     write_summary,
 )
 from isodream_rl.trainers.world_model_config import TORCHRL_BASELINES
 from isodream_rl.trainers.world_model_run import LatentProbe
 
 logger = logging.getLogger(__name__)
-
-#: what ``state.pt`` of an RL run's checkpoint holds (a checkpoint without one of them is unreadable)
-STATE_KEYS = ("config", "models", "stepper", "counters", "hooks", "rng")
 
 
 def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
@@ -61,7 +61,7 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
         cfg: the run's configuration.
         probe: ``mode=world_model`` only: the latent probe it runs at the end of a sprites run
             (``world_model.probe_episodes``); ``isodream-train`` passes
-            :func:`isodream_rl.recipes.latent_probe.probe`.
+            :func:`isodream_rl.evaluation.latent_probe.probe`.
 
     Raises:
         ConfigError: invalid configuration (before anything is built), a run folder that holds another run or
@@ -74,9 +74,7 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
     """
     validate_config(cfg)
     with hold_run_dir(cfg):
-        if (
-            cfg.mode == "world_model"
-        ):  # the world model alone: its own loop, this run folder and checkpoint format
+        if cfg.mode == "world_model":  # the world model alone, on episodes collected first, in the same loop
             return world_model_run.train(cfg, probe=probe)
         return _train_rl(cfg)
 
@@ -99,13 +97,9 @@ def _train_rl(cfg: RunConfig) -> RunResult:
     stepper, policy = components.stepper, components.behavior.policy
     if state is not None:
         checkpoints.load_replay(resumed_from, components.replay_buffer)
-        components.load_models(state)
-        stepper.load_state_dict(state["stepper"])
+        restore_run_state(state, load_models=components.load_models, stepper=stepper, logs=logs)
         components.preparation.load_state_dict(state["hooks"]["preparation"])
         components.returns.load_state_dict(state["hooks"]["returns"])
-        set_rng_state(state["rng"])
-        if "log_sizes" in state["counters"]:  # rows written after the checkpoint are of a timeline that ended
-            cut_csv_logs(logs, state["counters"]["log_sizes"])
         logger.info("resumed from %s (%d env steps)", resumed_from, state["counters"]["env_steps"])
     write_run_config(cfg)  # the run starts: its parts are built, the config matches its checkpoint
     env_steps = state["counters"]["env_steps"] if state else 0
@@ -211,19 +205,12 @@ def _train_rl(cfg: RunConfig) -> RunResult:
         last_checkpoint[0] = path
         return path
 
-    with StopOnSignal() as signals:
-        PeriodicCheckpoint(
-            save=save, stepper=stepper, every_updates=cfg.checkpoint.every_updates, signals=signals
-        ).register(trainer)
-        try:
-            trainer.train()
-        finally:
-            collector.shutdown()
-        if signals.received is None:
-            save()
+    stopped_by_signal = train_with_checkpoints(
+        trainer, save=save, stepper=stepper, every_updates=cfg.checkpoint.every_updates
+    )
     train_wall_s = wall_s()
     summary = None
-    if signals.received is None and cfg.logging.final_eval_episodes > 0:
+    if stopped_by_signal is None and cfg.logging.final_eval_episodes > 0:
         summary = final_evaluation(
             cfg,
             policy,

@@ -11,6 +11,8 @@ writes them (:class:`RunDirGuard`).
 While a run uses its folder, :func:`hold_run_dir` keeps it to this process (``run.lock``, see
 :mod:`isodream_rl.run_lock`), removes what a start that failed before ``run_config.json`` made (so the corrected
 command is not refused), and turns a full disk or a read-only folder met on the way into one line.
+:func:`hold_folder` does the same for another program's run folder (``isodream-video train --out-dir``), named
+by its own :class:`RunFlags`.
 """
 
 from __future__ import annotations
@@ -21,8 +23,9 @@ import errno
 import json
 import os
 import shutil
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -61,30 +64,65 @@ RESUMABLE = (
 )
 
 
+@dataclass(frozen=True)
+class RunFlags:
+    """How a program names its run folder and the two settings that let a run use a folder holding another
+    run (in its one-line errors)."""
+
+    folder: str = "run_dir"
+    resume: str = "resume=true"
+    overwrite: str = "overwrite=true"
+
+
+#: ``isodream-train``'s names
+TRAIN_FLAGS = RunFlags()
+
+
 def resuming(cfg: RunConfig) -> bool:
     """``resume=true`` or ``checkpoint.resume=true``."""
     return bool(cfg.resume or cfg.checkpoint.resume)
 
 
-def existing_run_files(run_dir: str | Path) -> list[str]:
-    """The :data:`RUN_FILES` present in ``run_dir``."""
+def existing_run_files(run_dir: str | Path, run_files: Sequence[str] = RUN_FILES) -> list[str]:
+    """The ``run_files`` (:data:`RUN_FILES`) present in ``run_dir``."""
     run_dir = Path(run_dir)
-    return [name for name in RUN_FILES if (run_dir / name).exists()]
+    return [name for name in run_files if (run_dir / name).exists()]
 
 
-def run_dir_problem(run_dir: str | Path) -> str | None:
+def refuse_another_run(
+    run_dir: str | Path,
+    *,
+    resume: bool,
+    overwrite: bool,
+    run_files: Sequence[str] = RUN_FILES,
+    flags: RunFlags = TRAIN_FLAGS,
+) -> list[str]:
+    """The ``run_files`` present in ``run_dir``, once a run may use it; reads only.
+
+    Raises:
+        ConfigError: the folder holds another run and neither ``resume`` nor ``overwrite`` is set, or both are.
+    """
+    if resume and overwrite:
+        raise ConfigError(f"{flags.resume} and {flags.overwrite} contradict each other: set one of them")
+    found = existing_run_files(run_dir, run_files)
+    if found and not (resume or overwrite):
+        raise ConfigError(_another_run(Path(run_dir), found, flags))
+    return found
+
+
+def run_dir_problem(run_dir: str | Path, *, flags: RunFlags = TRAIN_FLAGS) -> str | None:
     """Why ``run_dir`` cannot hold a run (a file, under a file, on a read-only disk or not writable), or
     ``None``; reads only."""
-    run_dir = Path(run_dir)
+    run_dir, name = Path(run_dir), flags.folder
     if run_dir.exists() and not run_dir.is_dir():
-        return f"run_dir {run_dir} is a file, not a folder: give a folder (a new one, or one holding a run)"
+        return f"{name} {run_dir} is a file, not a folder: give a folder (a new one, or one holding a run)"
     existing = run_dir
     while not existing.exists() and existing != existing.parent:
         existing = existing.parent
     if not existing.is_dir():
-        return f"run_dir {run_dir} is under {existing}, which is a file: give a path under a folder"
+        return f"{name} {run_dir} is under {existing}, which is a file: give a path under a folder"
     if not os.access(existing, os.W_OK | os.X_OK):
-        return f"run_dir {run_dir} cannot be written ({existing} is read-only or not yours): give another"
+        return f"{name} {run_dir} cannot be written ({existing} is read-only or not yours): give another"
     return None
 
 
@@ -97,18 +135,30 @@ def claim_run_dir(cfg: RunConfig) -> Path:
         CheckpointError: ``resume`` and no checkpoint there.
     """
     run_dir = Path(cfg.run_dir)
-    if resuming(cfg) and cfg.overwrite:
-        raise ConfigError("resume=true and overwrite=true contradict each other: set one of them")
-    found = existing_run_files(run_dir)
-    if resuming(cfg):
-        if "checkpoints" not in found or not any((run_dir / "checkpoints").glob("step_*")):
+    if resuming(cfg) and not cfg.overwrite:
+        if not any((run_dir / "checkpoints").glob("step_*")):
             raise CheckpointError(
                 f"resume=true but there is no checkpoint in {run_dir / 'checkpoints'}; start without resume or "
                 "point run_dir at the run to continue"
             )
-    elif found:
-        if not cfg.overwrite:
-            raise ConfigError(_another_run(run_dir, found))
+    return claim_folder(run_dir, resume=resuming(cfg), overwrite=cfg.overwrite)
+
+
+def claim_folder(
+    run_dir: Path,
+    *,
+    resume: bool,
+    overwrite: bool,
+    run_files: Sequence[str] = RUN_FILES,
+    flags: RunFlags = TRAIN_FLAGS,
+) -> Path:
+    """:func:`refuse_another_run`, then, with ``overwrite``, delete the run files there; the folder, made.
+
+    Raises:
+        ConfigError: as :func:`refuse_another_run`; nothing is written or deleted then.
+    """
+    found = refuse_another_run(run_dir, resume=resume, overwrite=overwrite, run_files=run_files, flags=flags)
+    if not resume:
         for name in found:
             path = run_dir / name
             shutil.rmtree(path) if path.is_dir() else path.unlink()
@@ -116,10 +166,10 @@ def claim_run_dir(cfg: RunConfig) -> Path:
     return run_dir
 
 
-def _another_run(run_dir: Path, found: list[str]) -> str:
+def _another_run(run_dir: Path, found: list[str], flags: RunFlags = TRAIN_FLAGS) -> str:
     return (
-        f"{run_dir} holds another run ({', '.join(found)}): continue it with resume=true, replace it with "
-        "overwrite=true, or give another run_dir"
+        f"{run_dir} holds another run ({', '.join(found)}): continue it with {flags.resume}, replace it with "
+        f"{flags.overwrite}, or give another {flags.folder}"
     )
 
 
@@ -138,19 +188,8 @@ def hold_run_dir(cfg: RunConfig) -> Iterator[Path]:
         RunDirBusyError: another live process holds the folder (the message names its pid).
         DiskFullError: the disk filled up; the message names the last verified checkpoint and says to resume.
     """
-    run_dir = Path(cfg.run_dir)
-    problem = run_dir_problem(run_dir)
-    if problem:
-        raise ConfigError(problem)
-    lock = RunDirLock(run_dir)
-    try:
-        lock.acquire()
-    except OSError as err:
-        raise _os_error(err, run_dir) from err
-    try:
+    with hold_folder(Path(cfg.run_dir), claim=lambda: claim_run_dir(cfg)) as run_dir:
         new = not resuming(cfg)
-        claim_run_dir(cfg)
-        CheckpointManager(run_dir / "checkpoints").remove_leftovers()
         try:
             yield run_dir
         except BaseException:
@@ -158,26 +197,66 @@ def hold_run_dir(cfg: RunConfig) -> Iterator[Path]:
                 for name in existing_run_files(run_dir):
                     shutil.rmtree(run_dir / name, ignore_errors=True)
             raise
+
+
+@contextmanager
+def hold_folder(
+    run_dir: Path,
+    *,
+    resume: bool = False,
+    overwrite: bool = False,
+    run_files: Sequence[str] = RUN_FILES,
+    flags: RunFlags = TRAIN_FLAGS,
+    claim=None,
+) -> Iterator[Path]:
+    """Hold the run folder ``run_dir``: refuse a path that cannot be a writable folder, take its lock
+    (:class:`~isodream_rl.run_lock.RunDirLock`), claim it (``claim()``, or :func:`claim_folder` with ``resume``,
+    ``overwrite``, ``run_files`` and ``flags``), and remove the half-written checkpoints of
+    ``<run_dir>/checkpoints`` a killed or failed process left; a full disk and a read-only folder met in the
+    block become one-line errors; the lock is released on leaving.
+
+    Raises:
+        ConfigError: ``run_dir`` is a file, under a file or not writable; the refusals of :func:`claim_folder`.
+        RunDirBusyError: another live process holds the folder (the message names its pid).
+        DiskFullError: the disk filled up; the message names the last verified checkpoint and says to resume.
+    """
+    problem = run_dir_problem(run_dir, flags=flags)
+    if problem:
+        raise ConfigError(problem)
+    lock = RunDirLock(run_dir, setting=flags.folder)
+    try:
+        lock.acquire()
     except OSError as err:
-        raise _os_error(err, run_dir) from err
+        raise _os_error(err, run_dir, flags) from err
+    try:
+        if claim is None:
+            claim_folder(run_dir, resume=resume, overwrite=overwrite, run_files=run_files, flags=flags)
+        else:
+            claim()
+        CheckpointManager(run_dir / "checkpoints").remove_leftovers()
+        yield run_dir
+    except OSError as err:
+        raise _os_error(err, run_dir, flags) from err
     finally:
         lock.release()
 
 
-def _os_error(err: OSError, run_dir: Path) -> Exception:
+def _os_error(err: OSError, run_dir: Path, flags: RunFlags = TRAIN_FLAGS) -> Exception:
     """The one-line error of an ``OSError`` met while writing ``run_dir`` (``err`` itself when it is not the
     user's to fix)."""
     if err.errno in (errno.ENOSPC, errno.EDQUOT):
         checkpoints = CheckpointManager(run_dir / "checkpoints").checkpoints()
         then = (
-            f"the last checkpoint, {checkpoints[-1]}, is intact: free disk space, then continue with resume=true"
+            f"the last checkpoint, {checkpoints[-1]}, is intact: free disk space, then continue with "
+            f"{flags.resume}"
             if checkpoints
-            else "no checkpoint was written yet: free disk space, then start again with overwrite=true"
+            else f"no checkpoint was written yet: free disk space, then start again with {flags.overwrite}"
         )
-        return DiskFullError(f"the disk of run_dir {run_dir} is full ({err.strerror or err}); {then}")
+        return DiskFullError(f"the disk of {flags.folder} {run_dir} is full ({err.strerror or err}); {then}")
     if err.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
         return ConfigError(
-            f"run_dir {run_dir} cannot be written ({err.strerror}: {err.filename}): give a writable run_dir"
+            f"{flags.folder} {run_dir} cannot be written ({err.strerror}: {err.filename}): give a writable "
+            f"{flags.folder}"
         )
     return err
 

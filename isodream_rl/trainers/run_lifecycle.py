@@ -2,26 +2,37 @@
 
 ``mode=rl`` (:mod:`isodream_rl.trainers.run`) and ``mode=world_model`` (:mod:`isodream_rl.trainers.world_model_run`)
 both begin with :func:`begin_run` (config check, threads, seeds), read the env's action width with
-:func:`probe_action_dim`, continue a resumed run from :func:`resume_state`, write ``summary.json`` with
-:func:`write_summary` and return a :class:`RunResult`.
+:func:`probe_action_dim`, continue a resumed run from :func:`resume_state` and :func:`restore_run_state`, train
+in a TorchRL ``Trainer`` with :func:`train_with_checkpoints` (checkpoints of the one layout
+:func:`run_state`), write ``summary.json`` with :func:`write_summary` and return a :class:`RunResult`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import random
 import time
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
+from torch import nn
+from torchrl.trainers import Trainer
 
+from isodream_rl.csv_logs import csv_log_sizes, cut_csv_logs
 from isodream_rl.modules.encoder import check_pixel_values, check_pixels
 from isodream_rl.trainers.builders import env_factory
-from isodream_rl.trainers.checkpoint import CheckpointManager
+from isodream_rl.trainers.checkpoint import CheckpointManager, rng_state, set_rng_state
 from isodream_rl.trainers.config import ConfigError, RunConfig, validate_config
+from isodream_rl.trainers.hooks import PeriodicCheckpoint, StopOnSignal
 from isodream_rl.trainers.run_dir import check_same_run
+from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
+
+#: what ``state.pt`` of a checkpoint of either mode holds (:func:`run_state`)
+STATE_KEYS = ("config", "models", "stepper", "counters", "hooks", "rng")
 
 
 @dataclass
@@ -119,3 +130,69 @@ def write_summary(run_dir: str | Path, summary: dict) -> Path:
     tmp.write_text(json.dumps(summary, indent=2))
     tmp.replace(path)
     return path
+
+
+def run_state(
+    cfg: RunConfig,
+    *,
+    models: Mapping[str, nn.Module],
+    stepper: IsoDreamOptimizationStepper,
+    counters: dict,
+    hooks: dict,
+    logs: Path | None = None,
+) -> dict:
+    """What ``state.pt`` of a checkpoint of either mode holds (:data:`STATE_KEYS`): the config, the state of
+    each of ``models``, the stepper's (optimisers and update counts), ``counters``, the state of the ``hooks``
+    that have one, the RNG states and, with ``logs``, the size of each CSV log (what a resume cuts them back
+    to, :func:`restore_run_state`)."""
+    if logs is not None:
+        counters = {**counters, "log_sizes": csv_log_sizes(logs)}
+    return {
+        "config": dataclasses.asdict(cfg),
+        "models": {name: module.state_dict() for name, module in models.items()},
+        "stepper": stepper.state_dict(),
+        "counters": counters,
+        "hooks": hooks,
+        "rng": rng_state(),
+    }
+
+
+def restore_run_state(
+    state: dict,
+    *,
+    load_models: Callable[[dict], None],
+    stepper: IsoDreamOptimizationStepper,
+    logs: Path,
+) -> None:
+    """Continue from a checkpoint's :func:`run_state`: the models (``load_models(state)``), the stepper, the
+    RNG states, and the CSV logs cut back to what they held then (rows written after it are of a timeline that
+    ended)."""
+    load_models(state)
+    stepper.load_state_dict(state["stepper"])
+    set_rng_state(state["rng"])
+    if "log_sizes" in state["counters"]:
+        cut_csv_logs(logs, state["counters"]["log_sizes"])
+
+
+def train_with_checkpoints(
+    trainer: Trainer, *, save: Callable[[], Path], stepper: IsoDreamOptimizationStepper, every_updates: int
+) -> int | None:
+    """The training loop of both modes: ``trainer.train()`` with a checkpoint every ``every_updates`` updates
+    (:class:`~isodream_rl.trainers.hooks.PeriodicCheckpoint`, registered after the run's other hooks) and a
+    last one when it ends; SIGINT/SIGTERM save a checkpoint and stop at the end of the batch
+    (:class:`~isodream_rl.trainers.hooks.StopOnSignal`).
+
+    Returns:
+        the signal that stopped the run, or ``None`` if it ran to its end (or a hook stopped it).
+    """
+    with StopOnSignal() as signals:
+        PeriodicCheckpoint(save=save, stepper=stepper, every_updates=every_updates, signals=signals).register(
+            trainer
+        )
+        try:
+            trainer.train()
+        finally:
+            trainer.collector.shutdown()
+        if signals.received is None:
+            save()
+    return signals.received

@@ -8,7 +8,7 @@ recipes.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from isodream_rl.modules.config import SIZE_PRESETS
@@ -22,7 +22,7 @@ TORCHRL_BASELINES = ("torchrl_dreamer", "torchrl_dreamer_v3")
 
 @dataclass
 class WorldModelModeConfig:
-    """The data, length and extra terms of a ``mode=world_model`` run."""
+    """The data and length of a ``mode=world_model`` run."""
 
     updates: int = 3000
     """World-model updates to run (``train.batch_size`` windows of ``train.sequence_length`` steps each)."""
@@ -41,22 +41,6 @@ class WorldModelModeConfig:
     and the background branch absorbs it)."""
     probe_episodes: int = 32
     """Fresh episodes of the final latent probe on sprites (half fit, half score; 0: no probe)."""
-    static_mask_bias_schedule: list[list[Any]] = field(default_factory=list)
-    """An offset added to the background's mask-logit bias during training (not in the paper): ``[update,
-    offset]`` points, updates increasing, linear from 0 at update 0 through the points, held after the last
-    (``[[2500, 0], [3500, 3]]`` raises the prior by 3 over updates 2500-3500). Softmax masks with the static
-    branch only."""
-    lambda_reco_pyramid: float = 0.0
-    """Weight of the coarse-to-fine image term on pyramid levels 1..L (``PyramidImageTerm``, an extra term of
-    eq. 5, not in the paper; 0: off)."""
-    pyramid_levels: int = 3
-    """L, the pyramid levels of that term."""
-    reco_pyramid_from: int = 0
-    """Update at which the pyramid term starts, its weight then rising linearly over ``ramp_updates`` (0: from
-    the start)."""
-    ramp_updates: int | None = None
-    """Updates over which the pyramid term rises to its weight once it starts (``None``: as many as it
-    waited)."""
 
 
 def world_model_mode_errors(cfg: Any) -> list[str]:
@@ -81,8 +65,6 @@ def world_model_mode_errors(cfg: Any) -> list[str]:
         ("world_model.held_out_episodes", wm.held_out_episodes, 1),
         ("world_model.action_hold", wm.action_hold, 1),
         ("world_model.probe_episodes", wm.probe_episodes, 0),
-        ("world_model.pyramid_levels", wm.pyramid_levels, 1),
-        ("world_model.reco_pyramid_from", wm.reco_pyramid_from, 0),
         ("train.batch_size", train.batch_size, 1),
         ("train.sequence_length", train.sequence_length, 1),
         ("train.threads", train.threads, 1),
@@ -106,24 +88,8 @@ def world_model_mode_errors(cfg: Any) -> list[str]:
             "model.overrides.static_mask_bias needs the static branch's mask logit (softmax masks, "
             "algo.static_branch=true); in sigmoid mode the background has no logit: drop it"
         )
-    schedule = wm.static_mask_bias_schedule
-    if schedule and not softmax_static:
-        errors.append(
-            "world_model.static_mask_bias_schedule moves the static branch's mask logit: it needs softmax "
-            "masks and algo.static_branch=true"
-        )
-    if not all(len(point) == 2 for point in schedule):
-        errors.append(f"world_model.static_mask_bias_schedule={schedule}: give [update, offset] pairs")
-    else:
-        updates = [point[0] for point in schedule]
-        if (updates and updates[0] < 0) or any(b <= a for a, b in zip(updates, updates[1:])):
-            errors.append(
-                f"world_model.static_mask_bias_schedule={schedule}: updates must be >= 0 and increasing"
-            )
     if not wm.max_minutes >= 0:
         errors.append(f"world_model.max_minutes={wm.max_minutes} must be >= 0 (0: no time limit)")
-    if wm.lambda_reco_pyramid < 0:
-        errors.append(f"world_model.lambda_reco_pyramid={wm.lambda_reco_pyramid} must be >= 0")
     if wm.probe_episodes == 1:
         errors.append(
             "world_model.probe_episodes=1: the probe fits on half the episodes and scores the rest: 0 or >= 2"

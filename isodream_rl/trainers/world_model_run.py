@@ -10,8 +10,10 @@ highway, DMC), :func:`~isodream_rl.evaluation.decomposition_scores`, each branch
 distractors and the background; on sprites, each disc's coverage and reconstruction error too) and draws
 ``pictures/branches_<updates>.png``. It stops after ``world_model.updates`` updates, or once its wall-clock
 passes ``world_model.max_minutes``. At the end, on sprites, it probes what each branch's state knows with the
-:class:`LatentProbe` it is given (``isodream-train`` gives :func:`~isodream_rl.recipes.latent_probe.probe`) and
-writes ``summary.json``. The run folder is an RL run's: ``logs/`` (the TorchRL logger),
+:class:`LatentProbe` it is given (``isodream-train`` gives :func:`~isodream_rl.evaluation.latent_probe.probe`) and
+writes ``summary.json``. The loop is the RL run's
+(:func:`~isodream_rl.trainers.run_lifecycle.train_with_checkpoints`: TorchRL's ``Trainer``, fed by
+:class:`FixedData`, no new env steps), and so is the run folder: ``logs/`` (the TorchRL logger),
 ``checkpoints/step_<updates>/`` (:class:`~isodream_rl.trainers.checkpoint.CheckpointManager`, which
 ``resume=true`` continues from), ``pictures/``.
 
@@ -21,21 +23,19 @@ random generator, so how often they run does not change the training.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import logging
 import math
 import time
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
 import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
+from torchrl.trainers import Trainer, TrainerHookBase
 from tqdm import tqdm
 
-from isodream_rl.csv_logs import csv_log_sizes, cut_csv_logs
 from isodream_rl.data.sprites_episodes import (
     collect_sprites_episodes,
     held_random_actions,
@@ -45,7 +45,6 @@ from isodream_rl.envs.builder import ground_truth_mask_keys
 from isodream_rl.evaluation.branches import branch_grid, save_png, score_branches
 from isodream_rl.evaluation.decomposition import TRUTH_KEYS
 from isodream_rl.modules import IsoDreamWorldModel
-from isodream_rl.objectives.pyramid import PyramidImageTerm
 from isodream_rl.trainers.builders import (
     REPLAY_KEYS,
     action_dim_of,
@@ -56,15 +55,17 @@ from isodream_rl.trainers.builders import (
     make_world_model_config,
     make_world_model_loss,
 )
-from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager, rng_state, set_rng_state
+from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.config import ConfigError, RunConfig, config_from_dict
-from isodream_rl.trainers.hooks import StopOnSignal
 from isodream_rl.trainers.run_dir import resuming, write_run_config
 from isodream_rl.trainers.run_lifecycle import (
     RunResult,
     begin_run,
     probe_action_dim,
+    restore_run_state,
     resume_state,
+    run_state,
+    train_with_checkpoints,
     write_summary,
 )
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
@@ -76,7 +77,7 @@ logger = logging.getLogger(__name__)
 class LatentProbe(Protocol):
     """What each branch's state of ``world_model`` knows: scores (``r2_<branch>_<sprite>``) on ``episodes`` fresh
     sprites episodes from ``seed``, made with the scene :func:`probe_scene` gives
-    (:func:`isodream_rl.recipes.latent_probe.probe` is one)."""
+    (:func:`isodream_rl.evaluation.latent_probe.probe` is one)."""
 
     def __call__(
         self, world_model: IsoDreamWorldModel, *, episodes: int, seed: int, encoder: bool, **scene: Any
@@ -139,28 +140,6 @@ def collect_episodes(cfg: RunConfig, *, episodes: int, seed: int) -> TensorDict:
     data = torch.cat(rollouts)
     data["episode"] = torch.arange(episodes).repeat_interleave(steps)
     return data
-
-
-def schedule_value(points: Sequence[Sequence[float]], update: int) -> float:
-    """The piecewise-linear schedule of ``[update, value]`` points (updates increasing) at ``update``: linear
-    from 0 at update 0 through the points (a point at update 0 sets the start), the last value held after the
-    last point; 0 before update 0."""
-    if not points or update < 0:
-        return 0.0
-    for (u0, v0), (u1, v1) in zip([(0, 0.0), *points], points):
-        if update < u1:
-            return v0 + (v1 - v0) * max(0.0, update - u0) / (u1 - u0)
-    return float(points[-1][1])
-
-
-def ramp_weight(weight: float, update: int, start: int, length: int | None = None) -> float:
-    """0 before update ``start``, then linearly up to ``weight`` at update ``start + length`` (``length``
-    defaults to ``start``; ``start = 0``: ``weight`` throughout)."""
-    if not start:
-        return weight
-    length = start if length is None else length
-    # length <= 0: the weight jumps from 0 to its value at update start
-    return schedule_value([(start, 0.0), (start + max(length, 0), weight)], update)
 
 
 def probe_scene(cfg: RunConfig, *, window: int | None = None) -> dict:
@@ -230,12 +209,174 @@ def wall_clock() -> float:
     return time.perf_counter()
 
 
-#: what ``state.pt`` of a world-model run's checkpoint holds (a checkpoint without one of them is unreadable)
+#: what ``state.pt`` of a world-model run's checkpoint must hold to be read (:func:`~isodream_rl.trainers.
+#: run_lifecycle.run_state`; checkpoints written before the mode ran through the RL run's loop have no "hooks")
 STATE_KEYS = ("config", "models", "stepper", "counters", "rng")
+
+
+class FixedData:
+    """The collector of a run on data collected before it: ``batches`` empty batches, no new env steps, for a
+    TorchRL ``Trainer`` with one update per batch (its ``process_optim_batch`` hook samples the data).
+
+    Args:
+        batches: batches (updates) to hand out.
+    """
+
+    init_random_frames = 0
+
+    def __init__(self, batches: int) -> None:
+        self.batches = batches
+
+    def __iter__(self):
+        for _ in range(self.batches):
+            # the Trainer counts a batch's frames by its ("collector", "mask"): none here
+            yield TensorDict({("collector", "mask"): torch.zeros(0, dtype=torch.bool)}, batch_size=[0])
+
+    def shutdown(self) -> None:
+        """Nothing to stop."""
+
+
+class BranchEvaluation:
+    """The evaluation of ``mode=world_model``, its counterpart of the RL run's
+    :class:`~isodream_rl.trainers.evaluation.Evaluation`: scores on the held-out episodes and, ``train_*``, on as
+    many training episodes (:func:`~isodream_rl.evaluation.branches.score_branches`), logged at the update,
+    and the branch picture of the first held-out window, ``<pictures>/branches_<updates>.png``.
+
+    It runs on a forked random generator (the posteriors are samples): evaluating does not change the training.
+
+    Args:
+        world_model: the world model to score.
+        held_out: flat held-out episodes ``[episodes * steps]``.
+        seen: as many training episodes.
+        window: window length T the episodes are cut into.
+        device: where the model runs.
+        pictures: folder of the pictures.
+        logger: TorchRL logger of the scores.
+    """
+
+    def __init__(
+        self,
+        *,
+        world_model: IsoDreamWorldModel,
+        held_out: TensorDict,
+        seen: TensorDict,
+        window: int,
+        device: str,
+        pictures: Path,
+        logger,
+    ) -> None:
+        self.world_model, self.held_out, self.seen = world_model, held_out, seen
+        self.window, self.device, self.pictures, self.logger = window, device, Path(pictures), logger
+        self.last = 0
+        self.last_scores: dict[str, float] = {}
+        self.last_picture: Path | None = None
+
+    def evaluate(self, step: int) -> dict[str, float]:
+        """Score and draw now (``step``: the update count); returns the logged scores."""
+        with torch.random.fork_rng(devices=[]):
+            scores, out = score_branches(
+                self.world_model, self.held_out, window=self.window, device=self.device
+            )
+            train_scores, _ = score_branches(
+                self.world_model, self.seen, window=self.window, device=self.device
+            )
+        scores.update({f"train_{key}": value for key, value in train_scores.items()})
+        for key, value in scores.items():
+            self.logger.log_scalar(key, value, step=step)
+        picture = self.pictures / f"branches_{step:08d}.png"
+        self.last_picture = save_png(branch_grid(out, sample=0, steps=self.window), picture)
+        self.last, self.last_scores = step, scores
+        return scores
+
+    def state_dict(self) -> dict:
+        return {"last": self.last}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self.last = state_dict["last"]
+
+
+class UpdateCadence(TrainerHookBase):
+    """``post_steps`` hook of ``mode=world_model``: after each update, its losses logged every ``log_every``
+    updates, the :class:`BranchEvaluation` every ``eval_every`` updates, and a stop once the wall-clock budget
+    is spent; the last update (the ``updates``-th, or the one past the budget) is logged and evaluated.
+
+    Args:
+        first: the update count the run starts from (a resumed run's).
+        updates: the update count at which the run ends.
+        log_every: updates between logged losses.
+        eval_every: updates between evaluations (0: after the last update only).
+        evaluation: the :class:`BranchEvaluation`.
+        logger: TorchRL logger of the losses.
+        wall_s: ``() -> seconds`` of the run's wall-clock so far.
+        max_minutes: the wall-clock budget in minutes (0: none).
+        progress_bar: show a progress bar.
+        desc: its label.
+    """
+
+    def __init__(
+        self,
+        *,
+        first: int,
+        updates: int,
+        log_every: int,
+        eval_every: int,
+        evaluation: BranchEvaluation,
+        logger,
+        wall_s,
+        max_minutes: float,
+        progress_bar: bool,
+        desc: str,
+    ) -> None:
+        self.first, self.done, self.updates = first, first, updates
+        self.log_every, self.eval_every, self.evaluation = log_every, eval_every, evaluation
+        self.logger, self.wall_s, self.max_minutes = logger, wall_s, max_minutes
+        self.budget_s = max_minutes * 60.0 if max_minutes else math.inf
+        self.out_of_time = False
+        self.metrics: dict[str, float] = {}
+        self._values = None
+        self._trainer = None
+        self._clock = wall_clock()
+        self.bar = tqdm(total=updates, initial=first, desc=desc, unit="update", disable=not progress_bar)
+
+    def record(self, optim_steps: int, losses) -> None:
+        """``post_optim_complete_log``: keep the update's losses."""
+        self._values = losses
+
+    def __call__(self) -> None:
+        update = self.done
+        self.done = done = update + 1
+        self.out_of_time = self.wall_s() >= self.budget_s
+        last = done == self.updates or self.out_of_time
+        if update % self.log_every == 0 or last:
+            metrics = {key: float(value) for key, value in self._values.items()}
+            metrics["updates_per_s"] = (done - self.first) / (wall_clock() - self._clock)
+            for key, value in metrics.items():
+                self.logger.log_scalar(key, value, step=update)
+            self.bar.set_postfix(loss=f"{metrics['loss_model_reco']:.1f}", mse=f"{metrics['reco_mse']:.4f}")
+            self.metrics = metrics
+        if (self.eval_every and done % self.eval_every == 0) or last:
+            scores = self.evaluation.evaluate(done)
+            self.bar.write(
+                f"update {done}: "
+                + ", ".join(f"{k} {v:.3f}" for k, v in scores.items() if not k.startswith("train_"))
+            )
+        self.bar.update(1)
+        if self.out_of_time:
+            self.bar.write(f"update {done}: world_model.max_minutes={self.max_minutes} spent, stopping")
+            self._trainer.request_stop("world_model.max_minutes spent")
+
+    def register(self, trainer, name: str = "update_cadence") -> None:
+        self._trainer = trainer
+        trainer.register_op("post_optim_complete_log", self.record)
+        trainer.register_op("post_steps", self)
 
 
 def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
     """Train (or, with ``resume=true``, continue) the world model of ``cfg`` alone; see the module docstring.
+
+    The loop is the RL run's: a TorchRL ``Trainer`` in
+    :func:`~isodream_rl.trainers.run_lifecycle.train_with_checkpoints`, fed by :class:`FixedData` (no new env
+    steps) and sampling windows of the episodes collected first; the stepper has no actor and no value.
 
     Args:
         cfg: the run's configuration (``mode=world_model``).
@@ -253,7 +394,7 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
     if probe is None and wm.probe_episodes and _is_sprites(cfg):
         raise ConfigError(
             f"world_model.probe_episodes={wm.probe_episodes} needs the latent probe: pass "
-            "train(cfg, probe=isodream_rl.recipes.latent_probe.probe) (isodream-train does), or set "
+            "train(cfg, probe=isodream_rl.evaluation.latent_probe.probe) (isodream-train does), or set "
             "world_model.probe_episodes=0"
         )
     checkpoints = CheckpointManager(run_dir / "checkpoints", keep=cfg.checkpoint.keep)
@@ -270,12 +411,7 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
     seen = data[: held_out.shape[0]]
     buffer = make_window_buffer(data, batch_size=batch_size, window=window)
 
-    pyramid = (
-        [PyramidImageTerm(levels=wm.pyramid_levels, lambda_reco_pyramid=wm.lambda_reco_pyramid)]
-        if wm.lambda_reco_pyramid
-        else []
-    )
-    loss = make_world_model_loss(cfg, action_dim=data["action"].shape[-1], extra_terms=pyramid)
+    loss = make_world_model_loss(cfg, action_dim=data["action"].shape[-1])
     world_model = loss.world_model
     stepper = IsoDreamOptimizationStepper(
         model_loss=loss,
@@ -286,19 +422,34 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
         grad_clip=train_cfg.grad_clip,
         max_nonfinite=train_cfg.max_nonfinite_updates,
     )
+    models = {"world_model": world_model}
+    log = make_logger(cfg, run_dir=run_dir)
+    evaluation = BranchEvaluation(
+        world_model=world_model,
+        held_out=held_out,
+        seen=seen,
+        window=window,
+        device=train_cfg.device,
+        pictures=pictures,
+        logger=log,
+    )
     wall_before = 0.0
     if state is not None:
-        world_model.load_state_dict(state["models"]["world_model"])
-        stepper.load_state_dict(state["stepper"])
-        set_rng_state(state["rng"])
+        restore_run_state(
+            state,
+            load_models=lambda saved: world_model.load_state_dict(saved["models"]["world_model"]),
+            stepper=stepper,
+            logs=logs,
+        )
+        if (state.get("hooks") or {}).get("evaluation") is not None:
+            evaluation.load_state_dict(state["hooks"]["evaluation"])
         wall_before = state["counters"]["wall_s"]
-        if "log_sizes" in state["counters"]:  # rows written after the checkpoint are of a timeline that ended
-            cut_csv_logs(logs, state["counters"]["log_sizes"])
         logger.info("resumed from %s (%d updates)", resumed_from, stepper.updates)
     write_run_config(cfg)  # the run starts: its parts are built, the config matches its checkpoint
     first = stepper.updates
     env_steps = wm.episodes * wm.episode_length
     if first >= wm.updates:
+        close_logger(log)
         return RunResult(run_dir, resumed_from, logs, pictures, env_steps, first, resumed_from)
     budget = wm.max_minutes * 60.0 if wm.max_minutes else math.inf
 
@@ -306,87 +457,67 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
         """The run's wall-clock so far, data collection included, summed over resumes."""
         return wall_before + wall_clock() - started
 
+    last_checkpoint: list[Path | None] = [resumed_from]
+
     def save() -> Path:
-        return checkpoints.save(
-            stepper.updates,
-            {
-                "config": dataclasses.asdict(cfg),
-                "models": {"world_model": world_model.state_dict()},
-                "stepper": stepper.state_dict(),
-                "counters": {
-                    "updates": stepper.updates,
-                    "wall_s": wall_s(),
-                    "log_sizes": csv_log_sizes(logs),
-                },
-                "rng": rng_state(),
-            },
+        saved = run_state(
+            cfg,
+            models=models,
+            stepper=stepper,
+            counters={"env_steps": env_steps, "updates": stepper.updates, "wall_s": wall_s()},
+            hooks={"evaluation": evaluation.state_dict()},
+            logs=logs,
         )
+        last_checkpoint[0] = checkpoints.save(stepper.updates, saved)
+        return last_checkpoint[0]
 
-    log = make_logger(cfg, run_dir=run_dir)
-
-    def evaluate(update: int) -> tuple[dict[str, float], Path]:
-        """Held-out and training scores, logged, and the branch picture of the first held-out window."""
-        # on a forked generator (the posteriors are samples): evaluating does not change the training
-        with torch.random.fork_rng(devices=[]):
-            scores, out = score_branches(world_model, held_out, window=window, device=train_cfg.device)
-            train_scores, _ = score_branches(world_model, seen, window=window, device=train_cfg.device)
-        scores.update({f"train_{key}": value for key, value in train_scores.items()})
-        for key, value in scores.items():
-            log.log_scalar(key, value, step=update)
-        picture = pictures / f"branches_{update:08d}.png"
-        return scores, save_png(branch_grid(out, sample=0, steps=window), picture)
-
-    last_checkpoint, picture, scores, metrics = resumed_from, None, {}, {}
-    schedule = wm.static_mask_bias_schedule
-    bar = tqdm(
-        range(first, wm.updates),
-        desc=f"world model ({cfg.model.size}, {world_model.config.precision})",
-        unit="update",
-        initial=first,
-        total=wm.updates,
-        disable=not cfg.logging.progress_bar,
+    trainer = Trainer(
+        collector=FixedData(wm.updates - first),
+        # no batch brings env steps: the run ends with FixedData's batches, or a hook's stop
+        total_frames=env_steps + 1,
+        frame_skip=1,
+        optim_steps_per_batch=1,
+        loss_module=loss,
+        optimization_stepper=stepper,
+        logger=None,  # UpdateCadence logs the losses at the update count, the Trainer would at env steps
+        progress_bar=False,
+        save_trainer_file=None,
     )
-    clock = wall_clock()
+    trainer.collected_frames = env_steps
+    device = train_cfg.device
+
+    def sample(batch: TensorDict) -> TensorDict:
+        """``process_optim_batch``: ``batch_size`` windows of the collected episodes."""
+        return buffer.sample().to(device)
+
+    trainer.register_op("process_optim_batch", sample)
+    cadence = UpdateCadence(
+        first=first,
+        updates=wm.updates,
+        log_every=cfg.logging.log_every,
+        eval_every=cfg.logging.eval_every,
+        evaluation=evaluation,
+        logger=log,
+        wall_s=wall_s,
+        max_minutes=wm.max_minutes,
+        progress_bar=cfg.logging.progress_bar,
+        desc=f"world model ({cfg.model.size}, {world_model.config.precision})",
+    )
+    cadence.register(trainer)
     # a resumed run whose budget was spent before its summary: scored and checkpointed as it is
     out_of_time = wall_s() >= budget
     if out_of_time:
-        scores, picture = evaluate(first)
-        last_checkpoint = save()
-    with StopOnSignal() as signals:
-        for update in [] if out_of_time else bar:
-            # the bias holds the schedule's offset of the previous update (a resumed model too): move it on
-            change = schedule_value(schedule, update) - schedule_value(schedule, update - 1)
-            if change:
-                world_model.shift_static_mask_bias(change)
-            if pyramid and wm.reco_pyramid_from:
-                pyramid[0].lambda_reco_pyramid = ramp_weight(
-                    wm.lambda_reco_pyramid, update, wm.reco_pyramid_from, wm.ramp_updates
-                )
-            values = stepper.step(None, buffer.sample().to(train_cfg.device))
-            done = update + 1
-            out_of_time = wall_s() >= budget
-            last = done == wm.updates or out_of_time
-            if update % cfg.logging.log_every == 0 or last:
-                metrics = {key: float(value) for key, value in values.items()}
-                metrics["updates_per_s"] = (done - first) / (wall_clock() - clock)
-                for key, value in metrics.items():
-                    log.log_scalar(key, value, step=update)
-                bar.set_postfix(loss=f"{metrics['loss_model_reco']:.1f}", mse=f"{metrics['reco_mse']:.4f}")
-            if (cfg.logging.eval_every and done % cfg.logging.eval_every == 0) or last:
-                scores, picture = evaluate(done)
-                bar.write(
-                    f"update {done}: "
-                    + ", ".join(f"{k} {v:.3f}" for k, v in scores.items() if not k.startswith("train_"))
-                )
-            if done % cfg.checkpoint.every_updates == 0 or last or signals.received is not None:
-                last_checkpoint = save()
-            if signals.received is not None or out_of_time:
-                if out_of_time:
-                    bar.write(f"update {done}: world_model.max_minutes={wm.max_minutes} spent, stopping")
-                break
-    bar.close()
-    summary = None
-    if signals.received is None:
+        evaluation.evaluate(first)
+        save()
+        stopped_by_signal = None
+    else:
+        stopped_by_signal = train_with_checkpoints(
+            trainer, save=save, stepper=stepper, every_updates=cfg.checkpoint.every_updates
+        )
+        out_of_time = cadence.out_of_time
+    cadence.bar.close()
+    scores, summary = dict(evaluation.last_scores), None
+    if stopped_by_signal is None:
         if wm.probe_episodes and _is_sprites(cfg):
             # what each branch's state knows, on fresh episodes of the same scene (seeds never trained on)
             probed = probe(
@@ -410,20 +541,20 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
             "size": cfg.model.size,
             "seed": train_cfg.seed,
             **{key: round(value, 3) for key, value in scores.items()},
-            "png": str(picture),
-            "checkpoint": str(last_checkpoint),
+            "png": str(evaluation.last_picture),
+            "checkpoint": str(last_checkpoint[0]),
             "logs": str(logs),
         }
         write_summary(run_dir, summary)
     close_logger(log)
     return RunResult(
         run_dir=run_dir,
-        checkpoint=last_checkpoint,
+        checkpoint=last_checkpoint[0],
         logs=logs,
         pictures=pictures,
         env_steps=env_steps,
         updates=stepper.updates,
         resumed_from=resumed_from,
-        metrics=metrics,
+        metrics=cadence.metrics,
         summary=summary,
     )

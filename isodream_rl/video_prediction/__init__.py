@@ -2,7 +2,7 @@
 predictor and its variants, the objective, per-frame PSNR/SSIM, training and the ``isodream-video`` CLI."""
 
 from isodream_rl.video_prediction.config import VARIANTS, PredictorConfig, variant_config
-from isodream_rl.video_prediction.inverse_dynamics import InverseDynamicsCell
+from isodream_rl.video_prediction.inverse_dynamics import ActionInverseCell
 from isodream_rl.video_prediction.metrics import FrameMetrics
 from isodream_rl.video_prediction.objective import VideoPredictionLoss
 from isodream_rl.video_prediction.predictor import ThreeBranchPredictor
@@ -12,7 +12,7 @@ __all__ = [
     "VARIANTS",
     "ActionConditionedSTLSTMCell",
     "FrameMetrics",
-    "InverseDynamicsCell",
+    "ActionInverseCell",
     "PredictorConfig",
     "SpatioTemporalLSTMCell",
     "ThreeBranchPredictor",

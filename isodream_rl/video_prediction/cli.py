@@ -6,8 +6,8 @@ Examples::
     isodream-video train --variant isodream --iterations 80000 --out-dir runs/isodream --resume
     isodream-video train --variant isodream --iterations 1000 --out-dir runs/isodream --overwrite
     isodream-video train --dataset bair --data-path /data/softmotion30_44k --variant no_action_free
-    isodream-video eval --checkpoint runs/isodream/checkpoint.pt --json eval.json --showcase fig.png
-    isodream-video eval --checkpoint ckpt.pt --dataset robonet --data-path /data/robonet_hdf5 \\
+    isodream-video eval --checkpoint runs/isodream --json eval.json --showcase fig.png
+    isodream-video eval --checkpoint runs/isodream/checkpoints/step_00080000 --dataset robonet --data-path /data/robonet_hdf5 \\
         --test-frames 20 --sequence-length 20 --horizons 10 18
 """
 
@@ -24,9 +24,16 @@ import torch
 from torch.utils.data import DataLoader
 
 from isodream_rl.run_lock import RunDirBusyError
+from isodream_rl.trainers.disk_space import DiskFullError
 from isodream_rl.user_errors import report_user_errors, take_debug_flag
 from isodream_rl.video_prediction.metrics import FrameMetrics
-from isodream_rl.video_prediction.trainer import TrainConfig, build_split, evaluate, load_checkpoint, train
+from isodream_rl.video_prediction.trainer import (
+    VideoTrainConfig,
+    build_split,
+    evaluate,
+    load_checkpoint,
+    train,
+)
 
 __all__ = ["main"]
 
@@ -46,8 +53,8 @@ _EVAL_OVERRIDES = (
 
 
 def _add_config_arguments(parser: argparse.ArgumentParser, names: typing.Iterable[str] | None = None) -> None:
-    hints = typing.get_type_hints(TrainConfig)
-    for f in fields(TrainConfig):
+    hints = typing.get_type_hints(VideoTrainConfig)
+    for f in fields(VideoTrainConfig):
         if names is not None and f.name not in names:
             continue
         flag = "--" + f.name.replace("_", "-")
@@ -71,22 +78,28 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="isodream-video", description=__doc__.split("\n")[0])
     parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     sub = parser.add_subparsers(dest="command", required=True)
-    train_p = sub.add_parser("train", help="train one variant (see TrainConfig for every option)")
+    train_p = sub.add_parser("train", help="train one variant (see VideoTrainConfig for every option)")
     _add_config_arguments(train_p)
     train_p.add_argument("--result-json", type=Path, help="write iterations, metrics and curves here")
     train_p.add_argument("--no-progress", action="store_true", help="disable the tqdm bar")
     train_p.add_argument(
         "--resume",
         action="store_true",
-        help="continue from <out-dir>/checkpoint.pt if it exists (same settings; --iterations may grow)",
+        help="continue from the newest checkpoint of <out-dir> if it has one (same settings; --iterations may "
+        "grow)",
     )
     train_p.add_argument(
         "--overwrite",
         action="store_true",
-        help="delete the run already in --out-dir (checkpoint.pt, logs/) first",
+        help="delete the run already in --out-dir (checkpoints/, logs/) first",
     )
     eval_p = sub.add_parser("eval", help="evaluate a checkpoint on the test split (per-frame PSNR/SSIM)")
-    eval_p.add_argument("--checkpoint", type=Path, required=True)
+    eval_p.add_argument(
+        "--checkpoint",
+        type=Path,
+        required=True,
+        help="a train run's --out-dir (its newest readable checkpoint) or one of its checkpoints/step_* folders",
+    )
     _add_config_arguments(eval_p, _EVAL_OVERRIDES)
     eval_p.add_argument("--json", type=Path, help="write the summary and the per-frame curves here")
     eval_p.add_argument("--showcase", type=Path, help="write a Figure-6-style PNG of the first test clip")
@@ -95,7 +108,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _train(args: argparse.Namespace) -> dict:
-    config = TrainConfig.from_dict(_overrides(args, [f.name for f in fields(TrainConfig)]))
+    config = VideoTrainConfig.from_dict(_overrides(args, [f.name for f in fields(VideoTrainConfig)]))
     result = train(config, progress=not args.no_progress, resume=args.resume, overwrite=args.overwrite)
     result["config"] = {k: v for k, v in vars(config).items()}
     if args.result_json is not None:
@@ -104,9 +117,9 @@ def _train(args: argparse.Namespace) -> dict:
 
 
 def _eval(args: argparse.Namespace) -> dict:
-    if not args.checkpoint.is_file():
+    if not args.checkpoint.exists():
         raise FileNotFoundError(
-            f"--checkpoint {args.checkpoint}: no such file (isodream-video train writes one)"
+            f"--checkpoint {args.checkpoint}: no such folder (give the --out-dir of an isodream-video train run)"
         )
     model, config, _ = load_checkpoint(args.checkpoint)
     config = replace(config, **_overrides(args, _EVAL_OVERRIDES))
@@ -143,7 +156,9 @@ def main(argv: list[str] | None = None) -> int:
     status 2; ``--debug`` shows the traceback."""
     args = _parser().parse_args(argv)
     take_debug_flag(["--debug"] if args.debug else [])
-    with report_user_errors("isodream-video", (FileNotFoundError, KeyError, ValueError, RunDirBusyError)):
+    with report_user_errors(
+        "isodream-video", (FileNotFoundError, KeyError, ValueError, RunDirBusyError, DiskFullError)
+    ):
         result = _train(args) if args.command == "train" else _eval(args)
     print(json.dumps(result["metrics"], indent=2))
     return 0

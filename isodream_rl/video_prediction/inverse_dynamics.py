@@ -5,10 +5,10 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-__all__ = ["InverseDynamicsCell"]
+__all__ = ["ActionInverseCell"]
 
 
-class InverseDynamicsCell(nn.Module):
+class ActionInverseCell(nn.Module):
     """Regresses the action ``a_t`` from the change of action-branch encoder features ``E(x_{t+1}) - E(x_t)``.
 
     Training it through the encoder pushes the action-conditioned branch's features to carry what the
@@ -22,7 +22,7 @@ class InverseDynamicsCell(nn.Module):
         channels: widths of the two convolution blocks.
 
     Examples:
-        >>> cell = InverseDynamicsCell(in_channels=16, action_dim=4)
+        >>> cell = ActionInverseCell(in_channels=16, action_dim=4)
         >>> cell(torch.zeros(3, 16, 16, 16)).shape
         torch.Size([3, 4])
     """

@@ -13,7 +13,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from isodream_rl.video_prediction.config import PredictorConfig
-from isodream_rl.video_prediction.inverse_dynamics import InverseDynamicsCell
+from isodream_rl.video_prediction.inverse_dynamics import ActionInverseCell
 from isodream_rl.video_prediction.st_lstm import ActionConditionedSTLSTMCell, SpatioTemporalLSTMCell
 
 __all__ = ["ThreeBranchPredictor"]
@@ -127,7 +127,7 @@ class ThreeBranchPredictor(nn.Module):
             _Branch(config, action_conditioned=False, out_channels=out) if config.action_free_branch else None
         )
         self.inverse = (
-            InverseDynamicsCell(in_channels=c2, action_dim=config.action_dim)
+            ActionInverseCell(in_channels=c2, action_dim=config.action_dim)
             if config.inverse_dynamics
             else None
         )

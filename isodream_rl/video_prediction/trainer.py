@@ -1,11 +1,15 @@
-"""Training and evaluation loop of the video predictor: datasets, optimisation, TorchRL logging,
-atomic checkpoints and the per-frame evaluation protocol (train 2 -> 10, test 2 -> 28 / 2 -> 18)."""
+"""Training and evaluation loop of the video predictor: datasets, optimisation, TorchRL logging, checkpoints
+and the per-frame evaluation protocol (train 2 -> 10, test 2 -> 28 / 2 -> 18).
+
+The run folder (``--out-dir``) is held and claimed as ``isodream-train``'s is
+(:func:`~isodream_rl.trainers.run_dir.hold_folder`), and its checkpoints are ``isodream-train``'s
+(:class:`~isodream_rl.trainers.checkpoint.CheckpointManager`: ``<out_dir>/checkpoints/step_<iteration>/``,
+written atomically with a verified manifest; an unreadable newest one falls back to the one before)."""
 
 from __future__ import annotations
 
 import math
 import os
-import shutil
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -24,19 +28,19 @@ from isodream_rl.data import (
     VideoClips,
     load_pusher_dataset,
 )
-from isodream_rl.run_lock import RunDirLock
+from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
+from isodream_rl.trainers.run_dir import RunFlags, hold_folder, refuse_another_run
 from isodream_rl.video_prediction.config import PredictorConfig, variant_config
 from isodream_rl.video_prediction.metrics import FrameMetrics
 from isodream_rl.video_prediction.objective import VideoPredictionLoss
 from isodream_rl.video_prediction.predictor import ThreeBranchPredictor
 
 __all__ = [
-    "TrainConfig",
+    "VideoTrainConfig",
     "build_split",
     "build_predictor",
     "evaluate",
     "train",
-    "save_checkpoint",
     "load_checkpoint",
     "read_checkpoint",
     "RESUMABLE",
@@ -46,7 +50,7 @@ _DATASETS = ("pusher", "bair", "robonet")
 
 
 @dataclass
-class TrainConfig:
+class VideoTrainConfig:
     """Everything a training run needs; the defaults are the paper's BAIR setting (Appendix D)."""
 
     variant: str = "isodream"
@@ -162,11 +166,11 @@ class TrainConfig:
         )
 
     @classmethod
-    def from_dict(cls, values: dict) -> TrainConfig:
+    def from_dict(cls, values: dict) -> VideoTrainConfig:
         names = {f.name for f in fields(cls)}
         unknown = set(values) - names
         if unknown:
-            raise KeyError(f"unknown TrainConfig fields {sorted(unknown)}")
+            raise KeyError(f"unknown VideoTrainConfig fields {sorted(unknown)}")
         values = dict(values)
         for key in ("encoder_channels", "horizons"):
             if key in values:
@@ -174,7 +178,7 @@ class TrainConfig:
         return cls(**values)
 
 
-def _sources(config: TrainConfig, split: str):
+def _sources(config: VideoTrainConfig, split: str):
     if config.dataset == "pusher":
         count = config.train_sequences if split == "train" else config.test_sequences
         arrays = load_pusher_dataset(
@@ -195,7 +199,7 @@ def _sources(config: TrainConfig, split: str):
     return RoboNetDataset(files[:cut] if split == "train" else files[cut:])
 
 
-def build_split(config: TrainConfig, split: str) -> VideoClips:
+def build_split(config: VideoTrainConfig, split: str) -> VideoClips:
     """Clips of one split.
 
     ``"train"``: every window of ``train_frames``, new random balls on every draw. ``"test"``: one clip of
@@ -225,7 +229,7 @@ def build_split(config: TrainConfig, split: str) -> VideoClips:
     )
 
 
-def build_predictor(config: TrainConfig, action_dim: int) -> ThreeBranchPredictor:
+def build_predictor(config: VideoTrainConfig, action_dim: int) -> ThreeBranchPredictor:
     return ThreeBranchPredictor(config=config.predictor_config(action_dim)).to(config.device)
 
 
@@ -257,28 +261,37 @@ def evaluate(
     return metrics.compute()
 
 
-def save_checkpoint(path: str | os.PathLike, state: dict) -> None:
-    """``torch.save`` to a temporary file, then ``os.replace``: a crash never leaves a partial file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    torch.save(state, tmp)
-    os.replace(tmp, path)
+#: what ``state.pt`` of a video-prediction checkpoint holds for its model
+MODEL_KEYS = ("model", "train_config", "predictor_config")
+#: and what a run continues from
+STATE_KEYS = (*MODEL_KEYS, "optimizer", "iteration", "sampler", "torch_rng", "train_seconds", "history")
 
 
 def read_checkpoint(path: str | os.PathLike, *, device: str = "cpu") -> dict:
-    """The state dict of a checkpoint written by :func:`train`.
+    """The state dict of a checkpoint written by :func:`train`: ``path`` is its run folder (the newest readable
+    checkpoint), one of its ``checkpoints/step_*`` folders, or a single ``checkpoint.pt`` file of earlier
+    versions.
 
     Raises:
-        ValueError: the file is no readable torch file (truncated, corrupted, another format) or holds no dict.
+        ValueError: no readable checkpoint there (truncated, corrupted, another format, or no dict).
     """
+    path = Path(path)
+    if path.is_dir():
+        single = path.name.startswith("step_")
+        manager = CheckpointManager(path.parent if single else path / "checkpoints")
+        try:
+            if single:
+                return manager.load(path, required_keys=MODEL_KEYS)
+            return manager.load_latest(required_keys=MODEL_KEYS)[0]
+        except CheckpointError as err:
+            raise ValueError(f"{path}: {err}") from err
     try:
         state = torch.load(path, map_location=device, weights_only=False)
     # torch.load raises what its unpickler meets: RuntimeError, EOFError, pickle errors
     except Exception as err:
         raise ValueError(
             f"{path} is not a readable checkpoint ({type(err).__name__}: {err}); it may be truncated or of "
-            "another program: give a checkpoint.pt that isodream-video train wrote"
+            "another program: give the --out-dir of an isodream-video train run"
         ) from err
     if not isinstance(state, dict):
         raise ValueError(f"{path} holds a {type(state).__name__}, not a video-prediction checkpoint")
@@ -287,24 +300,25 @@ def read_checkpoint(path: str | os.PathLike, *, device: str = "cpu") -> dict:
 
 def load_checkpoint(
     path: str | os.PathLike, *, device: str = "cpu"
-) -> tuple[ThreeBranchPredictor, TrainConfig, dict]:
-    """Rebuild the model of a checkpoint written by :func:`train`; returns ``(model, config, state)``.
+) -> tuple[ThreeBranchPredictor, VideoTrainConfig, dict]:
+    """Rebuild the model of a checkpoint written by :func:`train` (``path`` as in :func:`read_checkpoint`);
+    returns ``(model, config, state)``.
 
     Raises:
-        ValueError: the file is no readable checkpoint (:func:`read_checkpoint`).
-        KeyError: it is a torch file, but not a video-prediction checkpoint.
+        ValueError: no readable checkpoint there (:func:`read_checkpoint`).
+        KeyError: a torch file, but not a video-prediction checkpoint.
     """
     state = read_checkpoint(path, device=device)
-    for key in ("model", "train_config", "predictor_config"):
+    for key in MODEL_KEYS:
         if key not in state:
             raise KeyError(f"{path} is not a video-prediction checkpoint: missing '{key}'")
-    config = TrainConfig.from_dict({**state["train_config"], "device": device})
+    config = VideoTrainConfig.from_dict({**state["train_config"], "device": device})
     model = ThreeBranchPredictor(config=PredictorConfig.from_dict(state["predictor_config"]))
     model.load_state_dict(state["model"])
     return model.to(device), config, state
 
 
-def _make_logger(config: TrainConfig, out_dir: Path):
+def _make_logger(config: VideoTrainConfig, out_dir: Path):
     if not config.logger:
         return None
     from torchrl.record.loggers import get_logger
@@ -324,7 +338,7 @@ RESUMABLE = (
     "threads",
     "out_dir",
 )
-""":class:`TrainConfig` fields a resumed run may change; every other field must equal the checkpoint's."""
+""":class:`VideoTrainConfig` fields a resumed run may change; every other field must equal the checkpoint's."""
 
 
 class _EpochSampler:
@@ -363,7 +377,7 @@ class _EpochSampler:
         self.position = state["position"]
 
 
-def _check_resumable(saved: dict, config: TrainConfig, path: Path) -> None:
+def _check_resumable(saved: dict, config: VideoTrainConfig, path: Path) -> None:
     now = asdict(config)
     differ = [
         f"{k}: {saved.get(k)!r} -> {now[k]!r}"
@@ -381,51 +395,33 @@ def _plain(value):
     return list(value) if isinstance(value, tuple) else value
 
 
-#: what a training run writes into ``out_dir``: a folder holding one of them holds a run
-RUN_FILES = ("checkpoint.pt", "logs")
-
-
-def claim_out_dir(out_dir: Path, *, resume: bool, overwrite: bool) -> None:
-    """Check that a run may write to ``out_dir``, clearing it with ``overwrite``.
-
-    Raises:
-        ValueError: ``out_dir`` holds another run and neither ``resume`` nor ``overwrite`` is set, or both are
-            set; nothing is written or deleted then.
-    """
-    if resume and overwrite:
-        raise ValueError("--resume and --overwrite contradict each other: give one of them")
-    found = [name for name in RUN_FILES if (out_dir / name).exists()]
-    if not found or resume:
-        return
-    if not overwrite:
-        raise ValueError(
-            f"--out-dir {out_dir} holds another run ({', '.join(found)}): continue it with --resume, replace it "
-            "with --overwrite, or give another --out-dir"
-        )
-    for name in found:
-        path = out_dir / name
-        shutil.rmtree(path) if path.is_dir() else path.unlink()
+#: what a training run writes into ``out_dir`` (``checkpoint.pt``: the single-file checkpoint of earlier
+#: versions): a folder holding one of them holds a run
+RUN_FILES = ("checkpoints", "logs", "checkpoint.pt")
+#: how ``isodream-video train`` names the run folder and the settings that let it use one holding a run
+FLAGS = RunFlags(folder="--out-dir", resume="--resume", overwrite="--overwrite")
 
 
 def train(
-    config: TrainConfig, *, progress: bool = True, resume: bool = False, overwrite: bool = False
+    config: VideoTrainConfig, *, progress: bool = True, resume: bool = False, overwrite: bool = False
 ) -> dict:
     """Train one variant; validate, checkpoint and evaluate on the way.
 
     Every ``val_every`` iterations the model is scored on the first ``val_batches`` batches of the test split
     (the validation curve: MSE, PSNR and SSIM over the predicted frames, logged as ``val/*`` and kept in the
-    result's ``history``); every ``checkpoint_every`` iterations ``<out_dir>/checkpoint.pt`` is rewritten
-    atomically with everything a resumed run needs (model, optimizer, the sampler's position, the random
+    result's ``history``); every ``checkpoint_every`` iterations a checkpoint ``<out_dir>/checkpoints/step_*/``
+    is written (:class:`~isodream_rl.trainers.checkpoint.CheckpointManager`, the last two kept) with everything
+    a resumed run needs (model, optimizer, the sampler's position, the random
     states of the balls, the history); every ``eval_every`` iterations and at the end the whole test split is
     evaluated. A resumed run (``resume=True`` with a checkpoint in ``out_dir``) continues to ``iterations``
     and gives the same weights as an uninterrupted run; Adam's learning rate is constant, so ``iterations``
     may be raised on resume to train longer.
 
-    Writes ``<out_dir>/checkpoint.pt`` and TorchRL logger files under ``<out_dir>/logs``. An ``out_dir`` holding
-    another run is refused unless ``resume`` (continue it) or ``overwrite`` (delete it first), as
-    ``isodream-train`` does, and it is held by this process while the run writes to it
-    (:class:`~isodream_rl.run_lock.RunDirLock`); a resumed run cuts its CSV logs back to what they held at the
-    checkpoint (:mod:`isodream_rl.csv_logs`).
+    Writes ``<out_dir>/checkpoints/`` and TorchRL logger files under ``<out_dir>/logs``. An ``out_dir``
+    holding another run is refused unless ``resume`` (continue it) or ``overwrite`` (delete it first), and it
+    is held by this process while the run writes to it, as ``isodream-train`` does
+    (:func:`~isodream_rl.trainers.run_dir.hold_folder`); a resumed run cuts its CSV logs back to what they held
+    at the checkpoint (:mod:`isodream_rl.csv_logs`).
 
     Returns:
         ``{"iterations", "train_seconds", "metrics": {"psnr_10": .., ...}, "curves": {"psnr": [...], ..},
@@ -433,21 +429,23 @@ def train(
 
     Raises:
         ValueError: ``resume=True`` and the checkpoint was written with settings outside :data:`RESUMABLE`
-            that differ from ``config``, or is unreadable; ``out_dir`` holds another run (see above).
+            that differ from ``config``, or no checkpoint there is readable; ``out_dir`` holds another run (see
+            above) or cannot be written.
         RunDirBusyError: another live process uses ``out_dir``.
+        DiskFullError: the disk filled up (the message names the checkpoint to resume from).
     """
     out_dir = Path(config.out_dir)
-    if resume or not overwrite:  # the refusals, before the data are made
-        claim_out_dir(out_dir, resume=resume, overwrite=overwrite)
+    # the refusals, before the data are made
+    refuse_another_run(out_dir, resume=resume, overwrite=overwrite, run_files=RUN_FILES, flags=FLAGS)
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
     train_set, test_set = build_split(config, "train"), build_split(config, "test")
-    with RunDirLock(out_dir, setting="--out-dir"):  # made once the data are found
-        claim_out_dir(out_dir, resume=resume, overwrite=overwrite)
+    # held once the data are found
+    with hold_folder(out_dir, resume=resume, overwrite=overwrite, run_files=RUN_FILES, flags=FLAGS):
         return _train(config, train_set, test_set, progress=progress, resume=resume)
 
 
-def _train(config: TrainConfig, train_set, test_set, *, progress: bool, resume: bool) -> dict:
+def _train(config: VideoTrainConfig, train_set, test_set, *, progress: bool, resume: bool) -> dict:
     """:func:`train` in the ``out_dir`` it holds."""
     out_dir = Path(config.out_dir)
     action_dim = train_set[0]["actions"].shape[-1]
@@ -462,16 +460,20 @@ def _train(config: TrainConfig, train_set, test_set, *, progress: bool, resume: 
     sampler = _EpochSampler(len(train_set), config.batch_size, seed=config.seed)
     balls = train_set.distractor
     test_loader = DataLoader(test_set, batch_size=config.batch_size)
-    checkpoint = out_dir / "checkpoint.pt"
+    checkpoints = CheckpointManager(out_dir / "checkpoints", keep=2)
+    if resume and (out_dir / "checkpoint.pt").exists() and not checkpoints.checkpoints():
+        raise ValueError(
+            f"cannot resume {out_dir}: its checkpoint.pt is of an earlier version (isodream-video eval still "
+            "reads it); start a new --out-dir"
+        )
+    checkpoint: Path | None = None
     step, previous_seconds, history = 0, 0.0, []
     log_sizes: dict[str, int] | None = {}  # a run resumed without a checkpoint starts its logs again
-    if resume and checkpoint.exists():
-        state = read_checkpoint(checkpoint, device=config.device)
-        if "sampler" not in state:
-            raise ValueError(
-                f"cannot resume {checkpoint}: it was written before training could resume (no sampler state); "
-                "start a new --out-dir"
-            )
+    if resume and checkpoints.checkpoints():
+        try:
+            state, checkpoint = checkpoints.load_latest(required_keys=STATE_KEYS)
+        except CheckpointError as err:
+            raise ValueError(f"cannot resume {out_dir}: {err}") from err
         _check_resumable(state["train_config"], config, checkpoint)
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
@@ -487,8 +489,9 @@ def _train(config: TrainConfig, train_set, test_set, *, progress: bool, resume: 
     metrics: dict[str, float] | None = None
 
     def save(step: int) -> None:
-        save_checkpoint(
-            checkpoint,
+        nonlocal checkpoint
+        checkpoint = checkpoints.save(
+            step,
             {
                 "model": model.state_dict(),
                 "optimizer": optimizer.state_dict(),
