@@ -5,6 +5,7 @@ import os
 import re
 import subprocess
 import sys
+from dataclasses import fields as dataclasses_fields
 from pathlib import Path
 
 import pytest
@@ -275,3 +276,31 @@ def test_a_config_saved_before_the_loc_penalty_reads_back_with_the_loss_it_train
     assert differing_settings(saved, RunConfig()) == {"algo.actor_loc_penalty": (0.0, 0.1)}
     saved["algo"]["actor_loc_penalty"] = 0.1
     assert config_from_dict(saved).algo.actor_loc_penalty == 0.1
+
+
+def test_a_config_saved_with_model_overrides_reads_back_into_the_typed_model_fields():
+    import dataclasses
+
+    from isodream_rl.trainers.config import config_from_dict
+    from isodream_rl.trainers.run_dir import differing_settings
+
+    now = composed("size=bench", "model.precision=bf16")
+    saved = dataclasses.asdict(now)
+    model = {key: saved["model"].pop(key) for key in ("depth", "belief_dim", "hidden_dim", "precision")}
+    saved["model"] = {**{k: v for k, v in saved["model"].items() if v is not None}, "overrides": model}
+    assert model == {"depth": 8, "belief_dim": 64, "hidden_dim": 64, "precision": "bf16"}  # as written before
+    assert config_from_dict(saved).model.world_model_fields() == model
+    assert differing_settings(saved, now) == {}  # the same run: a resume goes on
+
+
+def test_the_model_section_holds_every_world_model_field_but_the_envs():
+    from isodream_rl.modules.config import WorldModelConfig
+    from isodream_rl.trainers.config import ModelConfig
+
+    names = [f.name for f in dataclasses_fields(ModelConfig)]
+    assert names[4:] == [f.name for f in dataclasses_fields(WorldModelConfig) if f.name != "action_dim"]
+    assert all(getattr(ModelConfig(), name) is None for name in names[4:])  # None: the preset's value
+    assert composed("model.depth=8", "model.precision=bf16").model.world_model_fields() == {
+        "depth": 8,
+        "precision": "bf16",
+    }

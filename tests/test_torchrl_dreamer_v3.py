@@ -447,7 +447,7 @@ def test_train_writes_a_summary_and_resumes(tmp_path):
 
 def test_bf16_is_refused_in_one_line(tmp_path):
     cfg = tiny_config(tmp_path)
-    cfg.model.overrides = {"precision": "bf16"}
+    cfg.model.precision = "bf16"
     with pytest.raises(ConfigError, match="fp32 only.*drop the override"):
         DreamerV3Widths.from_run(cfg)
 

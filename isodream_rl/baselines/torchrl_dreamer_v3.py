@@ -59,7 +59,7 @@ Where this departs from TorchRL's settings, and why:
 - actions: the acting policy clamps its sample to [-1, 1], where TorchRL's reproduction clips in the env and
   stores the raw sample; the world model sees the same either way (``RSSMPriorV3``'s block GRU divides an
   action by ``max(|a|, 1)``).
-- widths (above), and fp32 only (``model.overrides.precision=bf16`` is refused: TorchRL's DreamerV3 autocasts on
+- widths (above), and fp32 only (``model.precision=bf16`` is refused: TorchRL's DreamerV3 autocasts on
   CUDA only).
 
 Local pieces, where TorchRL's did not fit:
@@ -136,7 +136,7 @@ logger = logging.getLogger(__name__)
 
 #: ``hidden`` of DreamerV3's size rule per unit of our preset's ``hidden_dim`` (fitted to Iso-Dream's counts).
 HIDDEN_PER_HIDDEN_DIM = 1.875
-#: The size-preset field this baseline reads (``SIZE_PRESETS`` merged with ``model.overrides``).
+#: The size-preset field this baseline reads (``SIZE_PRESETS`` merged with the ``model.<field>`` settings).
 SIZE_KEYS = ("hidden_dim",)
 #: The observation key and the carried acting state.
 PIXELS = ("next", "pixels")
@@ -220,7 +220,7 @@ class DreamerV3Widths:
 
     @classmethod
     def from_run(cls, cfg: RunConfig) -> DreamerV3Widths:
-        """The widths for ``cfg``'s size preset (``model.overrides`` applied) and actor / value units.
+        """The widths for ``cfg``'s size preset (the ``model.<field>`` settings applied) and actor / value units.
 
         Raises:
             ValueError: an unknown size preset.
@@ -228,12 +228,12 @@ class DreamerV3Widths:
         """
         if cfg.model.size not in SIZE_PRESETS:
             raise ValueError(f"unknown size preset {cfg.model.size!r}; valid: {sorted(SIZE_PRESETS)}")
-        overrides = dict(cfg.model.overrides)
+        overrides = cfg.model.world_model_fields()
         precision = overrides.pop("precision", "fp32")
         if precision != "fp32":
             raise ConfigError(
                 f"invalid training configuration: algo=torchrl_dreamer_v3 trains in fp32 only (TorchRL's DreamerV3 "
-                f"autocasts on CUDA only), got model.overrides.precision={precision!r}: drop the override"
+                f"autocasts on CUDA only), got model.precision={precision!r}: drop the override"
             )
         ignored = sorted(set(overrides) - set(SIZE_KEYS))
         if ignored:

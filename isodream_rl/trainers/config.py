@@ -8,8 +8,8 @@ change, before any env or model is built.
 from __future__ import annotations
 
 import importlib.util
-from dataclasses import dataclass, field, fields
-from difflib import get_close_matches
+import typing
+from dataclasses import dataclass, field, fields, make_dataclass
 from typing import Any
 
 from isodream_rl.modules.config import PAPER_EXACT, SIZE_PRESETS, WorldModelConfig
@@ -60,19 +60,44 @@ class EnvConfig:
 
 
 @dataclass
-class ModelConfig:
-    """World-model and behavior sizes; ``size`` picks a preset of ``WorldModelConfig``."""
+class _ModelSizes:
+    """The behavior's widths and the world model's size preset (the rest of ``model`` is :data:`ModelConfig`)."""
 
     size: str = "small"
-    """``"paper"``, ``"small"`` or ``"tiny"`` (``isodream_rl.modules.SIZE_PRESETS``)."""
-    overrides: dict[str, Any] = field(default_factory=dict)
-    """Extra ``WorldModelConfig`` fields (e.g. ``precision: bf16``)."""
+    """A preset of ``WorldModelConfig``'s widths: ``"paper"``, ``"small"``, ``"tiny"`` (``SIZE_PRESETS``)."""
     actor_units: int = 400
     """Width of the actor MLP (4 layers in the paper)."""
     value_units: int = 400
     """Width of the value MLP (3 layers in the paper)."""
     attention_dim: int = 500
     """Width of the future-state attention's Q/K/V projections (500 in the authors' code)."""
+
+    def world_model_fields(self) -> dict[str, Any]:
+        """The ``WorldModelConfig`` fields this section sets (those not ``None``), as ``{field: value}``."""
+        return {name: getattr(self, name) for name in WORLD_MODEL_FIELDS if getattr(self, name) is not None}
+
+
+#: The ``WorldModelConfig`` fields that ``model.<field>`` sets: all but ``action_dim`` (the env's).
+WORLD_MODEL_FIELDS = tuple(f.name for f in fields(WorldModelConfig) if f.name != "action_dim")
+
+
+def _world_model_section() -> list[tuple[str, Any, Any]]:
+    """``WorldModelConfig``'s fields as optional schema fields, default ``None``: "the preset's value"."""
+    hints = typing.get_type_hints(WorldModelConfig)
+    return [(name, hints[name] | None, field(default=None)) for name in WORLD_MODEL_FIELDS]
+
+
+#: The ``model`` section: the size preset and behavior widths (``_ModelSizes``), then every field of
+#: :class:`~isodream_rl.modules.config.WorldModelConfig` but ``action_dim``, typed as there and ``None`` by
+#: default: ``None`` keeps the size preset's value, or the one the algo sets (``world_model_overrides``), and a
+#: value replaces it (``model.precision=bf16``, ``model.depth=8``). Derived from ``WorldModelConfig``, the one
+#: home of the field list, so a field added there is a setting here with no change.
+ModelConfig = make_dataclass("ModelConfig", _world_model_section(), bases=(_ModelSizes,))
+ModelConfig.__module__ = __name__
+ModelConfig.__doc__ = (
+    "World-model and behavior sizes: ``size`` picks a preset of ``WorldModelConfig``, whose fields "
+    "``model.<field>`` may set (``None``: the preset's or the algo's value)."
+)
 
 
 @dataclass
@@ -303,20 +328,11 @@ def validate_config(cfg: RunConfig) -> None:
             errors.append(f"train.{name}={getattr(cfg.train, name)} must be > 0")
     if not 0 <= cfg.train.seed < 2**32:  # numpy's seed range
         errors.append(f"train.seed={cfg.train.seed} must be in [0, 2**32 - 1]")
-    model_fields = sorted(f.name for f in fields(WorldModelConfig) if f.name != "action_dim")  # the env's
-    unknown = sorted(set(cfg.model.overrides) - set(model_fields))
-    for key in unknown:
-        close = get_close_matches(key, model_fields, 1)
-        errors.append(
-            f"model.overrides.{key} is not a WorldModelConfig field"
-            + (f" (did you mean model.overrides.{close[0]}?)" if close else "")
-            + f"; valid: {', '.join(model_fields)}"
-        )
-    if not unknown and cfg.model.size in SIZE_PRESETS:
+    if cfg.model.size in SIZE_PRESETS:
         try:  # the values, as the world model will check them when it is built
             WorldModelConfig.from_preset(cfg.model.size, action_dim=1, **world_model_overrides(cfg))
         except (TypeError, ValueError) as err:
-            errors.append(f"model.overrides={dict(cfg.model.overrides)} with the algo's branches: {err}")
+            errors.append(f"model={cfg.model.world_model_fields()} with the algo's branches: {err}")
     if cfg.mode == "world_model":
         errors += world_model_mode_errors(cfg)
         if errors:
@@ -434,10 +450,10 @@ def validate_config(cfg: RunConfig) -> None:
             f"train.distributed_launcher={train.distributed_launcher} needs submitit: pip install submitit, or "
             "set train.distributed_launcher=mp to start the workers on this machine"
         )
-    if train.collector_backend in REMOTE_BACKENDS and cfg.model.overrides.get("channels_last", False):
+    if train.collector_backend in REMOTE_BACKENDS and cfg.model.channels_last:
         errors.append(
-            f"model.overrides.channels_last=true cannot be used with train.collector_backend="
-            f"{train.collector_backend}: its weight transfer sends dense tensors only; drop the override"
+            f"model.channels_last=true cannot be used with train.collector_backend="
+            f"{train.collector_backend}: its weight transfer sends dense tensors only; drop the setting"
         )
     if env.factory:
         module, _, attribute = env.factory.partition(":")
@@ -464,7 +480,8 @@ FORMER_BEHAVIOUR = {("algo", "actor_loc_penalty"): 0.0}
 def config_from_dict(data: dict) -> RunConfig:
     """Rebuild a :class:`RunConfig` from ``dataclasses.asdict`` output (as stored in checkpoints and
     ``run_config.json``); fields added since it was written take their defaults, except those of
-    :data:`FORMER_BEHAVIOUR`, which take the value the run was trained with."""
+    :data:`FORMER_BEHAVIOUR`, which take the value the run was trained with; a ``model.overrides`` dict (written
+    before the ``model`` section had the world model's fields) sets those fields."""
     import dataclasses
 
     sections = {f.name: f.type for f in dataclasses.fields(RunConfig)}
@@ -476,12 +493,14 @@ def config_from_dict(data: dict) -> RunConfig:
         if isinstance(value, dict):
             former = {key: v for (section, key), v in FORMER_BEHAVIOUR.items() if section == name}
             value = {**former, **value}
+        if name == "model" and isinstance(value, dict) and "overrides" in value:  # before model.<field>
+            value = {**value["overrides"], **{key: v for key, v in value.items() if key != "overrides"}}
         kwargs[name] = section_type(**value) if isinstance(value, dict) and section_type else value
     return RunConfig(**kwargs)
 
 
 def world_model_overrides(cfg: RunConfig) -> dict[str, Any]:
-    """The ``WorldModelConfig`` fields set by the algorithm preset, merged with ``model.overrides``."""
+    """The ``WorldModelConfig`` fields set by the algorithm preset, merged with those ``model`` sets."""
     algo = cfg.algo
     fields_from_algo = {
         **(PAPER_EXACT if algo.paper_exact else {}),
@@ -495,4 +514,4 @@ def world_model_overrides(cfg: RunConfig) -> dict[str, Any]:
     if cfg.train.collector_backend in REMOTE_BACKENDS:
         # Ray's and torch.distributed's weight transfers send dense tensors only.
         fields_from_algo["channels_last"] = False
-    return {**fields_from_algo, **dict(cfg.model.overrides)}
+    return {**fields_from_algo, **cfg.model.world_model_fields()}

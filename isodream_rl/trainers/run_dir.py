@@ -57,7 +57,7 @@ RESUMABLE = (
     "train.collector_cpus",
     "train.distributed_",
     "train.slurm_kwargs",
-    "model.overrides.precision",
+    "model.precision",
 )
 
 
