@@ -286,11 +286,18 @@ def test_a_config_saved_with_model_overrides_reads_back_into_the_typed_model_fie
 
     now = composed("size=bench", "model.precision=bf16")
     saved = dataclasses.asdict(now)
-    model = {key: saved["model"].pop(key) for key in ("depth", "belief_dim", "hidden_dim", "precision")}
-    saved["model"] = {**{k: v for k, v in saved["model"].items() if v is not None}, "overrides": model}
-    assert model == {"depth": 8, "belief_dim": 64, "hidden_dim": 64, "precision": "bf16"}  # as written before
+    # as size=bench wrote it before: the small preset, its widths and the precision in model.overrides
+    model = {"depth": 8, "belief_dim": 64, "hidden_dim": 64, "precision": "bf16"}
+    saved["model"] = {
+        **{k: v for k, v in saved["model"].items() if v is not None},
+        "size": "small",
+        "overrides": model,
+    }
     assert config_from_dict(saved).model.world_model_fields() == model
     assert differing_settings(saved, now) == {}  # the same run: a resume goes on
+    assert differing_settings(saved, composed("size=bench", "model.precision=bf16", "model.depth=16")) == {
+        "model.depth": (8, 16)
+    }
 
 
 def test_the_model_section_holds_every_world_model_field_but_the_envs():
@@ -304,3 +311,30 @@ def test_the_model_section_holds_every_world_model_field_but_the_envs():
         "depth": 8,
         "precision": "bf16",
     }
+
+
+def test_the_loss_weights_have_one_table_and_the_paper_preset_names_its_alpha_once():
+    from isodream_rl.objectives.world_model import LOSS_WEIGHTS, PAPER_WEIGHTS
+    from isodream_rl.trainers.builders import make_world_model_loss
+
+    loss = make_world_model_loss(composed("size=tiny", "env=dmc_walker_walk"), action_dim=2)
+    for name, weight in LOSS_WEIGHTS.items():
+        if name != "lambda_reward":  # the DMC env group's 2 (the authors' reward_scale)
+            assert getattr(loss.inverse_loss if name == "lambda_inverse" else loss, name) == weight
+    assert composed("algo=isodream_paper").algo.lambda_inverse == PAPER_WEIGHTS["lambda_inverse"]
+    assert composed("algo=isodream_paper", "algo.lambda_inverse=5").algo.lambda_inverse == 5.0
+    assert composed().algo.lambda_inverse == LOSS_WEIGHTS["lambda_inverse"] == RunConfig().algo.lambda_inverse
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_the_branch_switches_of_every_algo_come_from_one_table(algo):
+    import yaml
+
+    from isodream_rl.trainers.config import ALGO_BRANCHES
+
+    written = yaml.safe_load((CONFIGS / "algo" / f"{algo}.yaml").read_text())["algo"]
+    assert not set(written) & set(ALGO_BRANCHES[algo])  # the YAML files do not repeat them
+    cfg = composed(f"algo={algo}", "size=tiny")
+    assert {name: getattr(cfg.algo, name) for name in ALGO_BRANCHES[algo]} == ALGO_BRANCHES[algo]
+    given = composed(f"algo={algo}", "algo.static_branch=false")
+    assert given.algo.static_branch is False  # a value given wins

@@ -89,7 +89,7 @@ def dreamer_sizes(cfg: RunConfig) -> dict[str, int]:
     overrides = cfg.model.world_model_fields()
     ignored = sorted(set(overrides) - set(SIZE_KEYS) - {"precision"})
     if ignored:
-        logger.info("torchrl_dreamer ignores the Iso-Dream model overrides %s", ignored)
+        logger.info("torchrl_dreamer ignores the Iso-Dream model fields %s", ignored)
     return {k: int(overrides.get(k, SIZE_PRESETS[cfg.model.size][k])) for k in SIZE_KEYS}
 
 

@@ -237,7 +237,7 @@ class DreamerV3Widths:
             )
         ignored = sorted(set(overrides) - set(SIZE_KEYS))
         if ignored:
-            logger.info("torchrl_dreamer_v3 ignores the Iso-Dream model overrides %s", ignored)
+            logger.info("torchrl_dreamer_v3 ignores the Iso-Dream model fields %s", ignored)
         hidden_dim = int(overrides.get("hidden_dim", SIZE_PRESETS[cfg.model.size]["hidden_dim"]))
         hidden = 8 * max(1, round(HIDDEN_PER_HIDDEN_DIM * hidden_dim / 8))
         return cls(hidden=hidden, actor_units=cfg.model.actor_units, value_units=cfg.model.value_units)

@@ -12,8 +12,8 @@ import typing
 from dataclasses import dataclass, field, fields, make_dataclass
 from typing import Any
 
-from isodream_rl.modules.config import PAPER_EXACT, SIZE_PRESETS, WorldModelConfig
-from isodream_rl.objectives.world_model import FREE_BRANCH_MODES, LAMBDA_INVERSE
+from isodream_rl.modules.config import DREAMERV2, PAPER_EXACT, SIZE_PRESETS, WorldModelConfig
+from isodream_rl.objectives.world_model import FREE_BRANCH_MODES, LOSS_WEIGHTS, PAPER_WEIGHTS
 from isodream_rl.trainers.world_model_config import MODES, WorldModelModeConfig, world_model_mode_errors
 
 POLICY_INPUTS = ("controllable", "attention", "concat")
@@ -22,16 +22,21 @@ REMOTE_BACKENDS = ("ray", "distributed")
 DISTRIBUTED_LAUNCHERS = ("mp", "submitit", "submitit_delayed")
 DISTRIBUTED_BACKENDS = ("gloo", "nccl", "mpi", "ucc")
 LOGGER_BACKENDS = ("csv", "tensorboard", "wandb")
-ALGO_NAMES = (
-    "isodream",
-    "isodream_paper",
-    "dreamerv2",
-    "isodream_no_inverse",
-    "isodream_no_attention",
-    "isodream_no_static",
-    "torchrl_dreamer",
-    "torchrl_dreamer_v3",
-)
+_ALL_BRANCHES = {"free_branch": True, "static_branch": True, "inverse_dynamics": True}
+#: The branch switches of each ``algo=<name>`` preset: their one home (the algo YAML files set the other
+#: fields). ``AlgoConfig``'s switches left ``None`` take these (:func:`resolve_algo`); a name not here takes
+#: ``isodream``'s. The single-branch ones are DreamerV2's (:data:`~isodream_rl.modules.config.DREAMERV2`).
+ALGO_BRANCHES: dict[str, dict[str, bool]] = {
+    "isodream": _ALL_BRANCHES,
+    "isodream_paper": _ALL_BRANCHES,
+    "dreamerv2": DREAMERV2,
+    "isodream_no_inverse": {**_ALL_BRANCHES, "inverse_dynamics": False},
+    "isodream_no_attention": _ALL_BRANCHES,
+    "isodream_no_static": {**_ALL_BRANCHES, "static_branch": False},
+    "torchrl_dreamer": DREAMERV2,
+    "torchrl_dreamer_v3": DREAMERV2,
+}
+ALGO_NAMES = tuple(ALGO_BRANCHES)
 
 
 class ConfigError(ValueError):
@@ -64,7 +69,7 @@ class _ModelSizes:
     """The behavior's widths and the world model's size preset (the rest of ``model`` is :data:`ModelConfig`)."""
 
     size: str = "small"
-    """A preset of ``WorldModelConfig``'s widths: ``"paper"``, ``"small"``, ``"tiny"`` (``SIZE_PRESETS``)."""
+    """A preset of ``WorldModelConfig``'s widths, a key of ``isodream_rl.modules.config.SIZE_PRESETS``."""
     actor_units: int = 400
     """Width of the actor MLP (4 layers in the paper)."""
     value_units: int = 400
@@ -106,15 +111,15 @@ class AlgoConfig:
 
     name: str = "isodream"
     """Preset name, one of ``ALGO_NAMES`` (informational once the fields are set)."""
-    free_branch: bool = True
-    """The action-free (noncontrollable) branch."""
-    static_branch: bool = True
-    """The static background branch."""
-    inverse_dynamics: bool = True
-    """The inverse-dynamics cell and its loss."""
+    free_branch: bool | None = None
+    """The action-free (noncontrollable) branch (``None``: the preset's, :data:`ALGO_BRANCHES`)."""
+    static_branch: bool | None = None
+    """The static background branch (``None``: the preset's)."""
+    inverse_dynamics: bool | None = None
+    """The inverse-dynamics cell and its loss (``None``: the preset's)."""
     paper_exact: bool = False
     """The paper's settings where the library's defaults depart from them (``WorldModelConfig.paper_exact``;
-    pair it with ``lambda_inverse=1``, as ``algo=isodream_paper`` does)."""
+    ``algo=isodream_paper``), and eq. 5's ``lambda_inverse`` when that is left ``None``."""
     free_branch_loss: str = "kl"
     """``"kl"`` (CARLA: the free branch has its KL term) or ``"recon_only"`` (DMC, paper §3.2)."""
     reward_uses_free: bool = False
@@ -139,11 +144,11 @@ class AlgoConfig:
     exploration_noise: float = 0.0
     """Std of the Gaussian noise added to the acting policy's sampled actions during collection (clamped to
     [-1, 1]; 0 as the authors; DreamerV1 and TorchRL's Dreamer example use 0.3)."""
-    lambda_reward: float = 1.0
+    lambda_reward: float = LOSS_WEIGHTS["lambda_reward"]
     """Weight of the reward log-loss (``reward_scale``: 2 in the authors' DMC and CARLA configs)."""
-    lambda_inverse: float = LAMBDA_INVERSE
-    """alpha, the weight of the inverse-dynamics loss (``IsoDreamModelLoss``'s default; the paper's 1 goes
-    with the paper's inverse input, ``algo=isodream_paper``)."""
+    lambda_inverse: float | None = None
+    """alpha, the weight of the inverse-dynamics loss; ``None``: the loss's default (``LOSS_WEIGHTS``), or with
+    ``paper_exact`` eq. 5's (``PAPER_WEIGHTS``), which goes with the paper's inverse input."""
     free_nats: float = 1.0
     """Free nats of each branch's KL."""
     kl_balance: float = 0.8
@@ -279,6 +284,26 @@ class RunConfig:
     overwrite: bool = False
     """Delete the run already in ``run_dir`` (its checkpoints, logs, pictures, ``run_config.json`` and
     ``summary.json``) before starting; without it, such a folder is refused."""
+
+    def __post_init__(self):
+        resolve_algo(self.algo)
+
+
+def resolve_algo(algo: AlgoConfig) -> AlgoConfig:
+    """Fill the fields of ``algo`` left ``None`` with the values its preset implies (in place; returned).
+
+    The branch switches: :data:`ALGO_BRANCHES` of ``algo.name``; ``lambda_inverse``:
+    :data:`~isodream_rl.objectives.world_model.LOSS_WEIGHTS`'s, or with ``paper_exact``
+    :data:`~isodream_rl.objectives.world_model.PAPER_WEIGHTS`'s. Runs when a :class:`RunConfig` is made (Hydra's
+    ``OmegaConf.to_object``, ``config_from_dict``, ``RunConfig()``); a value given anywhere is kept.
+    """
+    for name, value in ALGO_BRANCHES.get(algo.name, ALGO_BRANCHES["isodream"]).items():
+        if getattr(algo, name) is None:
+            setattr(algo, name, value)
+    if algo.lambda_inverse is None:
+        weights = {**LOSS_WEIGHTS, **(PAPER_WEIGHTS if algo.paper_exact else {})}
+        algo.lambda_inverse = weights["lambda_inverse"]
+    return algo
 
 
 def _choice(errors: list[str], name: str, value, valid) -> None:
