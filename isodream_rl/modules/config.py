@@ -1,4 +1,9 @@
-"""World-model configuration and size presets."""
+"""World-model configuration and size presets.
+
+:data:`SIZE_PRESETS` is the one home of the world model's preset widths. The ``size`` group of
+``isodream-train`` (``isodream_rl/configs/size/*.yaml``) names one of them (``model.size``) and sets the rest of a
+run's scale there (behavior widths, replay windows, schedule), never a world-model width.
+"""
 
 from __future__ import annotations
 
@@ -8,10 +13,12 @@ from isodream_rl.modules.composition import CLAMP_GRADIENTS, MASK_MODES
 from isodream_rl.modules.inverse_dynamics import INVERSE_INPUTS
 
 #: Size presets. ``paper``: Table 5 and the authors' configs (cnn depth 32, deter 200, stoch 50,
-#: MLP units 400); ``small``: quick CPU runs; ``tiny``: unit tests.
+#: MLP units 400); ``small``: quick CPU runs; ``bench``: the learning bench's (``small`` at half its
+#: convolution depth and GRU width, ``size=bench``); ``tiny``: unit tests.
 SIZE_PRESETS: dict[str, dict[str, int]] = {
     "paper": {"depth": 32, "state_dim": 50, "belief_dim": 200, "hidden_dim": 200, "units": 400},
     "small": {"depth": 16, "state_dim": 32, "belief_dim": 128, "hidden_dim": 128, "units": 256},
+    "bench": {"depth": 8, "state_dim": 32, "belief_dim": 64, "hidden_dim": 64, "units": 256},
     "tiny": {"depth": 4, "state_dim": 8, "belief_dim": 16, "hidden_dim": 16, "units": 32},
 }
 DECODER_INPUTS = ("paper", "posterior")
