@@ -338,3 +338,19 @@ def test_the_branch_switches_of_every_algo_come_from_one_table(algo):
     assert {name: getattr(cfg.algo, name) for name in ALGO_BRANCHES[algo]} == ALGO_BRANCHES[algo]
     given = composed(f"algo={algo}", "algo.static_branch=false")
     assert given.algo.static_branch is False  # a value given wins
+
+
+@pytest.mark.parametrize("env", ENVS)
+def test_env_groups_set_env_fields_only_and_pick_a_domain(env):
+    import yaml
+
+    written = yaml.safe_load((CONFIGS / "env" / f"{env}.yaml").read_text())
+    assert set(written) == {"defaults", "env"}  # the algorithm's per-domain choices live in configs/domain/
+    domain = next(entry["/domain"] for entry in written["defaults"] if isinstance(entry, dict))
+    assert (CONFIGS / "domain" / f"{domain}.yaml").exists()
+    stored = composed("env=dmc_cartpole_swingup").algo  # a DMC task without a YAML file picks domain=dmc too
+    assert (stored.free_branch_loss, stored.policy_input, stored.lambda_reward) == (
+        "recon_only",
+        "controllable",
+        2.0,
+    )
