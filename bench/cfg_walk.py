@@ -28,11 +28,25 @@ sys.path.insert(1, str(Path(__file__).resolve().parents[1] / "tests"))
 from common import provenance  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-RL = ["size=tiny", "train.total_steps=60", "train.prefill_steps=50", "train.frames_per_batch=10",
-      "logging.final_eval_episodes=0", "logging.progress_bar=false"]
-WORLD_MODEL = ["exp=world_model", "size=tiny", "world_model.updates=2", "world_model.episodes=2",
-               "world_model.episode_length=16", "world_model.probe_episodes=0", "train.sequence_length=8",
-               "train.batch_size=2", "logging.progress_bar=false"]
+RL = [
+    "size=tiny",
+    "train.total_steps=60",
+    "train.prefill_steps=50",
+    "train.frames_per_batch=10",
+    "logging.final_eval_episodes=0",
+    "logging.progress_bar=false",
+]
+WORLD_MODEL = [
+    "exp=world_model",
+    "size=tiny",
+    "world_model.updates=2",
+    "world_model.episodes=2",
+    "world_model.episode_length=16",
+    "world_model.probe_episodes=0",
+    "train.sequence_length=8",
+    "train.batch_size=2",
+    "logging.progress_bar=false",
+]
 
 
 def layer_of(path: str, package_dir: Path, layers) -> int | None:
@@ -45,19 +59,21 @@ def layer_of(path: str, package_dir: Path, layers) -> int | None:
 
 
 def walk(overrides: list[str]) -> dict:
-    import isodream_rl
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
+    from test_structure import LAYERS
 
+    import isodream_rl
     import isodream_rl.cli
     from isodream_rl.trainers import config as config_module
     from isodream_rl.trainers import run as run_module
 
-    from test_structure import LAYERS
-
     package_dir = Path(isodream_rl.__file__).resolve().parent
     section_types = tuple(
-        {type(getattr(config_module.RunConfig(), f.name)) for f in dataclasses.fields(config_module.RunConfig)}
+        {
+            type(getattr(config_module.RunConfig(), f.name))
+            for f in dataclasses.fields(config_module.RunConfig)
+        }
         - {str, int, float, bool}
     ) + (config_module.RunConfig,)
     reads: list[tuple[str, str]] = []  # (file, function) of every read of a configuration field, in order
@@ -79,7 +95,9 @@ def walk(overrides: list[str]) -> dict:
     configs = Path(isodream_rl.cli.__file__).parent / "configs"
     with tempfile.TemporaryDirectory() as tmp:
         with initialize_config_dir(config_dir=str(configs), version_base="1.3"):
-            cfg = OmegaConf.to_object(compose(config_name="config", overrides=[*overrides, f"run_dir={tmp}/run"]))
+            cfg = OmegaConf.to_object(
+                compose(config_name="config", overrides=[*overrides, f"run_dir={tmp}/run"])
+            )
         for cls in section_types:
             recording(cls)
         try:
@@ -119,8 +137,10 @@ def main(argv=None) -> None:
     result = {"rl": walk(RL), "world_model": walk(WORLD_MODEL), **provenance("cfg_walk.py", argv, parallel=1)}
     for mode in ("rl", "world_model"):
         r = result[mode]
-        print(f"{mode}: {r['stays']} stays ({r['functions']} functions) in {r['files']} files, {r['returns']} returns, "
-              f"{r['climbs']} climbs")
+        print(
+            f"{mode}: {r['stays']} stays ({r['functions']} functions) in {r['files']} files, {r['returns']} returns, "
+            f"{r['climbs']} climbs"
+        )
     if args.json:
         args.json.write_text(json.dumps(result, indent=1) + "\n")
 

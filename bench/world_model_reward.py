@@ -110,7 +110,8 @@ def window(eps, B, T):
 
 cfg = RunConfig()
 cfg.model.size = "small"
-cfg.model.overrides = {"depth": a.depth, "belief_dim": a.belief, "hidden_dim": a.belief, "state_dim": a.state}
+cfg.model.depth, cfg.model.state_dim = a.depth, a.state
+cfg.model.belief_dim = cfg.model.hidden_dim = a.belief
 cfg.algo.lambda_reward = a.lambda_reward
 cfg.algo.free_nats = a.free_nats
 if a.algo == "dreamerv2":

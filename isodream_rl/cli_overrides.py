@@ -12,8 +12,8 @@ word: the run trains with the default and ignores the key. :func:`check_override
 - a flag that is none of Hydra's (``--steps 300``: Hydra prints its usage block), naming the flag and the closest
   setting.
 
-Keys inside the free-form settings (``env.kwargs``, ``model.overrides``, ``train.slurm_kwargs``) are left to
-what reads them (``validate_config`` checks ``model.overrides``), ``hydra.*`` to Hydra.
+Keys inside the free-form settings (``env.kwargs``, ``train.slurm_kwargs``) are left to what reads them,
+``hydra.*`` to Hydra.
 """
 
 from __future__ import annotations
@@ -57,6 +57,8 @@ def _all_settings(node: type = RunConfig, prefix: str = "") -> list[str]:
 def unknown_setting(key: str) -> str | None:
     """Why the dotted ``key`` is no setting of the schema, or ``None`` when it is one (or lies inside a
     free-form setting such as ``env.kwargs``)."""
+    if key.startswith("model.overrides."):  # the world model's fields were under model.overrides before
+        return f"model.overrides is no more: set the world model's field as model.{key.split('.', 2)[2]}"
     node, done = RunConfig, []
     for part in key.split("."):
         if not dataclasses.is_dataclass(node):

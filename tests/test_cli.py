@@ -5,6 +5,7 @@ import os
 import re
 import subprocess
 import sys
+from dataclasses import fields as dataclasses_fields
 from pathlib import Path
 
 import pytest
@@ -287,3 +288,81 @@ def test_a_config_saved_before_the_loc_penalty_reads_back_with_the_loss_it_train
     assert differing_settings(saved, RunConfig()) == {"algo.actor_loc_penalty": (0.0, 0.1)}
     saved["algo"]["actor_loc_penalty"] = 0.1
     assert config_from_dict(saved).algo.actor_loc_penalty == 0.1
+
+
+def test_a_config_saved_with_model_overrides_reads_back_into_the_typed_model_fields():
+    import dataclasses
+
+    from isodream_rl.trainers.config import config_from_dict
+    from isodream_rl.trainers.run_dir import differing_settings
+
+    now = composed("size=bench", "model.precision=bf16")
+    saved = dataclasses.asdict(now)
+    # as size=bench wrote it before: the small preset, its widths and the precision in model.overrides
+    model = {"depth": 8, "belief_dim": 64, "hidden_dim": 64, "precision": "bf16"}
+    saved["model"] = {
+        **{k: v for k, v in saved["model"].items() if v is not None},
+        "size": "small",
+        "overrides": model,
+    }
+    assert config_from_dict(saved).model.world_model_fields() == model
+    assert differing_settings(saved, now) == {}  # the same run: a resume goes on
+    assert differing_settings(saved, composed("size=bench", "model.precision=bf16", "model.depth=16")) == {
+        "model.depth": (8, 16)
+    }
+
+
+def test_the_model_section_holds_every_world_model_field_but_the_envs():
+    from isodream_rl.modules.config import WorldModelConfig
+    from isodream_rl.trainers.config import ModelConfig
+
+    names = [f.name for f in dataclasses_fields(ModelConfig)]
+    assert names[4:] == [f.name for f in dataclasses_fields(WorldModelConfig) if f.name != "action_dim"]
+    assert all(getattr(ModelConfig(), name) is None for name in names[4:])  # None: the preset's value
+    assert composed("model.depth=8", "model.precision=bf16").model.world_model_fields() == {
+        "depth": 8,
+        "precision": "bf16",
+    }
+
+
+def test_the_loss_weights_have_one_table_and_the_paper_preset_names_its_alpha_once():
+    from isodream_rl.objectives.world_model import LOSS_WEIGHTS, PAPER_WEIGHTS
+    from isodream_rl.trainers.builders import make_world_model_loss
+
+    loss = make_world_model_loss(composed("size=tiny", "env=dmc_walker_walk"), action_dim=2)
+    for name, weight in LOSS_WEIGHTS.items():
+        if name != "lambda_reward":  # the DMC env group's 2 (the authors' reward_scale)
+            assert getattr(loss.inverse_loss if name == "lambda_inverse" else loss, name) == weight
+    assert composed("algo=isodream_paper").algo.lambda_inverse == PAPER_WEIGHTS["lambda_inverse"]
+    assert composed("algo=isodream_paper", "algo.lambda_inverse=5").algo.lambda_inverse == 5.0
+    assert composed().algo.lambda_inverse == LOSS_WEIGHTS["lambda_inverse"] == RunConfig().algo.lambda_inverse
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_the_branch_switches_of_every_algo_come_from_one_table(algo):
+    import yaml
+
+    from isodream_rl.trainers.config import ALGO_BRANCHES
+
+    written = yaml.safe_load((CONFIGS / "algo" / f"{algo}.yaml").read_text())["algo"]
+    assert not set(written) & set(ALGO_BRANCHES[algo])  # the YAML files do not repeat them
+    cfg = composed(f"algo={algo}", "size=tiny")
+    assert {name: getattr(cfg.algo, name) for name in ALGO_BRANCHES[algo]} == ALGO_BRANCHES[algo]
+    given = composed(f"algo={algo}", "algo.static_branch=false")
+    assert given.algo.static_branch is False  # a value given wins
+
+
+@pytest.mark.parametrize("env", ENVS)
+def test_env_groups_set_env_fields_only_and_pick_a_domain(env):
+    import yaml
+
+    written = yaml.safe_load((CONFIGS / "env" / f"{env}.yaml").read_text())
+    assert set(written) == {"defaults", "env"}  # the algorithm's per-domain choices live in configs/domain/
+    domain = next(entry["/domain"] for entry in written["defaults"] if isinstance(entry, dict))
+    assert (CONFIGS / "domain" / f"{domain}.yaml").exists()
+    stored = composed("env=dmc_cartpole_swingup").algo  # a DMC task without a YAML file picks domain=dmc too
+    assert (stored.free_branch_loss, stored.policy_input, stored.lambda_reward) == (
+        "recon_only",
+        "controllable",
+        2.0,
+    )

@@ -850,9 +850,9 @@ CLI_ERRORS = {
         r"train has no setting 'totl_steps' \(did you mean train.total_steps\?\).*: total_steps, prefill_steps",
     ),
     "train.seed=-1": (["train.seed=-1"], r"train.seed=-1 must be in \[0, 2\*\*32 - 1\]"),
-    "+model.overrides.precison=bf16": (
-        ["+model.overrides.precison=bf16"],
-        r"model.overrides.precison is not a WorldModelConfig field \(did you mean model.overrides.precision\?\)",
+    "model.precison=bf16": (
+        ["model.precison=bf16"],
+        r"model has no setting 'precison' \(did you mean model.precision\?\)",
     ),
     "env=dmc_walker_wlak": (
         ["env=dmc_walker_wlak"],

@@ -61,7 +61,9 @@ def run(name: str, run_dir: Path) -> dict:
     """The run's last logged losses and, per model, the sum of |w| over its weights after training."""
     torch.manual_seed(0)
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        cfg = OmegaConf.to_object(compose(config_name="config", overrides=[*RUNS[name], f"run_dir={run_dir}"]))
+        cfg = OmegaConf.to_object(
+            compose(config_name="config", overrides=[*RUNS[name], f"run_dir={run_dir}"])
+        )
     result = run_module.train(cfg)
     state = CheckpointManager(run_dir / "checkpoints").load_latest()[0]
     weights = {

@@ -333,7 +333,7 @@ def test_resume_is_exact(tmp_path):
 
 def test_bf16_is_refused_in_one_line(tmp_path):
     cfg = tiny_config(tmp_path, ALGO)
-    cfg.model.overrides = {"precision": "bf16"}
+    cfg.model.precision = "bf16"
     with pytest.raises(ConfigError, match="fp32 only.*drop the override"):
         DreamerV3Widths.from_run(cfg)
 

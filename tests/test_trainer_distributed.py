@@ -85,8 +85,8 @@ def test_remote_backends_keep_the_world_model_dense():
     # Their weight transfers (torch.distributed point-to-point) reject channels_last tensors.
     assert world_model_overrides(composed("train.collector_backend=distributed"))["channels_last"] is False
     assert "channels_last" not in world_model_overrides(composed())
-    with pytest.raises(ConfigError, match="model.overrides.channels_last=true cannot be used"):
-        validate_config(composed("train.collector_backend=ray", "+model.overrides.channels_last=true"))
+    with pytest.raises(ConfigError, match="model.channels_last=true cannot be used"):
+        validate_config(composed("train.collector_backend=ray", "model.channels_last=true"))
 
 
 def test_ray_needs_a_cpu_per_worker_on_a_local_cluster():

@@ -109,7 +109,7 @@ def test_the_world_model_exp_holds_the_demos_defaults():
         cfg = OmegaConf.to_object(compose(config_name="config", overrides=["exp=world_model"]))
     assert cfg.mode == "world_model" and cfg.run_dir == "runs/world_model"
     assert (cfg.train.batch_size, cfg.train.sequence_length, cfg.train.world_model_lr) == (8, 16, 1e-3)
-    assert (cfg.model.size, cfg.algo.name, cfg.model.overrides) == ("small", "isodream", {})
+    assert (cfg.model.size, cfg.algo.name, cfg.model.world_model_fields()) == ("small", "isodream", {})
     wm = cfg.world_model
     assert (wm.updates, wm.episodes, wm.episode_length, wm.held_out_episodes) == (3000, 60, 96, 4)
     assert (wm.action_hold, wm.probe_episodes) == (8, 32)
@@ -158,12 +158,12 @@ def test_the_single_branch_baseline_is_scored_by_disc_reconstruction_and_probed(
 
 
 def test_composes_with_the_authors_sigmoid_masks_and_refuses_a_background_bias_there(tmp_path):
-    summary = train(tmp_path, "+model.overrides.mask_mode=sigmoid").summary
+    summary = train(tmp_path, "model.mask_mode=sigmoid").summary
     assert 0.0 <= summary["iou_free_vs_distractors"] <= 1.0
-    assert latest_state(tmp_path)["config"]["model"]["overrides"]["mask_mode"] == "sigmoid"
+    assert latest_state(tmp_path)["config"]["model"]["mask_mode"] == "sigmoid"
     # the background has no logit in sigmoid mode: a bias for it is an error, not silently dropped
     with pytest.raises(ConfigError, match="static_mask_bias"):
-        train(tmp_path / "b", "+model.overrides.mask_mode=sigmoid", "+model.overrides.static_mask_bias=3")
+        train(tmp_path / "b", "model.mask_mode=sigmoid", "model.static_mask_bias=3")
 
 
 def test_resumes_from_its_checkpoint_and_refuses_other_settings(tmp_path):
@@ -177,7 +177,7 @@ def test_resumes_from_its_checkpoint_and_refuses_other_settings(tmp_path):
     assert all(s["step"] == 4 for s in after["stepper"]["optimizers"]["world_model"]["state"].values())
     # another world model, or other data (the episodes are made again from the settings), is refused
     with pytest.raises(ConfigError, match="static_mask_bias"):
-        train(tmp_path, "world_model.updates=6", "resume=true", "+model.overrides.static_mask_bias=1")
+        train(tmp_path, "world_model.updates=6", "resume=true", "model.static_mask_bias=1")
     with pytest.raises(ConfigError, match="sprite_size"):
         train(tmp_path, "world_model.updates=6", "resume=true", "+env.kwargs.sprite_size=0.1")
     # a finished run is left as it is

@@ -1,7 +1,7 @@
 """What both TorchRL baselines (:mod:`~isodream_rl.baselines.torchrl_dreamer`,
 :mod:`~isodream_rl.baselines.torchrl_dreamer_v3`) share around TorchRL's pieces.
 
-- :func:`preset_widths`: the widths a baseline reads from the run's size preset, ``model.overrides`` applied.
+- :func:`preset_widths`: the widths a baseline reads from the run's size preset, the ``model.<field>`` settings applied.
 - :func:`latent_dreamer_env`: a ``DreamerEnv`` over ``state``/``belief`` with its specs set by hand.
 - :class:`CarriedStatePolicy`: an acting policy that carries its recurrent state under TorchRL's ``("next", ...)``
   convention (primer, reset at ``is_init``, uint8 pixels in, only the action and the next carried state out).
@@ -35,19 +35,20 @@ logger = logging.getLogger(__name__)
 
 
 def preset_widths(cfg: RunConfig, keys: Sequence[str], *, algo: str) -> dict[str, int]:
-    """The size-preset fields ``keys`` of ``cfg`` (``SIZE_PRESETS[model.size]``, ``model.overrides`` applied).
+    """The size-preset fields ``keys`` of ``cfg`` (``SIZE_PRESETS[model.size]``, the ``model.<field>`` it sets applied).
 
-    The other overrides (``precision`` aside, which each baseline reads itself) are logged as ignored by ``algo``.
+    The other model fields it sets (``precision`` aside, which each baseline reads itself) are logged as ignored by
+    ``algo``.
 
     Raises:
         ValueError: an unknown size preset.
     """
     if cfg.model.size not in SIZE_PRESETS:
         raise ValueError(f"unknown size preset {cfg.model.size!r}; valid: {sorted(SIZE_PRESETS)}")
-    overrides = dict(cfg.model.overrides)
+    overrides = cfg.model.world_model_fields()
     ignored = sorted(set(overrides) - set(keys) - {"precision"})
     if ignored:
-        logger.info("%s ignores the Iso-Dream model overrides %s", algo, ignored)
+        logger.info("%s ignores the Iso-Dream model fields %s", algo, ignored)
     return {key: int(overrides.get(key, SIZE_PRESETS[cfg.model.size][key])) for key in keys}
 
 

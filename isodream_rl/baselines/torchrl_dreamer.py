@@ -71,7 +71,7 @@ from isodream_rl.trainers.builders import make_adam
 from isodream_rl.trainers.config import RunConfig
 from isodream_rl.trainers.registry import register_algorithm
 
-#: The size-preset fields this baseline reads (``SIZE_PRESETS`` merged with ``model.overrides``).
+#: The size-preset fields this baseline reads (``SIZE_PRESETS`` merged with the ``model.<field>`` settings).
 SIZE_KEYS = ("depth", "state_dim", "belief_dim", "hidden_dim", "units")
 #: Std of the acting policy's additive Gaussian noise (TorchRL's example: ``networks.exploration_noise``).
 EXPLORATION_NOISE = 0.3
@@ -80,7 +80,7 @@ _SAMPLING = (None, ExplorationType.RANDOM)
 
 
 def dreamer_sizes(cfg: RunConfig) -> dict[str, int]:
-    """Widths of the run's size preset, ``model.overrides`` applied: ``depth`` (TorchRL's ``channels``),
+    """Widths of the run's size preset, the ``model.<field>`` settings applied: ``depth`` (TorchRL's ``channels``),
     ``state_dim``, ``belief_dim`` (``rnn_hidden_dim``), ``hidden_dim``, ``units`` (reward MLP)."""
     return preset_widths(cfg, SIZE_KEYS, algo="torchrl_dreamer")
 
@@ -631,10 +631,10 @@ class TorchRLDreamerComponents(BaselineComponents):
     """Models, losses, optimisers, stepper and replay buffer of an ``algo=torchrl_dreamer`` run.
 
     The interface of :class:`~isodream_rl.trainers.components.RunComponents` over TorchRL's Dreamer
-    (:func:`make_torchrl_dreamer`): widths from ``SIZE_PRESETS[model.size]`` + ``model.overrides``,
+    (:func:`make_torchrl_dreamer`): widths from ``SIZE_PRESETS[model.size]`` + ``model.<field>``,
     ``model.actor_units``/``value_units``; ``algo.horizon``, ``gamma``, ``lmbda``, ``lambda_reward``,
     ``free_nats``; ``train.*_lr``, ``adam_eps``, ``grad_clip``, ``max_nonfinite_updates``, ``device``;
-    ``model.overrides.precision: bf16`` runs the losses under bf16 autocast. The replay buffer, its preparation
+    ``model.precision: bf16`` runs the losses under bf16 autocast. The replay buffer, its preparation
     hook and the episode-return hook are the Iso-Dream run's.
 
     Args:
@@ -661,9 +661,9 @@ class TorchRLDreamerComponents(BaselineComponents):
     ) -> None:
         train, algo, model = cfg.train, cfg.algo, cfg.model
         sizes = dreamer_sizes(cfg)
-        precision = dict(model.overrides).get("precision", "fp32")
+        precision = model.precision or "fp32"
         if precision not in ("fp32", "bf16"):
-            raise ValueError(f"model.overrides.precision must be 'fp32' or 'bf16', got {precision!r}")
+            raise ValueError(f"model.precision must be 'fp32' or 'bf16', got {precision!r}")
         self.model_loss, self.behavior = make_torchrl_dreamer(
             action_dim=action_dim,
             **sizes,

@@ -59,7 +59,7 @@ Where this departs from TorchRL's settings, and why:
 - actions: the acting policy clamps its sample to [-1, 1], where TorchRL's reproduction clips in the env and
   stores the raw sample; the world model sees the same either way (``RSSMPriorV3``'s block GRU divides an
   action by ``max(|a|, 1)``).
-- widths (above), and fp32 only (``model.overrides.precision=bf16`` is refused: TorchRL's DreamerV3 autocasts on
+- widths (above), and fp32 only (``model.precision=bf16`` is refused: TorchRL's DreamerV3 autocasts on
   CUDA only).
 
 Local pieces, where TorchRL's did not fit:
@@ -134,7 +134,7 @@ from isodream_rl.trainers.stepper import loss_sum
 
 #: ``hidden`` of DreamerV3's size rule per unit of our preset's ``hidden_dim`` (fitted to Iso-Dream's counts).
 HIDDEN_PER_HIDDEN_DIM = 1.875
-#: The size-preset field this baseline reads (``SIZE_PRESETS`` merged with ``model.overrides``).
+#: The size-preset field this baseline reads (``SIZE_PRESETS`` merged with the ``model.<field>`` settings).
 SIZE_KEYS = ("hidden_dim",)
 #: The observation key of the world model.
 PIXELS = ("next", "pixels")
@@ -217,18 +217,18 @@ class DreamerV3Widths:
 
     @classmethod
     def from_run(cls, cfg: RunConfig) -> DreamerV3Widths:
-        """The widths for ``cfg``'s size preset (``model.overrides`` applied) and actor / value units.
+        """The widths for ``cfg``'s size preset (the ``model.<field>`` settings applied) and actor / value units.
 
         Raises:
             ValueError: an unknown size preset.
             ConfigError: a precision other than fp32.
         """
         hidden_dim = preset_widths(cfg, SIZE_KEYS, algo="torchrl_dreamer_v3")["hidden_dim"]
-        precision = dict(cfg.model.overrides).get("precision", "fp32")
+        precision = cfg.model.precision or "fp32"
         if precision != "fp32":
             raise ConfigError(
                 f"invalid training configuration: algo=torchrl_dreamer_v3 trains in fp32 only (TorchRL's DreamerV3 "
-                f"autocasts on CUDA only), got model.overrides.precision={precision!r}: drop the override"
+                f"autocasts on CUDA only), got model.precision={precision!r}: drop the override"
             )
         hidden = 8 * max(1, round(HIDDEN_PER_HIDDEN_DIM * hidden_dim / 8))
         return cls(hidden=hidden, actor_units=cfg.model.actor_units, value_units=cfg.model.value_units)

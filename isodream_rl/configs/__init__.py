@@ -1,4 +1,5 @@
-"""Hydra configuration groups of ``isodream-train`` (env, size, algo); see ``config.yaml``.
+"""Hydra configuration groups of ``isodream-train`` (env, size, algo, exp; domain, which the env groups pick);
+see ``config.yaml``.
 
 ``env/dmc_<domain>_<task>.yaml`` exist for the four tasks of the paper's recipes; :func:`register_dmc_envs`
 stores the same preset for every other dm_control suite task, so ``env=dmc_<domain>_<task>`` works for all of
@@ -9,17 +10,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-#: the DMC preset of the paper (§4.1): moving natural backgrounds, action repeat 2, the noncontrollable branch
-#: learning from reconstruction only, the policy reading the controllable state
+#: the DMC env preset of the paper (§4.1): moving natural backgrounds, action repeat 2; the algorithm's choices
+#: on DMC are ``domain/dmc.yaml``'s, which the stored presets pick as the YAML ones do
 DMC_PRESET = {
     "kwargs": {"background": "video_easy", "action_repeat": 2},
     "action_repeat": 2,
-}
-DMC_ALGO = {
-    "free_branch_loss": "recon_only",
-    "reward_uses_free": False,
-    "policy_input": "controllable",
-    "lambda_reward": 2.0,
 }
 
 
@@ -36,7 +31,7 @@ def register_dmc_envs() -> list[str]:
     for name in dmc_env_names():
         if name in files:
             continue
-        node = {"env": {"name": name, **DMC_PRESET}, "algo": dict(DMC_ALGO)}
+        node = {"defaults": [{"/domain": "dmc"}, "_self_"], "env": {"name": name, **DMC_PRESET}}
         store.store(group="env", name=name, node=node, package="_global_")
         stored.append(name)
     return stored

@@ -1,4 +1,9 @@
-"""World-model configuration and size presets."""
+"""World-model configuration and size presets.
+
+:data:`SIZE_PRESETS` is the one home of the world model's preset widths. The ``size`` group of
+``isodream-train`` (``isodream_rl/configs/size/*.yaml``) names one of them (``model.size``) and sets the rest of a
+run's scale there (behavior widths, replay windows, schedule), never a world-model width.
+"""
 
 from __future__ import annotations
 
@@ -8,23 +13,25 @@ from isodream_rl.modules.composition import CLAMP_GRADIENTS, MASK_MODES
 from isodream_rl.modules.inverse_dynamics import INVERSE_INPUTS
 
 #: Size presets. ``paper``: Table 5 and the authors' configs (cnn depth 32, deter 200, stoch 50,
-#: MLP units 400); ``small``: quick CPU runs; ``tiny``: unit tests.
+#: MLP units 400); ``small``: quick CPU runs; ``bench``: the learning bench's (``small`` at half its
+#: convolution depth and GRU width, ``size=bench``); ``tiny``: unit tests.
 SIZE_PRESETS: dict[str, dict[str, int]] = {
     "paper": {"depth": 32, "state_dim": 50, "belief_dim": 200, "hidden_dim": 200, "units": 400},
     "small": {"depth": 16, "state_dim": 32, "belief_dim": 128, "hidden_dim": 128, "units": 256},
+    "bench": {"depth": 8, "state_dim": 32, "belief_dim": 64, "hidden_dim": 64, "units": 256},
     "tiny": {"depth": 4, "state_dim": 8, "belief_dim": 16, "hidden_dim": 16, "units": 32},
 }
 DECODER_INPUTS = ("paper", "posterior")
-#: The paper's settings of the fields whose defaults depart from it (with ``lambda_inverse=1`` in the loss).
+#: The paper's settings of the fields whose defaults depart from it (with the loss's ``PAPER_WEIGHTS``).
 PAPER_EXACT = {
     "inverse_input": "state",
     "decoder_input": "paper",
     "clamp_gradient": "zero",
     "static_mask_bias": 0.0,
 }
-#: The single-branch DreamerV2 baseline, defined here only: ``WorldModelConfig.dreamerv2`` builds it from this;
-#: ``algo=dreamerv2`` (both modes of ``isodream-train``, e.g. ``exp=world_model_dreamerv2``) sets the same switches
-#: for the trainer's checks, and tests/test_cli.py holds the model it trains to ``WorldModelConfig.dreamerv2``.
+#: The single-branch DreamerV2 baseline's switches, defined here only: ``WorldModelConfig.dreamerv2`` builds it
+#: from this, and the trainer's ``ALGO_BRANCHES`` (``isodream_rl/trainers/config.py``) gives them to
+#: ``algo=dreamerv2`` (both modes of ``isodream-train``) and to the TorchRL baselines.
 DREAMERV2 = {"free_branch": False, "static_branch": False, "inverse_dynamics": False}
 FREE_DECODER_INPUTS = ("posterior", "prior")
 PRECISIONS = ("fp32", "bf16")
@@ -59,8 +66,8 @@ class WorldModelConfig:
     inverse_input: str = "embedding"
     """``"embedding"``: e^s_t - e^s_{t-1} (the authors' code); ``"state"``: MLP(s_{t-1}, s_t) on posterior states
     (the paper). The posterior sees ``h_t``, computed from ``a_{t-1}``, so ``"state"`` can be solved without the
-    pixels; ``"embedding"`` cannot, but needs a larger ``lambda_inverse`` (30, the loss's default) to learn
-    against the pixel-sum image loss."""
+    pixels; ``"embedding"`` cannot, but needs a larger ``lambda_inverse`` (the loss's default, ``LOSS_WEIGHTS``)
+    to learn against the pixel-sum image loss."""
     mask_mode: str = "softmax"
     """``"softmax"`` over three logits, or the authors' ``"sigmoid"`` masks with 1 - M^s - M^z background."""
     clamp_components: bool = True
@@ -120,7 +127,7 @@ class WorldModelConfig:
 
     @classmethod
     def from_preset(cls, size: str, *, action_dim: int, **overrides) -> WorldModelConfig:
-        """A config of the named size (``paper``, ``small``, ``tiny``) with ``overrides`` applied."""
+        """A config of the named size (a key of :data:`SIZE_PRESETS`) with ``overrides`` applied."""
         if size not in SIZE_PRESETS:
             raise ValueError(f"unknown size preset {size!r}; valid: {sorted(SIZE_PRESETS)}")
         known = {f.name for f in fields(cls)}

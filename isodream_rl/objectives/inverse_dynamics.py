@@ -19,7 +19,9 @@ class InverseDynamicsLoss(LossModule):
     controllable branch and the shared encoder and nothing of the noncontrollable branch.
 
     Args:
-        lambda_inverse: ``alpha`` of eq. 5 (1 in the paper's RL settings, 1e-4 for video prediction).
+        lambda_inverse: a scale on the term; the default 1 gives the plain log-loss. It is not eq. 5's
+            weight: ``alpha`` belongs to the weighted sum, :class:`~isodream_rl.objectives.IsoDreamModelLoss`,
+            whose ``lambda_inverse`` (default in ``LOSS_WEIGHTS``, ``objectives/world_model.py``) it passes here.
         loss_type: ``"gaussian"``: ``-log N(a; a~, I)`` up to a constant, ``0.5 * sum_dims (a - a~)^2``
             (the authors' code); ``"l2"``: ``sum_dims (a - a~)^2`` (the paper's notation).
 

@@ -18,11 +18,21 @@ from isodream_rl.objectives.inverse_dynamics import InverseDynamicsLoss
 from isodream_rl.objectives.kl import balanced_kl
 
 FREE_BRANCH_MODES = ("kl", "recon_only")
-#: The loss's default ``lambda_*`` weights differ from eq. 5's only in ``lambda_inverse`` (see
-#: :meth:`IsoDreamModelLoss.paper_exact`).
+#: The weights of eq. 5's terms: the one table of their defaults (as DreamerV3's ``loss_scales``), read by
+#: :class:`IsoDreamModelLoss` and by the training config (``AlgoConfig``). ``lambda_inverse`` (``alpha``) departs
+#: from eq. 5's 1: with the default ``inverse_input="embedding"`` the embedding differences are small and at 1
+#: the inverse cell does not learn against the pixel-sum image loss (:data:`PAPER_WEIGHTS` has the paper's).
+LOSS_WEIGHTS = {
+    "lambda_reco": 1.0,
+    "lambda_reward": 1.0,
+    "lambda_discount": 1.0,
+    "lambda_inverse": 30.0,
+    "lambda_kl_control": 1.0,
+    "lambda_kl_free": 1.0,
+}
+#: eq. 5's weights where :data:`LOSS_WEIGHTS` departs from them (:meth:`IsoDreamModelLoss.paper_exact`,
+#: ``algo=isodream_paper``).
 PAPER_WEIGHTS = {"lambda_inverse": 1.0}
-#: ``alpha``, the default weight of the inverse-dynamics loss (see ``lambda_inverse`` below).
-LAMBDA_INVERSE = 30.0
 
 
 class IsoDreamModelLoss(LossModule):
@@ -38,16 +48,17 @@ class IsoDreamModelLoss(LossModule):
     * ``L_inv`` from :class:`~isodream_rl.objectives.InverseDynamicsLoss`;
     * ``KL_s``, ``KL_z``: DreamerV2-balanced KLs with free nats on the batch mean, one per branch.
 
+    The ``lambda_*`` weights default to :data:`LOSS_WEIGHTS`.
+
     Args:
         world_model: an :class:`~isodream_rl.modules.IsoDreamWorldModel`.
-        lambda_reco: weight of the image log-loss (1).
+        lambda_reco: weight of the image log-loss.
         lambda_reward: weight of the reward log-loss (2 in the authors' DMC and CARLA configs).
-        lambda_discount: weight of the discount log-loss (1; used only with a discount head).
-        lambda_inverse: ``alpha``, the weight of the action loss (30: with the default
-            ``inverse_input="embedding"`` the embedding differences are small and at the paper's 1 the
-            inverse cell does not learn against the pixel-sum image loss; :meth:`paper_exact` gives 1).
-        lambda_kl_control: ``beta1``, the weight of ``KL_s`` (1).
-        lambda_kl_free: ``beta2``, the weight of ``KL_z`` (1).
+        lambda_discount: weight of the discount log-loss (used only with a discount head).
+        lambda_inverse: ``alpha``, the weight of the action loss (see :data:`LOSS_WEIGHTS` for its default;
+            :meth:`paper_exact` gives eq. 5's 1).
+        lambda_kl_control: ``beta1``, the weight of ``KL_s``.
+        lambda_kl_free: ``beta2``, the weight of ``KL_z``.
         kl_balance: DreamerV2 KL balancing (0.8).
         free_nats: free nats, applied to each branch's batch-mean KL (1.0).
         free_branch_loss: ``"kl"`` (CARLA-style: the noncontrollable branch has its KL term) or
@@ -143,12 +154,12 @@ class IsoDreamModelLoss(LossModule):
         self,
         world_model: IsoDreamWorldModel,
         *,
-        lambda_reco: float = 1.0,
-        lambda_reward: float = 1.0,
-        lambda_discount: float = 1.0,
-        lambda_inverse: float = LAMBDA_INVERSE,
-        lambda_kl_control: float = 1.0,
-        lambda_kl_free: float = 1.0,
+        lambda_reco: float = LOSS_WEIGHTS["lambda_reco"],
+        lambda_reward: float = LOSS_WEIGHTS["lambda_reward"],
+        lambda_discount: float = LOSS_WEIGHTS["lambda_discount"],
+        lambda_inverse: float = LOSS_WEIGHTS["lambda_inverse"],
+        lambda_kl_control: float = LOSS_WEIGHTS["lambda_kl_control"],
+        lambda_kl_free: float = LOSS_WEIGHTS["lambda_kl_free"],
         kl_balance: float = 0.8,
         free_nats: float = 1.0,
         free_branch_loss: str = "kl",

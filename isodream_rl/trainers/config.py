@@ -8,12 +8,12 @@ change, before any env or model is built.
 from __future__ import annotations
 
 import importlib.util
-from dataclasses import dataclass, field, fields
-from difflib import get_close_matches
+import typing
+from dataclasses import dataclass, field, fields, make_dataclass
 from typing import Any
 
-from isodream_rl.modules.config import PAPER_EXACT, SIZE_PRESETS, WorldModelConfig
-from isodream_rl.objectives.world_model import FREE_BRANCH_MODES, LAMBDA_INVERSE
+from isodream_rl.modules.config import DREAMERV2, PAPER_EXACT, SIZE_PRESETS, WorldModelConfig
+from isodream_rl.objectives.world_model import FREE_BRANCH_MODES, LOSS_WEIGHTS, PAPER_WEIGHTS
 from isodream_rl.trainers.world_model_config import MODES, WorldModelModeConfig, world_model_mode_errors
 
 POLICY_INPUTS = ("controllable", "attention", "concat")
@@ -22,16 +22,21 @@ REMOTE_BACKENDS = ("ray", "distributed")
 DISTRIBUTED_LAUNCHERS = ("mp", "submitit", "submitit_delayed")
 DISTRIBUTED_BACKENDS = ("gloo", "nccl", "mpi", "ucc")
 LOGGER_BACKENDS = ("csv", "tensorboard", "wandb")
-ALGO_NAMES = (
-    "isodream",
-    "isodream_paper",
-    "dreamerv2",
-    "isodream_no_inverse",
-    "isodream_no_attention",
-    "isodream_no_static",
-    "torchrl_dreamer",
-    "torchrl_dreamer_v3",
-)
+_ALL_BRANCHES = {"free_branch": True, "static_branch": True, "inverse_dynamics": True}
+#: The branch switches of each ``algo=<name>`` preset: their one home (the algo YAML files set the other
+#: fields). ``AlgoConfig``'s switches left ``None`` take these (:func:`resolve_algo`); a name not here takes
+#: ``isodream``'s. The single-branch ones are DreamerV2's (:data:`~isodream_rl.modules.config.DREAMERV2`).
+ALGO_BRANCHES: dict[str, dict[str, bool]] = {
+    "isodream": _ALL_BRANCHES,
+    "isodream_paper": _ALL_BRANCHES,
+    "dreamerv2": DREAMERV2,
+    "isodream_no_inverse": {**_ALL_BRANCHES, "inverse_dynamics": False},
+    "isodream_no_attention": _ALL_BRANCHES,
+    "isodream_no_static": {**_ALL_BRANCHES, "static_branch": False},
+    "torchrl_dreamer": DREAMERV2,
+    "torchrl_dreamer_v3": DREAMERV2,
+}
+ALGO_NAMES = tuple(ALGO_BRANCHES)
 
 
 class ConfigError(ValueError):
@@ -60,19 +65,44 @@ class EnvConfig:
 
 
 @dataclass
-class ModelConfig:
-    """World-model and behavior sizes; ``size`` picks a preset of ``WorldModelConfig``."""
+class _ModelSizes:
+    """The behavior's widths and the world model's size preset (the rest of ``model`` is :data:`ModelConfig`)."""
 
     size: str = "small"
-    """``"paper"``, ``"small"`` or ``"tiny"`` (``isodream_rl.modules.SIZE_PRESETS``)."""
-    overrides: dict[str, Any] = field(default_factory=dict)
-    """Extra ``WorldModelConfig`` fields (e.g. ``precision: bf16``)."""
+    """A preset of ``WorldModelConfig``'s widths, a key of ``isodream_rl.modules.config.SIZE_PRESETS``."""
     actor_units: int = 400
     """Width of the actor MLP (4 layers in the paper)."""
     value_units: int = 400
     """Width of the value MLP (3 layers in the paper)."""
     attention_dim: int = 500
     """Width of the future-state attention's Q/K/V projections (500 in the authors' code)."""
+
+    def world_model_fields(self) -> dict[str, Any]:
+        """The ``WorldModelConfig`` fields this section sets (those not ``None``), as ``{field: value}``."""
+        return {name: getattr(self, name) for name in WORLD_MODEL_FIELDS if getattr(self, name) is not None}
+
+
+#: The ``WorldModelConfig`` fields that ``model.<field>`` sets: all but ``action_dim`` (the env's).
+WORLD_MODEL_FIELDS = tuple(f.name for f in fields(WorldModelConfig) if f.name != "action_dim")
+
+
+def _world_model_section() -> list[tuple[str, Any, Any]]:
+    """``WorldModelConfig``'s fields as optional schema fields, default ``None``: "the preset's value"."""
+    hints = typing.get_type_hints(WorldModelConfig)
+    return [(name, hints[name] | None, field(default=None)) for name in WORLD_MODEL_FIELDS]
+
+
+#: The ``model`` section: the size preset and behavior widths (``_ModelSizes``), then every field of
+#: :class:`~isodream_rl.modules.config.WorldModelConfig` but ``action_dim``, typed as there and ``None`` by
+#: default: ``None`` keeps the size preset's value, or the one the algo sets (``world_model_overrides``), and a
+#: value replaces it (``model.precision=bf16``, ``model.depth=8``). Derived from ``WorldModelConfig``, the one
+#: home of the field list, so a field added there is a setting here with no change.
+ModelConfig = make_dataclass("ModelConfig", _world_model_section(), bases=(_ModelSizes,))
+ModelConfig.__module__ = __name__
+ModelConfig.__doc__ = (
+    "World-model and behavior sizes: ``size`` picks a preset of ``WorldModelConfig``, whose fields "
+    "``model.<field>`` may set (``None``: the preset's or the algo's value)."
+)
 
 
 @dataclass
@@ -81,15 +111,15 @@ class AlgoConfig:
 
     name: str = "isodream"
     """Preset name, one of ``ALGO_NAMES`` (informational once the fields are set)."""
-    free_branch: bool = True
-    """The action-free (noncontrollable) branch."""
-    static_branch: bool = True
-    """The static background branch."""
-    inverse_dynamics: bool = True
-    """The inverse-dynamics cell and its loss."""
+    free_branch: bool | None = None
+    """The action-free (noncontrollable) branch (``None``: the preset's, :data:`ALGO_BRANCHES`)."""
+    static_branch: bool | None = None
+    """The static background branch (``None``: the preset's)."""
+    inverse_dynamics: bool | None = None
+    """The inverse-dynamics cell and its loss (``None``: the preset's)."""
     paper_exact: bool = False
     """The paper's settings where the library's defaults depart from them (``WorldModelConfig.paper_exact``;
-    pair it with ``lambda_inverse=1``, as ``algo=isodream_paper`` does)."""
+    ``algo=isodream_paper``), and eq. 5's ``lambda_inverse`` when that is left ``None``."""
     free_branch_loss: str = "kl"
     """``"kl"`` (CARLA: the free branch has its KL term) or ``"recon_only"`` (DMC, paper §3.2)."""
     reward_uses_free: bool = False
@@ -114,11 +144,11 @@ class AlgoConfig:
     exploration_noise: float = 0.0
     """Std of the Gaussian noise added to the acting policy's sampled actions during collection (clamped to
     [-1, 1]; 0 as the authors; DreamerV1 and TorchRL's Dreamer example use 0.3)."""
-    lambda_reward: float = 1.0
+    lambda_reward: float = LOSS_WEIGHTS["lambda_reward"]
     """Weight of the reward log-loss (``reward_scale``: 2 in the authors' DMC and CARLA configs)."""
-    lambda_inverse: float = LAMBDA_INVERSE
-    """alpha, the weight of the inverse-dynamics loss (``IsoDreamModelLoss``'s default; the paper's 1 goes
-    with the paper's inverse input, ``algo=isodream_paper``)."""
+    lambda_inverse: float | None = None
+    """alpha, the weight of the inverse-dynamics loss; ``None``: the loss's default (``LOSS_WEIGHTS``), or with
+    ``paper_exact`` eq. 5's (``PAPER_WEIGHTS``), which goes with the paper's inverse input."""
     free_nats: float = 1.0
     """Free nats of each branch's KL."""
     kl_balance: float = 0.8
@@ -255,6 +285,26 @@ class RunConfig:
     """Delete the run already in ``run_dir`` (its checkpoints, logs, pictures, ``run_config.json`` and
     ``summary.json``) before starting; without it, such a folder is refused."""
 
+    def __post_init__(self):
+        resolve_algo(self.algo)
+
+
+def resolve_algo(algo: AlgoConfig) -> AlgoConfig:
+    """Fill the fields of ``algo`` left ``None`` with the values its preset implies (in place; returned).
+
+    The branch switches: :data:`ALGO_BRANCHES` of ``algo.name``; ``lambda_inverse``:
+    :data:`~isodream_rl.objectives.world_model.LOSS_WEIGHTS`'s, or with ``paper_exact``
+    :data:`~isodream_rl.objectives.world_model.PAPER_WEIGHTS`'s. Runs when a :class:`RunConfig` is made (Hydra's
+    ``OmegaConf.to_object``, ``config_from_dict``, ``RunConfig()``); a value given anywhere is kept.
+    """
+    for name, value in ALGO_BRANCHES.get(algo.name, ALGO_BRANCHES["isodream"]).items():
+        if getattr(algo, name) is None:
+            setattr(algo, name, value)
+    if algo.lambda_inverse is None:
+        weights = {**LOSS_WEIGHTS, **(PAPER_WEIGHTS if algo.paper_exact else {})}
+        algo.lambda_inverse = weights["lambda_inverse"]
+    return algo
+
 
 def _choice(errors: list[str], name: str, value, valid) -> None:
     if value not in valid:
@@ -303,20 +353,11 @@ def validate_config(cfg: RunConfig) -> None:
             errors.append(f"train.{name}={getattr(cfg.train, name)} must be > 0")
     if not 0 <= cfg.train.seed < 2**32:  # numpy's seed range
         errors.append(f"train.seed={cfg.train.seed} must be in [0, 2**32 - 1]")
-    model_fields = sorted(f.name for f in fields(WorldModelConfig) if f.name != "action_dim")  # the env's
-    unknown = sorted(set(cfg.model.overrides) - set(model_fields))
-    for key in unknown:
-        close = get_close_matches(key, model_fields, 1)
-        errors.append(
-            f"model.overrides.{key} is not a WorldModelConfig field"
-            + (f" (did you mean model.overrides.{close[0]}?)" if close else "")
-            + f"; valid: {', '.join(model_fields)}"
-        )
-    if not unknown and cfg.model.size in SIZE_PRESETS:
+    if cfg.model.size in SIZE_PRESETS:
         try:  # the values, as the world model will check them when it is built
             WorldModelConfig.from_preset(cfg.model.size, action_dim=1, **world_model_overrides(cfg))
         except (TypeError, ValueError) as err:
-            errors.append(f"model.overrides={dict(cfg.model.overrides)} with the algo's branches: {err}")
+            errors.append(f"model={cfg.model.world_model_fields()} with the algo's branches: {err}")
     if cfg.mode == "world_model":
         errors += world_model_mode_errors(cfg)
         if errors:
@@ -434,10 +475,10 @@ def validate_config(cfg: RunConfig) -> None:
             f"train.distributed_launcher={train.distributed_launcher} needs submitit: pip install submitit, or "
             "set train.distributed_launcher=mp to start the workers on this machine"
         )
-    if train.collector_backend in REMOTE_BACKENDS and cfg.model.overrides.get("channels_last", False):
+    if train.collector_backend in REMOTE_BACKENDS and cfg.model.channels_last:
         errors.append(
-            f"model.overrides.channels_last=true cannot be used with train.collector_backend="
-            f"{train.collector_backend}: its weight transfer sends dense tensors only; drop the override"
+            f"model.channels_last=true cannot be used with train.collector_backend="
+            f"{train.collector_backend}: its weight transfer sends dense tensors only; drop the setting"
         )
     if env.factory:
         module, _, attribute = env.factory.partition(":")
@@ -464,7 +505,8 @@ FORMER_BEHAVIOUR = {("algo", "actor_loc_penalty"): 0.0}
 def config_from_dict(data: dict) -> RunConfig:
     """Rebuild a :class:`RunConfig` from ``dataclasses.asdict`` output (as stored in checkpoints and
     ``run_config.json``); fields added since it was written take their defaults, except those of
-    :data:`FORMER_BEHAVIOUR`, which take the value the run was trained with."""
+    :data:`FORMER_BEHAVIOUR`, which take the value the run was trained with; a ``model.overrides`` dict (written
+    before the ``model`` section had the world model's fields) sets those fields."""
     import dataclasses
 
     sections = {f.name: f.type for f in dataclasses.fields(RunConfig)}
@@ -476,12 +518,14 @@ def config_from_dict(data: dict) -> RunConfig:
         if isinstance(value, dict):
             former = {key: v for (section, key), v in FORMER_BEHAVIOUR.items() if section == name}
             value = {**former, **value}
+        if name == "model" and isinstance(value, dict) and "overrides" in value:  # before model.<field>
+            value = {**value["overrides"], **{key: v for key, v in value.items() if key != "overrides"}}
         kwargs[name] = section_type(**value) if isinstance(value, dict) and section_type else value
     return RunConfig(**kwargs)
 
 
 def world_model_overrides(cfg: RunConfig) -> dict[str, Any]:
-    """The ``WorldModelConfig`` fields set by the algorithm preset, merged with ``model.overrides``."""
+    """The ``WorldModelConfig`` fields set by the algorithm preset, merged with those ``model`` sets."""
     algo = cfg.algo
     fields_from_algo = {
         **(PAPER_EXACT if algo.paper_exact else {}),
@@ -495,4 +539,4 @@ def world_model_overrides(cfg: RunConfig) -> dict[str, Any]:
     if cfg.train.collector_backend in REMOTE_BACKENDS:
         # Ray's and torch.distributed's weight transfers send dense tensors only.
         fields_from_algo["channels_last"] = False
-    return {**fields_from_algo, **dict(cfg.model.overrides)}
+    return {**fields_from_algo, **cfg.model.world_model_fields()}

@@ -32,6 +32,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import OmegaConf
 
+from isodream_rl.modules.config import SIZE_PRESETS
 from isodream_rl.run_lock import RunDirBusyError, RunDirLock
 from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.config import ConfigError, RunConfig, config_from_dict
@@ -60,7 +61,7 @@ RESUMABLE = (
     "train.collector_cpus",
     "train.distributed_",
     "train.slurm_kwargs",
-    "model.overrides.precision",
+    "model.precision",
 )
 
 
@@ -280,11 +281,23 @@ def _flat(tree: dict, prefix: str = "") -> dict[str, Any]:
     return flat
 
 
+def _compared(cfg: RunConfig) -> dict[str, Any]:
+    """The flat settings of ``cfg`` as a resume compares them: the size preset as the widths it stands for, so a
+    run whose widths were written as ``model.<field>`` on another preset (``size=bench`` before it was one) is
+    the same run."""
+    tree = dataclasses.asdict(cfg)
+    model = tree["model"]
+    if model["size"] in SIZE_PRESETS:
+        for name, width in SIZE_PRESETS[model.pop("size")].items():
+            model[name] = width if model[name] is None else model[name]
+    return _flat(tree)
+
+
 def differing_settings(saved: dict, cfg: RunConfig) -> dict[str, tuple[Any, Any]]:
     """``{field: (saved, now)}`` for the settings outside :data:`RESUMABLE` where ``cfg`` differs from the
     configuration ``saved`` in a checkpoint (``dataclasses.asdict`` of a :class:`RunConfig`)."""
-    before = _flat(dataclasses.asdict(config_from_dict(saved)))
-    now = _flat(dataclasses.asdict(cfg))
+    before = _compared(config_from_dict(saved))
+    now = _compared(cfg)
     return {
         key: (before.get(key), now.get(key))
         for key in sorted(before.keys() | now.keys())

@@ -48,7 +48,7 @@ def world_model_mode_errors(cfg: Any) -> list[str]:
     with its fix (the checks of Algorithm 1's collection and replay do not apply to it)."""
     errors: list[str] = []
     wm, train, algo = cfg.world_model, cfg.train, cfg.algo
-    overrides = dict(cfg.model.overrides)
+    overrides = cfg.model.world_model_fields()
     if cfg.model.size not in SIZE_PRESETS:
         errors.append(f"model.size={cfg.model.size!r} is not one of {list(SIZE_PRESETS)}")
     if algo.free_branch_loss not in FREE_BRANCH_MODES:
@@ -85,7 +85,7 @@ def world_model_mode_errors(cfg: Any) -> list[str]:
     softmax_static = algo.static_branch and overrides.get("mask_mode", "softmax") == "softmax"
     if overrides.get("static_mask_bias") and not softmax_static:
         errors.append(
-            "model.overrides.static_mask_bias needs the static branch's mask logit (softmax masks, "
+            "model.static_mask_bias needs the static branch's mask logit (softmax masks, "
             "algo.static_branch=true); in sigmoid mode the background has no logit: drop it"
         )
     if not wm.max_minutes >= 0:

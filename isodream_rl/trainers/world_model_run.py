@@ -196,7 +196,7 @@ def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDream
         raise CheckpointError(
             f"{path} holds the world model of algo={cfg.algo.name} (TorchRL's), not Iso-Dream's"
         )
-    cfg.model.overrides = {**cfg.model.overrides, "precision": "fp32"}
+    cfg.model.precision = "fp32"
     model = IsoDreamWorldModel(make_world_model_config(cfg, action_dim=probe_action_dim(cfg)), device=device)
     model.load_state_dict(state["models"]["world_model"])
     return model, cfg

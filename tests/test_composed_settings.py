@@ -1,0 +1,53 @@
+"""Where a setting comes from may move, its value may not: the configurations that README and bench commands
+compose keep the values recorded in ``tests/data/composed_settings.json``.
+
+The record was composed before the settings got one home each (the typed ``model`` section, the loss-weight
+table, the branch switches of ``ALGO_BRANCHES``, the ``bench`` size preset, the ``domain`` groups). Each entry
+is one command line's ``RunConfig`` as flat ``section.field`` keys, its ``model`` section as the world model it
+builds (``_world_model.*``: ``make_world_model_config``) plus the behavior widths. A setting added since then
+is not in the record and is not compared.
+"""
+
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+import isodream_rl.cli  # noqa: F401  (registers the config schema and the DMC envs)
+from isodream_rl.cli_overrides import CONFIGS
+from isodream_rl.trainers.builders import make_world_model_config
+
+RECORD = json.loads((Path(__file__).parent / "data" / "composed_settings.json").read_text())
+BEHAVIOR_WIDTHS = ("actor_units", "value_units", "attention_dim")
+
+
+def _flat(tree: dict, prefix: str = "") -> dict:
+    flat = {}
+    for key, value in tree.items():
+        if isinstance(value, dict) and value and not f"{prefix}{key}".startswith("env.kwargs"):
+            flat.update(_flat(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
+def settings(line: str) -> dict:
+    """The flat settings of ``isodream-train <line>``, as the record holds them."""
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        cfg = OmegaConf.to_object(compose(config_name="config", overrides=line.split()))
+    tree = dataclasses.asdict(cfg)
+    tree["model"] = {name: tree["model"][name] for name in BEHAVIOR_WIDTHS}
+    tree["_world_model"] = make_world_model_config(cfg, action_dim=1).to_dict()
+    return json.loads(json.dumps(_flat(tree)))
+
+
+@pytest.mark.parametrize("line", sorted(RECORD))
+def test_every_recorded_command_composes_the_recorded_values(line):
+    now = settings(line)
+    changed = {
+        key: (value, now.get(key, "<gone>")) for key, value in RECORD[line].items() if now.get(key) != value
+    }
+    assert not changed, f"isodream-train {line}: (recorded, now) {changed}"
