@@ -5,7 +5,9 @@ The record was composed before the settings got one home each (the typed ``model
 table, the branch switches of ``ALGO_BRANCHES``, the ``bench`` size preset, the ``domain`` groups). Each entry
 is one command line's ``RunConfig`` as flat ``section.field`` keys, its ``model`` section as the world model it
 builds (``_world_model.*``: ``make_world_model_config``) plus the behavior widths. A setting added since then
-is not in the record and is not compared.
+is not in the record and is not compared; the five curriculum options of the world-model mode removed since
+(``world_model.static_mask_bias_schedule``, ``lambda_reco_pyramid``, ``pyramid_levels``, ``reco_pyramid_from``,
+``ramp_updates``) were taken out of it with them.
 """
 
 import dataclasses
