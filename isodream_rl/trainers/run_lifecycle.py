@@ -26,7 +26,7 @@ from isodream_rl.csv_logs import csv_log_sizes, cut_csv_logs
 from isodream_rl.modules.encoder import check_pixel_values, check_pixels
 from isodream_rl.trainers.builders import env_factory
 from isodream_rl.trainers.checkpoint import CheckpointManager, rng_state, set_rng_state
-from isodream_rl.trainers.config import ConfigError, RunConfig, validate_config
+from isodream_rl.trainers.config import ConfigError, RunConfig
 from isodream_rl.trainers.hooks import PeriodicCheckpoint, StopOnSignal
 from isodream_rl.trainers.run_dir import check_same_run
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
@@ -93,17 +93,13 @@ def probe_action_dim(cfg: RunConfig) -> int:
 
 def begin_run(cfg: RunConfig) -> tuple[float, Path, Path, Path]:
     """What every mode does first, in the run folder that :func:`~isodream_rl.trainers.run.train` holds (see
-    :func:`~isodream_rl.trainers.run_dir.hold_run_dir`): check the config, set threads and seeds.
+    :func:`~isodream_rl.trainers.run_dir.hold_run_dir`, after checking the config): set threads and seeds.
     ``run_config.json`` is written later (:func:`~isodream_rl.trainers.run_dir.write_run_config`), once the run's
     parts are built and a resumed run's checkpoint is found to match the config.
 
     Returns:
         ``(start time from time.perf_counter, run_dir, pictures folder, logs folder)``.
-
-    Raises:
-        ConfigError: an invalid configuration.
     """
-    validate_config(cfg)
     started = time.perf_counter()
     run_dir = Path(cfg.run_dir)
     torch.set_num_threads(cfg.train.threads)
