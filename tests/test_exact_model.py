@@ -19,13 +19,13 @@ from isodream_rl.trainers.exact_model import train_behavior_on_exact_model
 
 #: start states per update: a quarter of the bench's B * T = 512, so that the file takes about two minutes
 BATCH = 128
-SPRITES_GROUP = Path(__file__).resolve().parents[1] / "isodream_rl" / "configs" / "env" / "sprites.yaml"
+SPRITES_GROUP = Path(__file__).resolve().parents[1] / "isodream_rl" / "configs" / "domain" / "sprites.yaml"
 
 
 def bench_behavior_config() -> RunConfig:
     """The learning bench's behavior (``size=bench``: 128-unit actor and value, horizon 15) at the library's
-    defaults for sprites (``env=sprites`` sets the discount 0.9), on ``[s, h]`` (the exact model has no
-    noncontrollable branch)."""
+    defaults for sprites (``domain=sprites``, which ``env=sprites`` picks, sets the discount 0.9), on ``[s, h]``
+    (the exact model has no noncontrollable branch)."""
     cfg = RunConfig()
     cfg.algo.gamma = OmegaConf.load(SPRITES_GROUP).algo.gamma
     cfg.algo.policy_input = "controllable"
