@@ -129,7 +129,7 @@ class CarriedStatePolicy(TensorDictModuleBase):
         Returns:
             ``action_key`` ``[N, A]`` and the next value of each carried key ``[N, width]``.
         """
-        raise NotImplementedError
+        raise NotImplementedError(f"{type(self).__name__} must define act(): each baseline's policy step")
 
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -174,7 +174,7 @@ class ZeroStateStepper(IsoDreamOptimizationStepper):
 
     def loss_inputs(self, sub_batch: TensorDictBase) -> TensorDictBase:
         """The entries of a flat ``[N]`` replay sample the loss reads, as it reads them (a new tensordict)."""
-        raise NotImplementedError
+        raise NotImplementedError(f"{type(self).__name__} must define loss_inputs(): what its loss reads")
 
     def prepare(self, sub_batch: TensorDictBase) -> TensorDictBase:
         """:meth:`loss_inputs` of a flat ``[N]`` replay sample, zero ``"state"``/``"belief"`` added, on the
