@@ -60,16 +60,13 @@ from torchrl.modules import (
 from torchrl.objectives import DreamerActorLoss, DreamerModelLoss, DreamerValueLoss
 from torchrl.objectives.utils import ValueEstimators
 
-from isodream_rl.baselines.common import (
-    BaselineComponents,
-    CarriedStatePolicy,
-    ZeroStateStepper,
-    latent_dreamer_env,
-    preset_widths,
-)
+from isodream_rl.baselines.common import BaselineComponents, preset_widths
+from isodream_rl.modules.policy import CarriedStatePolicy
+from isodream_rl.objectives.imagination_env import latent_dreamer_env
 from isodream_rl.trainers.builders import make_adam
 from isodream_rl.trainers.config import RunConfig
 from isodream_rl.trainers.registry import register_algorithm
+from isodream_rl.trainers.stepper import ZeroStateStepper
 
 #: The size-preset fields this baseline reads (``SIZE_PRESETS`` merged with the ``model.<field>`` settings).
 SIZE_KEYS = ("depth", "state_dim", "belief_dim", "hidden_dim", "units")
@@ -181,7 +178,8 @@ def _world_model(
 def _model_based_env(
     *, prior: RSSMPrior, reward: nn.Module, action_spec: Bounded, state_dim: int, belief_dim: int, device
 ) -> DreamerEnv:
-    """The example's imagination env (``DreamerEnv``, no decoder), its specs set by :func:`latent_dreamer_env`."""
+    """The example's imagination env (``DreamerEnv``, no decoder), its specs set by
+    :func:`~isodream_rl.objectives.imagination_env.latent_dreamer_env`."""
     transition = SafeSequential(
         SafeModule(prior, in_keys=["state", "belief", "action"], out_keys=["_", "_", "state", "belief"])
     )
@@ -210,7 +208,7 @@ class TorchRLDreamerPolicy(CarriedStatePolicy):
     ``module`` is a ``TensorDictSequential``: ``ObsEncoder`` (float ``"pixels"`` -> ``"encoded_latents"``),
     ``RSSMPosterior`` (``"belief"``, ``"encoded_latents"`` -> ``"state"``), ``DreamerActor`` + ``TanhNormal``
     (-> ``"action"``), ``RSSMPrior`` (-> ``("next", "belief")``), then ``AdditiveGaussianModule``. This wrapper
-    (a :class:`~isodream_rl.baselines.common.CarriedStatePolicy`, carrying ``"state"``/``"belief"``) feeds it and
+    (a :class:`~isodream_rl.modules.policy.CarriedStatePolicy`, carrying ``"state"``/``"belief"``) feeds it and
     keeps the env's tensordict clean:
 
     - uint8 ``"pixels"`` ``[*B, 3, 64, 64]`` become floats in [0, 1] (TorchRL's example: ``ToTensorImage``);
@@ -501,7 +499,7 @@ class TorchRLDreamerOptimizationStepper(ZeroStateStepper):
     Per :meth:`step` on a flat ``[B * T]`` replay sample (``"action"``, ``"is_init"``, uint8
     ``("next", "pixels")``, ``("next", "reward")``):
 
-    1. :meth:`prepare` (:class:`~isodream_rl.baselines.common.ZeroStateStepper`): pixels to floats in [0, 1]
+    1. :meth:`prepare` (:class:`~isodream_rl.trainers.stepper.ZeroStateStepper`): pixels to floats in [0, 1]
        (the example's ``ToTensorImage``), zero ``"state"``/``"belief"`` (the example's primer values), on the
        training device; reshaped to windows ``[B, T]``;
     2. ``DreamerModelLoss`` -> backward of ``kl + reco + reward`` -> clip -> world-model Adam step;

@@ -46,7 +46,7 @@ regularisation 1 and target rate 0.02 (class default 0), a continuation head tra
 ``gamma = 1`` in the lambda-returns; symlog/two-hot reward with 255 bins, return normalisation (5th-95th
 percentile, rate 0.01, floor 1), entropy 3e-4, lambda 0.95, replay-value weight 0.3, policy std in [0.1, 1],
 zero-initialised reward and value outputs, actor outputs scaled by 0.01. All of them sit in
-:class:`DreamerV3Settings`.
+:class:`~isodream_rl.modules.dreamer_v3.DreamerV3Settings`.
 
 Where this departs from TorchRL's settings, and why:
 
@@ -62,19 +62,20 @@ Where this departs from TorchRL's settings, and why:
 - widths (above), and fp32 only (``model.precision=bf16`` is refused: TorchRL's DreamerV3 autocasts on
   CUDA only).
 
-Local pieces, where TorchRL's did not fit:
+Local pieces, where TorchRL's did not fit (those Iso-Dream's DreamerV3 learner shares live in the lower layers):
 
-- :class:`DreamerV3ContinuousActor`: TorchRL ships DreamerV3's discrete actor only
+- :class:`~isodream_rl.modules.dreamer_v3.DreamerV3ContinuousActor`: TorchRL ships DreamerV3's discrete actor only
   (``DreamerV3DiscreteActor``); this is its reproduction's bounded-normal actor, built from ``DreamerV3MLP``.
-- :class:`WindowInputCheck`: the one-line errors the other algos give on a bad batch (pixel range, NaN, no
-  ``is_init``, one-step windows), as the world model's first module.
+- :class:`~isodream_rl.modules.dreamer_v3.WindowInputCheck`: the one-line errors the other algos give on a bad
+  batch (pixel range, NaN, no ``is_init``, one-step windows), as the world model's first module.
 - :class:`TorchRLDreamerV3Policy`: our envs carry the recurrent state under TorchRL's ``("next", ...)``
   convention through a primer, and evaluation reads ``make_tensordict_primer``; it wraps TorchRL's acting
   sequence (which it runs unchanged).
-- :class:`TorchRLDreamerV3OptimizationStepper`: TorchRL's ``DreamerV3OptimizationStepper`` has no skipping of
-  non-finite updates, no update counter and no fixed metric keys, which the run's hooks and checkpoints read;
-  this one runs the same loss, optimiser and target update inside
-  :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper`.
+- :class:`~isodream_rl.trainers.dreamer_v3.DreamerV3OptimizationStepper`: TorchRL's
+  ``DreamerV3OptimizationStepper`` has no skipping of non-finite updates, no update counter and no fixed metric
+  keys, which the run's hooks and checkpoints read; this one runs the same loss, optimiser and target update
+  inside :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper`, on the optimisers of
+  :func:`~isodream_rl.trainers.dreamer_v3.make_dreamer_v3_optimizers`.
 - :class:`TorchRLDreamerV3Components`: the interface of :class:`~isodream_rl.trainers.components.RunComponents`,
   registered as ``algo=torchrl_dreamer_v3`` (:mod:`isodream_rl.trainers.registry`) when this module is imported.
 
@@ -87,12 +88,11 @@ must be its own optimiser (above).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDict
 from tensordict.nn import (
     InteractionType,
     ProbabilisticTensorDictModule,
@@ -118,76 +118,24 @@ from torchrl.modules import (
 )
 from torchrl.objectives import DreamerV3ActorLoss, DreamerV3Loss, DreamerV3ModelLoss, DreamerV3ValueLoss
 from torchrl.objectives.utils import SoftUpdate, ValueEstimators
-from torchrl.trainers.algorithms import DreamerV3Optimizer
 
-from isodream_rl.baselines.common import (
-    BaselineComponents,
-    CarriedStatePolicy,
-    ZeroStateStepper,
-    latent_dreamer_env,
-    preset_widths,
+from isodream_rl.baselines.common import BaselineComponents, preset_widths
+from isodream_rl.modules.dreamer_v3 import (
+    PIXELS,
+    DreamerV3ContinuousActor,
+    DreamerV3Settings,
+    WindowInputCheck,
 )
-from isodream_rl.modules.encoder import check_pixel_values, check_pixels
+from isodream_rl.modules.policy import CarriedStatePolicy
+from isodream_rl.objectives.imagination_env import latent_dreamer_env
 from isodream_rl.trainers.config import ConfigError, RunConfig
+from isodream_rl.trainers.dreamer_v3 import DreamerV3OptimizationStepper, make_dreamer_v3_optimizers
 from isodream_rl.trainers.registry import register_algorithm
-from isodream_rl.trainers.stepper import loss_sum
 
 #: ``hidden`` of DreamerV3's size rule per unit of our preset's ``hidden_dim`` (fitted to Iso-Dream's counts).
 HIDDEN_PER_HIDDEN_DIM = 1.875
 #: The size-preset field this baseline reads (``SIZE_PRESETS`` merged with the ``model.<field>`` settings).
 SIZE_KEYS = ("hidden_dim",)
-#: The observation key of the world model.
-PIXELS = ("next", "pixels")
-#: The parameter groups, each with its own optimiser and learning rate.
-GROUPS = ("world_model", "actor", "value")
-
-
-@dataclass(frozen=True)
-class DreamerV3Settings:
-    """DreamerV3's settings as TorchRL's DreamerV3 reproduction sets them; one home per value."""
-
-    num_categoricals: int = 32
-    """Categorical variables of the stochastic state."""
-    unimix: float = 0.01
-    """Uniform mixture of every categorical (latents, KL)."""
-    num_blocks: int = 8
-    """Blocks of the block GRU and of the decoder's input projection."""
-    prior_layers: int = 2
-    """Hidden layers of the prior's logit MLP."""
-    num_bins: int = 255
-    """Two-hot bins of the reward and value heads."""
-    free_bits: float = 1.0
-    """Free nats of each KL term (on the sum over the categoricals)."""
-    lambda_dynamic: float = 1.0
-    """Weight of the dynamics KL (trains the prior)."""
-    lambda_representation: float = 0.1
-    """Weight of the representation KL (trains the posterior)."""
-    continuation_horizon: float = 333.0
-    """The continuation head learns ``1 - 1 / horizon`` on non-terminal steps: DreamerV3's discount."""
-    lmbda: float = 0.95
-    """lambda of the lambda-returns."""
-    entropy_bonus: float = 3e-4
-    """eta, the actor's entropy weight."""
-    return_normalization_rate: float = 0.01
-    """EMA rate of the 5th / 95th return percentiles."""
-    return_normalization_min_scale: float = 1.0
-    """Floor of the return-normalisation divisor."""
-    slow_critic_regularization: float = 1.0
-    """Weight of the critic's regression towards its slow copy."""
-    slow_critic_tau: float = 0.02
-    """Rate of the slow critic's ``SoftUpdate``."""
-    replay_value_loss_weight: float = 0.3
-    """Weight of the critic loss on replayed posteriors."""
-    policy_min_std: float = 0.1
-    """Lower bound of the actor's std."""
-    policy_max_std: float = 1.0
-    """Upper bound of the actor's std."""
-    agc: float = 0.3
-    """Adaptive gradient clipping: largest gradient norm per unit of parameter norm."""
-    optimizer_eps: float = 1e-20
-    """Epsilon of the optimiser's RMS denominator."""
-    lr_warmup: int = 1000
-    """Updates of linear learning-rate warm-up (the first update has learning rate 0)."""
 
 
 @dataclass(frozen=True)
@@ -235,54 +183,6 @@ class DreamerV3Widths:
 
 
 # ---------------------------------------------------------------------------------------------- world model
-class WindowInputCheck(TensorDictModuleBase):
-    """Refuses a bad ``[B, T]`` replay batch with the one-line errors of the other algorithms' world models.
-
-    Reads uint8 ``("next", "pixels")`` ``[B, T, 3, 64, 64]`` (or floats in [0, 1]), ``"action"`` ``[B, T, A]`` and
-    ``"is_init"`` ``[B, T, 1]``; writes nothing. One min/max of float pixels; uint8 pixels are not scanned.
-
-    Args:
-        action_dim: width of ``"action"``.
-    """
-
-    def __init__(self, *, action_dim: int) -> None:
-        super().__init__()
-        self.action_dim = action_dim
-        self.in_keys = [PIXELS, "action", "is_init"]
-        self.out_keys = []
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        if tensordict.batch_dims != 2:
-            raise ValueError(
-                f"the DreamerV3 world model expects a [B, T] tensordict (replay windows), got batch_size "
-                f"{tuple(tensordict.batch_size)}; reshape flat samples with td.reshape(-1, T)"
-            )
-        pixels, action = tensordict.get(PIXELS, None), tensordict.get("action", None)
-        if pixels is None or action is None:
-            missing = [str(k) for k, v in ((PIXELS, pixels), ("action", action)) if v is None]
-            raise KeyError(f"the DreamerV3 world model needs {missing} in its input tensordict")
-        check_pixels(pixels, name="('next', 'pixels')")
-        if action.dim() != 3 or action.shape[-1] != self.action_dim:
-            raise ValueError(
-                f"'action' must have shape [B, T, {self.action_dim}] for this world model, got {tuple(action.shape)}"
-            )
-        if tensordict.batch_size[1] < 2:
-            raise ValueError(
-                "the DreamerV3 world model needs windows of at least 2 steps (the replay-value target reads the "
-                f"next step; one step teaches no dynamics), got T={tensordict.batch_size[1]}: sample longer windows"
-            )
-        if tensordict.get("is_init", None) is None:
-            raise ValueError(
-                "the DreamerV3 world model needs 'is_init' [B, T, 1] bool (True where an episode starts; TorchRL's "
-                "InitTracker writes it): without it windows never reset. Pass torch.zeros(B, T, 1, "
-                "dtype=torch.bool) for windows inside one episode"
-            )
-        check_pixel_values(pixels, name="('next', 'pixels')")
-        if not bool(torch.isfinite(action).all()):
-            raise ValueError("'action' holds NaN or inf values: check the policy or the replay data")
-        return tensordict
-
-
 @dataclass
 class DreamerV3Parts:
     """The networks, shared by the world model, imagination, the losses and the acting policy."""
@@ -374,7 +274,7 @@ def _model_based_env(
     parts: DreamerV3Parts, *, action_dim: int, state_dim: int, belief_dim: int, num_bins: int, device
 ) -> DreamerEnv:
     """Imagination: the prior steps ``state``/``belief``, the reward head gives the (decoded) reward; the specs
-    set by :func:`~isodream_rl.baselines.common.latent_dreamer_env`."""
+    set by :func:`~isodream_rl.objectives.imagination_env.latent_dreamer_env`."""
     return latent_dreamer_env(
         WorldModelWrapper(
             TensorDictModule(
@@ -393,52 +293,6 @@ def _model_based_env(
 
 
 # ---------------------------------------------------------------------------------------------- behaviour
-class DreamerV3ContinuousActor(nn.Module):
-    """DreamerV3's bounded-normal actor: ``loc = tanh(mean)``, ``scale = (max - min) sigmoid(s + 2) + min``.
-
-    A ``DreamerV3MLP`` trunk (RMS norm, SiLU) on ``[belief, state]`` and two linear heads whose initial weights
-    are scaled by 0.01, as TorchRL's DreamerV3 reproduction builds it.
-
-    Args:
-        in_features: width of ``[belief, state]``.
-        action_dim: width of the action.
-        num_cells: width of the trunk's hidden layers.
-        depth: hidden layers of the trunk. Defaults to 3.
-        min_std: lower bound of the std. Defaults to 0.1.
-        max_std: upper bound of the std. Defaults to 1.0.
-        device: where the parameters live.
-
-    Examples:
-        >>> actor = DreamerV3ContinuousActor(12, 2, num_cells=8)
-        >>> loc, scale = actor(torch.zeros(4, 8), torch.zeros(4, 4))
-        >>> loc.shape, bool(((scale >= 0.1) & (scale <= 1.0)).all())
-        (torch.Size([4, 2]), True)
-    """
-
-    def __init__(
-        self,
-        in_features: int,
-        action_dim: int,
-        *,
-        num_cells: int,
-        depth: int = 3,
-        min_std: float = 0.1,
-        max_std: float = 1.0,
-        device=None,
-    ) -> None:
-        super().__init__()
-        self.trunk = DreamerV3MLP(in_features, None, depth=depth, num_cells=num_cells, device=device)
-        self.mean = DreamerV3MLP(num_cells, action_dim, depth=0, outscale=0.01, device=device)
-        self.std = DreamerV3MLP(num_cells, action_dim, depth=0, outscale=0.01, device=device)
-        self.min_std, self.max_std = min_std, max_std
-
-    def forward(self, belief: torch.Tensor, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``[*B, D]``, ``[*B, S]`` -> ``loc`` ``[*B, A]`` in (-1, 1), ``scale`` ``[*B, A]`` in [min, max]."""
-        hidden = self.trunk(belief, state)
-        scale = (self.max_std - self.min_std) * torch.sigmoid(self.std(hidden) + 2.0) + self.min_std
-        return self.mean(hidden).tanh(), scale
-
-
 def _actor(*, latent: int, action_dim: int, units: int, settings: DreamerV3Settings, device):
     return ProbabilisticTensorDictSequential(
         TensorDictModule(
@@ -486,7 +340,7 @@ class TorchRLDreamerV3Policy(CarriedStatePolicy):
 
     Writes ``"action"`` and, following TorchRL's recurrent convention, ``("next", "state")``, ``("next",
     "belief")`` and ``("next", "previous_action")``; prime the env with :meth:`make_tensordict_primer` (a
-    :class:`~isodream_rl.baselines.common.CarriedStatePolicy`). Runs without gradients, on the device of
+    :class:`~isodream_rl.modules.policy.CarriedStatePolicy`). Runs without gradients, on the device of
     ``module``'s parameters; any batch shape (or none).
 
     Args:
@@ -596,7 +450,7 @@ def make_torchrl_dreamer_v3(
         action_dim: width of the action (in [-1, 1]).
         widths: the widths (:class:`DreamerV3Widths`).
         horizon: imagination horizon.
-        settings: DreamerV3's settings (:class:`DreamerV3Settings`).
+        settings: DreamerV3's settings (:class:`~isodream_rl.modules.dreamer_v3.DreamerV3Settings`).
         device: where the modules live.
 
     Returns:
@@ -672,107 +526,6 @@ def make_torchrl_dreamer_v3(
     )
 
 
-# ---------------------------------------------------------------------------------------------- optimisation
-class TorchRLDreamerV3OptimizationStepper(ZeroStateStepper):
-    """One DreamerV3 update (TorchRL's ``DreamerV3OptimizationStepper``'s, eager) as the run's stepper.
-
-    Per :meth:`step` on a flat ``[B * T]`` replay sample: :meth:`prepare` (zero root ``"state"``/``"belief"``, as
-    TorchRL's reproduction sets them; on the training device: a
-    :class:`~isodream_rl.baselines.common.ZeroStateStepper`), windows ``[B, T]``, then ``DreamerV3Loss`` (world
-    model, imagination from every posterior, actor, critic, replay critic), one backward of the sum of its
-    ``loss_*`` terms, one step of each ``DreamerV3Optimizer`` and of the slow critic's ``SoftUpdate``. During the
-    first ``world_model_warmup`` updates only ``DreamerV3ModelLoss`` runs and only the world model's optimiser
-    steps (the other terms are logged as NaN).
-
-    An update whose loss or gradient norm (``grad_norm_<group>``, logged before the optimiser's own adaptive
-    clipping: no other clipping) is not finite is skipped; ``max_nonfinite`` in a row raise. Counters, metric
-    keys and checkpoint state are those of :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper`;
-    the return normalisation's statistics are module buffers, checkpointed with the models.
-
-    Args:
-        loss_module: ``DreamerV3Loss``.
-        optimizers: a ``DreamerV3Optimizer`` per parameter group: ``"world_model"``, ``"actor"``, ``"value"``.
-        target_updater: the slow critic's ``SoftUpdate``.
-        sequence_length: T, the replay window length.
-        state_dim: width of ``"state"``.
-        belief_dim: width of ``"belief"``.
-        max_nonfinite: non-finite updates in a row that stop the run.
-        world_model_warmup: updates of the world model alone first.
-        device: the training device.
-    """
-
-    def __init__(
-        self,
-        *,
-        loss_module: DreamerV3Loss,
-        optimizers: dict[str, torch.optim.Optimizer],
-        target_updater: SoftUpdate,
-        sequence_length: int,
-        state_dim: int,
-        belief_dim: int,
-        max_nonfinite: int = 5,
-        world_model_warmup: int = 0,
-        device: str | torch.device = "cpu",
-    ) -> None:
-        if set(optimizers) != set(GROUPS):
-            raise ValueError(f"optimizers must be keyed {list(GROUPS)}, got {sorted(optimizers)}")
-        super().__init__(
-            model_loss=loss_module.model_loss,
-            world_model_optimizer=optimizers["world_model"],
-            sequence_length=sequence_length,
-            target_updater=target_updater,
-            grad_clip=math.inf,
-            max_nonfinite=max_nonfinite,
-            world_model_warmup=world_model_warmup,
-            state_dim=state_dim,
-            belief_dim=belief_dim,
-            device=device,
-        )
-        self.optimizers = {name: optimizers[name] for name in GROUPS}
-        self.loss_module = loss_module
-
-    def loss_inputs(self, sub_batch: TensorDictBase) -> TensorDictBase:
-        """What ``DreamerV3Loss`` reads of a flat ``[N]`` replay sample: ``"action"``, ``"is_init"``, ``("next",
-        "pixels")`` (as stored, uint8), ``("next", "reward")``, ``("next", "done")``, ``("next", "terminated")``
-        (:meth:`prepare` adds zero ``"state"`` / ``"belief"``: the rollout reads each window's first step)."""
-        return sub_batch.select(
-            "action",
-            "is_init",
-            PIXELS,
-            ("next", "reward"),
-            ("next", "done"),
-            ("next", "terminated"),
-            strict=False,
-        )
-
-    def _losses(self, batch: TensorDictBase, *, world_model_only: bool) -> TensorDictBase:
-        if world_model_only:
-            losses, _ = self.loss_module.model_loss(batch)
-            return losses.apply(torch.squeeze)
-        losses = self.loss_module(batch)
-        return losses.exclude(self.loss_module.tensor_keys.replay_context)
-
-    @torch.no_grad()
-    def _discover_keys(self, batch: TensorDictBase) -> None:
-        """The metric names of a full update, from the loss on a ``[1, 2]`` slice of the first batch; the return
-        normalisation's statistics it moves are put back, so that a resumed run continues exactly."""
-        saved = [(buffer, buffer.clone()) for buffer in self.loss_module.buffers()]
-        try:
-            keys = list(self._losses(batch, world_model_only=False).keys())
-        finally:
-            for buffer, value in saved:
-                buffer.copy_(value)
-        self._metric_keys = [*keys, *(f"grad_norm_{name}" for name in GROUPS), "nonfinite_skipped"]
-
-    def _run(self, batch: TensorDictBase, metrics: dict[str, torch.Tensor]) -> bool:
-        warming_up = self.updates < self.world_model_warmup
-        losses = self._losses(batch, world_model_only=warming_up)
-        metrics.update({k: v.detach() for k, v in losses.items()})
-        # grad_clip is inf: _clip_and_step only measures the norms, TorchRL's optimiser clips
-        stepped = ["world_model"] if warming_up else list(GROUPS)
-        return self._backward(loss_sum(losses), list(GROUPS)) and self._clip_and_step(stepped, metrics)
-
-
 # ---------------------------------------------------------------------------------------------- run components
 @dataclass
 class TorchRLDreamerV3Behavior:
@@ -797,12 +550,13 @@ class TorchRLDreamerV3Components(BaselineComponents):
         cfg: the run configuration.
         action_dim: width of the env's action.
         scratch_dir: folder of the replay buffer's memmap files.
-        settings: DreamerV3's settings. Defaults to TorchRL's (:class:`DreamerV3Settings`).
+        settings: DreamerV3's settings. Defaults to TorchRL's
+            (:class:`~isodream_rl.modules.dreamer_v3.DreamerV3Settings`).
 
     Attributes:
         learner (:class:`TorchRLDreamerV3Learner`), model_loss (``DreamerV3ModelLoss``), world_model (``None``: no
         open-loop prediction in the evaluation), behavior (:class:`TorchRLDreamerV3Behavior`), stepper
-        (:class:`TorchRLDreamerV3OptimizationStepper`), replay_buffer, preparation, returns.
+        (:class:`~isodream_rl.trainers.dreamer_v3.DreamerV3OptimizationStepper`), replay_buffer, preparation, returns.
     """
 
     algo = "torchrl_dreamer_v3"
@@ -830,17 +584,10 @@ class TorchRLDreamerV3Components(BaselineComponents):
             policy=self.learner.policy, actor_loss=self.learner.actor_loss, value_loss=self.learner.value_loss
         )
         rates = {"world_model": train.world_model_lr, "actor": train.actor_lr, "value": train.value_lr}
-        optimizers = {
-            name: DreamerV3Optimizer(
-                params,
-                lr=rates[name],
-                agc=settings.agc,
-                eps=settings.optimizer_eps,
-                warmup_steps=settings.lr_warmup,
-            )
-            for name, params in self.learner.parameter_groups().items()
-        }
-        self.stepper = TorchRLDreamerV3OptimizationStepper(
+        optimizers = make_dreamer_v3_optimizers(
+            self.learner.parameter_groups(), rates=rates, settings=settings
+        )
+        self.stepper = DreamerV3OptimizationStepper(
             loss_module=self.learner.loss_module,
             optimizers=optimizers,
             target_updater=self.learner.target_updater,

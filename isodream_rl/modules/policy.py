@@ -1,4 +1,9 @@
-"""Policy deployment by rolling out noncontrollable dynamics (paper §3.4, Algorithm 1 lines 19-22)."""
+"""Policy deployment by rolling out noncontrollable dynamics (paper §3.4, Algorithm 1 lines 19-22).
+
+:class:`IsoDreamPolicy` acts for Iso-Dream; :class:`CarriedStatePolicy` is the base of the acting policies around a
+TorchRL acting sequence (the baselines', Iso-Dream's DreamerV3 learner's): the recurrent state carried under
+TorchRL's ``("next", ...)`` convention, through a primer.
+"""
 
 from __future__ import annotations
 
@@ -59,6 +64,82 @@ def read_acting_inputs(
     is_init = tensordict.get("is_init", None)
     reset = None if is_init is None else is_init.to(device).reshape(n, 1).bool()
     return pixels.reshape(n, *IMAGE_SHAPE), carried, reset
+
+
+class CarriedStatePolicy(TensorDictModuleBase):
+    """An acting policy around a TorchRL acting sequence ``module`` that carries its recurrent state.
+
+    At each env step it reads uint8 ``pixels_key`` ``[*B, 3, 64, 64]``, ``"is_init"`` and the carried keys
+    (``widths``' keys, ``[*B, width]``), flattens them over the env batch, lets :meth:`act` run ``module``, and
+    writes only ``action_key`` and ``("next", key)`` for each carried key, following TorchRL's recurrent
+    convention; prime the env with :meth:`make_tensordict_primer`. Runs without gradients, on the device of
+    ``module``'s parameters; any batch shape (or none). Subclasses implement :meth:`act`.
+
+    Args:
+        module: the acting sequence.
+        widths: the carried keys and their widths, e.g. ``{"state": S, "belief": D}``.
+        pixels_key: the observation key. Defaults to ``"pixels"``.
+        action_key: where the action is written. Defaults to ``"action"``.
+    """
+
+    def __init__(
+        self,
+        module: TensorDictModuleBase,
+        *,
+        widths: dict[str, int],
+        pixels_key: str = "pixels",
+        action_key: str = "action",
+    ) -> None:
+        super().__init__()
+        self.module = module
+        self.widths = dict(widths)
+        self.pixels_key, self.action_key = pixels_key, action_key
+        self.in_keys = [pixels_key, "is_init", *self.widths]
+        self.out_keys = [action_key, *(("next", key) for key in self.widths)]
+
+    def recurrent_spec(self) -> Composite:
+        """Specs of the carried keys (unbatched), ``[width]`` each."""
+        device = next(self.module.parameters()).device
+        return Composite({key: Unbounded((width,), device=device) for key, width in self.widths.items()})
+
+    def make_tensordict_primer(self) -> TensorDictPrimer:
+        """A ``TensorDictPrimer`` adding the carried keys (zeros at reset) to an env or a batch of envs."""
+        return carried_state_primer(self.recurrent_spec())
+
+    def act(
+        self, pixels: torch.Tensor, carried: dict[str, torch.Tensor], reset: torch.Tensor | None
+    ) -> dict[str, torch.Tensor]:
+        """One step of the acting sequence.
+
+        Args:
+            pixels: uint8 ``[N, 3, 64, 64]`` on the module's device.
+            carried: each carried key ``[N, width]``.
+            reset: ``[N, 1]`` bool, ``True`` where an episode starts; ``None`` without ``"is_init"``.
+
+        Returns:
+            ``action_key`` ``[N, A]`` and the next value of each carried key ``[N, width]``.
+        """
+        raise NotImplementedError(f"{type(self).__name__} must define act(): each baseline's policy step")
+
+    @torch.no_grad()
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        batch = tensordict.batch_size
+        device = next(self.module.parameters()).device
+        pixels, carried, reset = read_acting_inputs(
+            tensordict,
+            owner=type(self).__name__,
+            pixels_key=self.pixels_key,
+            carried_keys=list(self.widths),
+            device=device,
+        )
+        if pixels.dtype != torch.uint8:
+            raise ValueError(f"{self.pixels_key!r} must be uint8 [*B, 3, 64, 64], got {pixels.dtype}")
+        out_device = tensordict.device if tensordict.device is not None else pixels.device
+        outputs = self.act(pixels.to(device), carried, reset)
+        tensordict.set(self.action_key, outputs[self.action_key].to(out_device).reshape(*batch, -1))
+        for key in self.widths:
+            tensordict.set(("next", key), outputs[key].to(out_device).reshape(*batch, -1))
+        return tensordict
 
 
 class IsoDreamPolicy(TensorDictModuleBase):

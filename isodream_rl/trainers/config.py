@@ -29,6 +29,7 @@ _ALL_BRANCHES = {"free_branch": True, "static_branch": True, "inverse_dynamics":
 ALGO_BRANCHES: dict[str, dict[str, bool]] = {
     "isodream": _ALL_BRANCHES,
     "isodream_paper": _ALL_BRANCHES,
+    "isodream_v3": _ALL_BRANCHES,
     "dreamerv2": DREAMERV2,
     "isodream_no_inverse": {**_ALL_BRANCHES, "inverse_dynamics": False},
     "isodream_no_attention": _ALL_BRANCHES,

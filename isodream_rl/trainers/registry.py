@@ -20,6 +20,7 @@ from typing import Protocol, TypeVar
 
 from isodream_rl.trainers.components import RunComponents
 from isodream_rl.trainers.config import ALGO_NAMES, ConfigError, RunConfig
+from isodream_rl.trainers.isodream_v3 import IsoDreamV3Components
 from isodream_rl.trainers.world_model_config import TORCHRL_BASELINES
 
 
@@ -36,6 +37,7 @@ Builder = TypeVar("Builder", bound=ComponentsBuilder)
 ALGORITHMS: dict[str, ComponentsBuilder] = dict.fromkeys(
     (name for name in ALGO_NAMES if name not in TORCHRL_BASELINES), RunComponents
 )
+ALGORITHMS["isodream_v3"] = IsoDreamV3Components
 
 #: the module that registers each algorithm defined outside the trainers, named when it is not registered yet
 DEFINED_IN = dict.fromkeys(TORCHRL_BASELINES, "isodream_rl.baselines")

@@ -18,6 +18,9 @@ from isodream_rl.objectives.world_model import FREE_BRANCH_MODES
 MODES = ("rl", "world_model")
 #: The algorithms built from TorchRL's own Dreamer pieces (``isodream_rl.baselines``): no Iso-Dream world model.
 TORCHRL_BASELINES = ("torchrl_dreamer", "torchrl_dreamer_v3")
+#: The algorithms whose world model is not :class:`~isodream_rl.modules.IsoDreamWorldModel` (TorchRL's baselines and
+#: Iso-Dream on DreamerV3's learner): no ``mode=world_model``, no open-loop pictures or probes of that class.
+OTHER_WORLD_MODELS = (*TORCHRL_BASELINES, "isodream_v3")
 
 
 @dataclass
@@ -55,9 +58,10 @@ def world_model_mode_errors(cfg: Any) -> list[str]:
         errors.append(
             f"algo.free_branch_loss={algo.free_branch_loss!r} is not one of {list(FREE_BRANCH_MODES)}"
         )
-    if algo.name in TORCHRL_BASELINES:
+    if algo.name in OTHER_WORLD_MODELS:
         errors.append(
-            "mode=world_model trains Iso-Dream's world model: pick another algo (dreamerv2 is the baseline)"
+            f"mode=world_model trains the DreamerV2-style Iso-Dream world model, not algo={algo.name}'s: pick "
+            "isodream, isodream_paper or dreamerv2"
         )
     for name, value, minimum in (
         ("world_model.updates", wm.updates, 1),

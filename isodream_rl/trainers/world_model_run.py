@@ -69,7 +69,7 @@ from isodream_rl.trainers.run_lifecycle import (
     write_summary,
 )
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
-from isodream_rl.trainers.world_model_config import TORCHRL_BASELINES
+from isodream_rl.trainers.world_model_config import OTHER_WORLD_MODELS
 
 logger = logging.getLogger(__name__)
 
@@ -192,9 +192,9 @@ def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDream
     else:
         state, path = manager.load_latest(required_keys=("config", "models"))
     cfg = config_from_dict(state["config"])
-    if cfg.algo.name in TORCHRL_BASELINES:
+    if cfg.algo.name in OTHER_WORLD_MODELS:
         raise CheckpointError(
-            f"{path} holds the world model of algo={cfg.algo.name} (TorchRL's), not Iso-Dream's"
+            f"{path} holds the world model of algo={cfg.algo.name}, not the DreamerV2-style Iso-Dream's"
         )
     cfg.model.precision = "fp32"
     model = IsoDreamWorldModel(make_world_model_config(cfg, action_dim=probe_action_dim(cfg)), device=device)

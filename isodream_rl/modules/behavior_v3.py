@@ -1,0 +1,224 @@
+"""The actor, the critic and the acting policy of Iso-Dream's DreamerV3 learner (paper eqs. 6-7, Algorithm 1).
+
+Both read ``e_t`` (eq. 7) from the packed latent of :class:`~isodream_rl.modules.world_model_v3.IsoDreamV3WorldModel`
+(``state = [s, z]``, ``belief = [h, h']``) and, in ``"attention"`` mode, the window ``free_window`` ``[*N, tau, F]``
+of ``z`` rolled ``tau - 1`` steps ahead: ``e = Attention([s, h], window)`` (eq. 6,
+:class:`~isodream_rl.modules.FutureStateAttention`). On ``e`` sit DreamerV3's heads: the bounded-normal actor
+(:class:`~isodream_rl.modules.dreamer_v3.DreamerV3ContinuousActor`) and a two-hot critic (``DreamerV3MLP`` +
+``SymExpTwoHot``), each with an attention of its own.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+from tensordict.nn import (
+    InteractionType,
+    ProbabilisticTensorDictModule,
+    ProbabilisticTensorDictSequential,
+    TensorDictModule,
+    TensorDictModuleBase,
+    TensorDictSequential,
+)
+from torch import nn
+from torchrl.modules import DreamerV3MLP, IndependentNormal, SymExpTwoHot
+
+from isodream_rl.modules.attention import POLICY_INPUTS, FutureStateAttention
+from isodream_rl.modules.dreamer_v3 import DreamerV3ContinuousActor
+from isodream_rl.modules.policy import CarriedStatePolicy
+from isodream_rl.modules.world_model_v3 import FREE_ACTION_DIM, IsoDreamV3Config, IsoDreamV3WorldModel
+
+
+class PolicyFeaturesV3(nn.Module):
+    """``e_t`` (eq. 7) from the packed latent.
+
+    Args:
+        config: the world model's :class:`~isodream_rl.modules.world_model_v3.IsoDreamV3Config`.
+        mode: ``"attention"`` (eq. 6: ``[s, h]`` attends over the window of ``[z, h']``), ``"controllable"``
+            (``[h, s]``, the DMC setting) or ``"concat"`` (``[h, s, h', z]``).
+        attention_dim: width of the attention's projections.
+        device: where the parameters live.
+
+    Shapes:
+        ``state`` ``[*N, S]``, ``belief`` ``[*N, D]`` (packed), ``free_window`` ``[*N, tau, F]`` (attention mode
+        only) -> ``[*N, feature_dim]``.
+    """
+
+    def __init__(
+        self, config: IsoDreamV3Config, *, mode: str = "attention", attention_dim: int = 64, device=None
+    ) -> None:
+        super().__init__()
+        if mode not in POLICY_INPUTS:
+            raise ValueError(f"unknown policy_input {mode!r}; valid: {POLICY_INPUTS}")
+        if mode != "controllable" and not config.free_branch:
+            raise ValueError(f"policy_input={mode!r} reads the noncontrollable branch, which this model lacks")
+        self.mode = mode
+        self.state_dim, self.deter = config.state_dim, config.deter
+        width = config.branch_feature_dim
+        self.feature_dim = 2 * width if mode == "concat" else width
+        self.attention = (
+            FutureStateAttention(query_dim=width, key_dim=width, width=attention_dim, device=device)
+            if mode == "attention"
+            else None
+        )
+
+    @property
+    def in_keys(self) -> list[str]:
+        """The tensordict keys :meth:`forward` reads, in order."""
+        return ["state", "belief", "free_window"] if self.mode == "attention" else ["state", "belief"]
+
+    def forward(
+        self, state: torch.Tensor, belief: torch.Tensor, free_window: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        s, h = state[..., : self.state_dim], belief[..., : self.deter]
+        if self.mode == "controllable":
+            return torch.cat([h, s], dim=-1)
+        if self.mode == "concat":
+            return torch.cat([h, s, belief[..., self.deter :], state[..., self.state_dim :]], dim=-1)
+        return self.attention(torch.cat([s, h], dim=-1), free_window)
+
+
+class _OnFeatures(nn.Module):
+    """``head(features(state, belief[, window]))``."""
+
+    def __init__(self, features: PolicyFeaturesV3, head: nn.Module) -> None:
+        super().__init__()
+        self.features, self.head = features, head
+
+    def forward(self, *inputs: torch.Tensor):
+        return self.head(self.features(*inputs))
+
+
+def make_actor_v3(
+    config: IsoDreamV3Config, *, mode: str, attention_dim: int, units: int, device=None
+) -> ProbabilisticTensorDictSequential:
+    """The actor ``pi(a | e_t)``: features, DreamerV3's bounded-normal head (3 hidden layers of ``units``), an
+    ``IndependentNormal`` sampled (``RANDOM``) or at its mean (deterministic), with ``action_log_prob``."""
+    settings = config.settings
+    features = PolicyFeaturesV3(config, mode=mode, attention_dim=attention_dim, device=device)
+    head = DreamerV3ContinuousActor(
+        features.feature_dim,
+        config.action_dim,
+        num_cells=units,
+        min_std=settings.policy_min_std,
+        max_std=settings.policy_max_std,
+        device=device,
+    )
+    return ProbabilisticTensorDictSequential(
+        TensorDictModule(_OnFeatures(features, head), in_keys=features.in_keys, out_keys=["loc", "scale"]),
+        ProbabilisticTensorDictModule(
+            in_keys=["loc", "scale"],
+            out_keys=["action"],
+            default_interaction_type=InteractionType.RANDOM,
+            distribution_class=IndependentNormal,
+            return_log_prob=True,
+            log_prob_key="action_log_prob",
+        ),
+    )
+
+
+def make_value_v3(
+    config: IsoDreamV3Config, *, mode: str, attention_dim: int, units: int, device=None
+) -> TensorDictSequential:
+    """The critic ``v(e_t)``: features, a two-hot ``DreamerV3MLP`` (3 hidden layers, output initialised to zero)
+    writing ``state_value_logits``, decoded to ``state_value`` by ``SymExpTwoHot``."""
+    bins = config.settings.num_bins
+    features = PolicyFeaturesV3(config, mode=mode, attention_dim=attention_dim, device=device)
+    head = DreamerV3MLP(features.feature_dim, bins, depth=3, num_cells=units, outscale=0.0, device=device)
+    return TensorDictSequential(
+        TensorDictModule(_OnFeatures(features, head), in_keys=features.in_keys, out_keys=["state_value_logits"]),
+        TensorDictModule(SymExpTwoHot(bins), in_keys=["state_value_logits"], out_keys=["state_value"]),
+    )
+
+
+class IsoDreamV3StateEstimator(TensorDictModuleBase):
+    """The acting filter of both branches (eqs. 2-3) and the look-ahead window (Algorithm 1, line 3).
+
+    Reads ``"state"``/``"belief"`` (packed, the previous step's), ``"previous_action"``, ``"encoded_latents"``
+    (the encoder on the current frame) and ``"is_init"``; zeroes the three where ``is_init``; advances each branch's
+    belief (the controllable one with the previous action, the action-free one with none) and samples its
+    posterior; writes the packed ``"state"``, ``"belief"`` and, with the action-free branch, ``"free_window"``
+    ``[*N, tau, F]`` (``z`` rolled ``tau - 1`` prior steps ahead). As TorchRL's ``RSSMStateEstimatorV3``, one branch
+    at a time.
+
+    Args:
+        world_model: the trained :class:`~isodream_rl.modules.world_model_v3.IsoDreamV3WorldModel` (shared).
+    """
+
+    def __init__(self, world_model: IsoDreamV3WorldModel) -> None:
+        super().__init__()
+        self.world_model = world_model
+        self.in_keys = ["state", "belief", "previous_action", "encoded_latents", "is_init"]
+        self.out_keys = ["state", "belief"] + (["free_window"] if world_model.config.free_branch else [])
+
+    def forward(self, tensordict: TensorDict) -> TensorDict:
+        model = self.world_model
+        state, belief, action, embed, reset = (tensordict.get(key) for key in self.in_keys)
+        reset = reset.reshape(*tensordict.batch_size, 1)
+        state, belief, action = (torch.where(reset, 0, x) for x in (state, belief, action))
+        s, z = model.split_state(state)
+        h, h_free = model.split_belief(belief)
+        h = model.control_prior._update_belief(s, h, action)
+        _, s = model.control_posterior(h, embed)
+        states, beliefs = [s], [h]
+        if z is not None:
+            zero = action.new_zeros(*action.shape[:-1], FREE_ACTION_DIM)
+            h_free = model.free_prior._update_belief(z, h_free, zero)
+            _, z = model.free_posterior(h_free, embed)
+            states.append(z)
+            beliefs.append(h_free)
+            tensordict.set("free_window", model.free_window(z, h_free).float())
+        tensordict.set("state", torch.cat(states, dim=-1).float())
+        tensordict.set("belief", torch.cat(beliefs, dim=-1).float())
+        return tensordict
+
+
+class IsoDreamV3Policy(CarriedStatePolicy):
+    """Iso-Dream's acting policy on the DreamerV3 learner: encoder, :class:`IsoDreamV3StateEstimator`, actor.
+
+    At each env step, uint8 ``"pixels"`` ``[*B, 3, 64, 64]`` and the carried packed ``state``, ``belief`` and
+    ``previous_action`` in; the action (sampled under exploration type ``RANDOM`` or unset, the mean under
+    ``DETERMINISTIC``/``MODE``/``MEAN``) clamped to [-1, 1] out, with the next carried keys under ``"next"``
+    (a :class:`~isodream_rl.modules.policy.CarriedStatePolicy`: prime the env with :meth:`make_tensordict_primer`).
+
+    Args:
+        world_model: the trained world model (shared).
+        actor: the actor of :func:`make_actor_v3` (shared).
+    """
+
+    def __init__(self, world_model: IsoDreamV3WorldModel, actor: ProbabilisticTensorDictSequential) -> None:
+        cfg = world_model.config
+        module = TensorDictSequential(
+            TensorDictModule(world_model.encoder, in_keys=["pixels"], out_keys=["encoded_latents"]),
+            IsoDreamV3StateEstimator(world_model),
+            actor,
+        )
+        super().__init__(
+            module,
+            widths={
+                "state": cfg.packed_state_dim,
+                "belief": cfg.packed_belief_dim,
+                "previous_action": cfg.action_dim,
+            },
+        )
+
+    def act(
+        self, pixels: torch.Tensor, carried: dict[str, torch.Tensor], reset: torch.Tensor | None
+    ) -> dict[str, torch.Tensor]:
+        """The acting sequence; the action clamped to [-1, 1], also the next ``previous_action``."""
+        n = pixels.shape[0]
+        if reset is None:
+            reset = torch.zeros(n, 1, dtype=torch.bool, device=pixels.device)
+        work = TensorDict({"pixels": pixels, "is_init": reset, **carried}, batch_size=[n], device=pixels.device)
+        self.module(work)
+        action = work.get("action").clamp(-1.0, 1.0)
+        return {"action": action, "state": work.get("state"), "belief": work.get("belief"), "previous_action": action}
+
+
+__all__ = [
+    "IsoDreamV3Policy",
+    "IsoDreamV3StateEstimator",
+    "PolicyFeaturesV3",
+    "make_actor_v3",
+    "make_value_v3",
+]

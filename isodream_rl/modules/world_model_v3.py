@@ -1,0 +1,388 @@
+"""Iso-Dream's decoupled world model (paper eqs. 2-5) built from TorchRL's DreamerV3 pieces.
+
+The same decomposition as :class:`~isodream_rl.modules.IsoDreamWorldModel` (an action-conditioned RSSM for the
+controllable state ``s``, an action-free RSSM for the noncontrollable state ``z``, a static background, three
+decoders composed by softmax masks, an inverse-dynamics cell), with DreamerV3's parts in place of DreamerV2's:
+``DreamerV3ImageEncoder`` (RMS norm, SiLU), two block-GRU RSSMs with categorical latents and 1 % unimix
+(``RSSMPriorV3`` / ``RSSMPosteriorV3``, each rolled by its own ``RSSMRolloutV3``), three ``DreamerV3ImageDecoder``
+(RGB + mask logit), a symlog two-hot reward head and a continuation head (``DreamerV3MLP``).
+
+Why a module of its own rather than a ``TensorDictSequential`` of TorchRL modules: ``RSSMRolloutV3`` reads and
+writes the fixed keys ``state``/``belief``, so each branch is rolled on a tensordict of its own and the two are
+packed afterwards; and the composition (eq. 4) takes three decoders at once.
+
+Packed keys. Everything downstream (``DreamerV3ModelLoss``, ``DreamerV3Loss``, the imagination env, the actor and
+the critic) sees one latent: ``state = [s, z]`` and ``belief = [h, h']`` (controllable first), and the prior /
+posterior logits of both branches concatenated along the categoricals (``[*B, T, 2K, C]``), so that the KL terms of
+``DreamerV3ModelLoss`` are the sum of both branches' (eq. 5's two KL terms, with one free-bits floor on their sum).
+:meth:`IsoDreamV3WorldModel.split_state` / :meth:`IsoDreamV3WorldModel.split_belief` undo the packing.
+
+The action-free prior (eq. 3) is ``RSSMPriorV3`` fed a constant zero action of width 1: its block GRU then sees
+the bias of its action projection only, so its dynamics do not depend on the actions (``RSSMPriorV3`` needs an
+action input).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModule, TensorDictModuleBase
+from torch import nn
+from torchrl.modules import (
+    DreamerV3ImageDecoder,
+    DreamerV3ImageEncoder,
+    DreamerV3MLP,
+    RSSMPosteriorV3,
+    RSSMPriorV3,
+    RSSMRolloutV3,
+    SymExpTwoHot,
+)
+
+from isodream_rl.modules.composition import MaskComposition
+from isodream_rl.modules.dreamer_v3 import DreamerV3Settings, WindowInputCheck
+from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
+
+PIXELS = ("next", "pixels")
+#: Width of the constant zero action of the action-free prior.
+FREE_ACTION_DIM = 1
+
+
+def _next(key: str) -> tuple[str, str]:
+    return ("next", key)
+
+
+@dataclass(frozen=True)
+class IsoDreamV3Config:
+    """Widths and switches of :class:`IsoDreamV3WorldModel`.
+
+    DreamerV3's size rule per branch: ``hidden`` (RSSM hidden layers, heads), ``deter = 8 hidden`` (GRU state),
+    ``settings.num_categoricals`` categoricals of ``hidden / 16`` classes; image depth ``hidden / 16``.
+    """
+
+    action_dim: int
+    """Width of the action."""
+    hidden: int
+    """DreamerV3's ``hidden`` of each branch."""
+    image_depth: int
+    """Base channel count of the encoder and of each decoder."""
+    units: int
+    """Width of the reward, continuation and inverse-dynamics hidden layers."""
+    attention_window: int = 3
+    """tau: the noncontrollable states a window holds (the current one and ``tau - 1`` predicted)."""
+    free_branch: bool = True
+    """The action-free branch (``z``)."""
+    static_branch: bool = True
+    """The static background branch."""
+    inverse_dynamics: bool = True
+    """The inverse-dynamics cell (predicts ``a_t`` from ``[s_t, s_{t+1}]``)."""
+    reward_uses_free: bool = True
+    """The reward and continuation heads read ``[h, s, h', z]`` (CARLA, sprites) rather than ``[h, s]``."""
+    static_frames: int = 1
+    """K: the frames whose embeddings give a window's background."""
+    settings: DreamerV3Settings = DreamerV3Settings()
+    """DreamerV3's settings (unimix, categoricals, bins, blocks)."""
+
+    @property
+    def deter(self) -> int:
+        """Belief width of each branch."""
+        return 8 * self.hidden
+
+    @property
+    def classes(self) -> int:
+        """Classes of each categorical."""
+        return max(1, (self.hidden + 8) // 16)
+
+    @property
+    def state_dim(self) -> int:
+        """One branch's one-hot ``state`` width: categoricals x classes."""
+        return self.settings.num_categoricals * self.classes
+
+    @property
+    def branches(self) -> int:
+        """1 or 2 latent branches."""
+        return 2 if self.free_branch else 1
+
+    @property
+    def packed_state_dim(self) -> int:
+        """Width of the packed ``state`` ``[s, z]``."""
+        return self.branches * self.state_dim
+
+    @property
+    def packed_belief_dim(self) -> int:
+        """Width of the packed ``belief`` ``[h, h']``."""
+        return self.branches * self.deter
+
+    @property
+    def branch_feature_dim(self) -> int:
+        """Width of one branch's features ``[s, h]`` (or ``[z, h']``)."""
+        return self.state_dim + self.deter
+
+    @property
+    def head_feature_dim(self) -> int:
+        """Width of the reward / continuation heads' input."""
+        return self.branch_feature_dim * (self.branches if self.reward_uses_free else 1)
+
+
+def make_rssm(config: IsoDreamV3Config, *, action_dim: int, embed_dim: int, device=None):
+    """One branch's ``RSSMPriorV3`` (block GRU) and ``RSSMPosteriorV3`` (RMS-normed), DreamerV3's settings."""
+    settings = config.settings
+    categorical = {"num_categoricals": settings.num_categoricals, "num_classes": config.classes}
+    prior = RSSMPriorV3(
+        action_shape=(action_dim,),
+        hidden_dim=config.hidden,
+        rnn_hidden_dim=config.deter,
+        action_dim=action_dim,
+        recurrent_model="block_gru",
+        num_blocks=settings.num_blocks,
+        prior_num_layers=settings.prior_layers,
+        unimix=settings.unimix,
+        device=device,
+        **categorical,
+    )
+    posterior = RSSMPosteriorV3(
+        hidden_dim=config.hidden,
+        rnn_hidden_dim=config.deter,
+        obs_embed_dim=embed_dim,
+        use_rms_norm=True,
+        unimix=settings.unimix,
+        device=device,
+        **categorical,
+    )
+    return prior, posterior
+
+
+def branch_rollout(prior: RSSMPriorV3, posterior: RSSMPosteriorV3) -> RSSMRolloutV3:
+    """``RSSMRolloutV3`` over one branch with TorchRL's standard keys (its tensor fast path), reset at ``is_init``."""
+    return RSSMRolloutV3(
+        TensorDictModule(
+            prior, in_keys=["state", "belief", "action"], out_keys=[_next(k) for k in ("prior_logits", "state", "belief")]
+        ),
+        TensorDictModule(
+            posterior,
+            in_keys=[_next("belief"), _next("encoded_latents")],
+            out_keys=[_next("posterior_logits"), _next("state")],
+        ),
+        reset_key="is_init",
+    )
+
+
+class IsoDreamV3WorldModel(TensorDictModuleBase):
+    """The decoupled world model on DreamerV3's parts (paper eqs. 2-5; see the module docstring).
+
+    Reads ``("next", "pixels")`` uint8 ``[B, T, 3, 64, 64]`` (or floats in [0, 1]), ``"action"`` ``[B, T, A]``,
+    ``"is_init"`` ``[B, T, 1]`` and root ``"state"`` ``[B, T, S]`` / ``"belief"`` ``[B, T, D]`` (packed; each
+    window starts from their first step, zeros in training).
+
+    Writes under ``"next"``: the packed ``state`` / ``belief`` and ``prior_logits`` / ``posterior_logits``
+    ``[B, T, 2K, C]``; ``reco_pixels`` (the composite, eq. 4, in [0, 1] units) ``[B, T, 3, 64, 64]``,
+    ``reco_control`` / ``reco_free`` (the components) and ``mask_control`` / ``mask_free`` / ``mask_static``
+    ``[B, T, 1, 64, 64]``; ``reward_logits`` ``[B, T, bins]`` and the decoded ``reward`` ``[B, T, 1]``;
+    ``continue_pred`` (logit) ``[B, T, 1]``; ``action_pred`` ``[B, T, A]`` with ``action_pred_valid``
+    ``[B, T, 1]`` (inverse dynamics, eq. 5's action term; predicts ``action[t]`` from the posteriors before and
+    after it); ``free_window`` ``[B, T, tau, F]`` (``z`` of the step and ``tau - 1`` prior steps rolled from it,
+    for the critic on replayed states); and root ``background`` ``[B, T, 3, 64, 64]`` with the static branch.
+
+    Args:
+        config: widths and switches (:class:`IsoDreamV3Config`).
+        device: where the parameters live.
+
+    Examples:
+        >>> config = IsoDreamV3Config(action_dim=2, hidden=16, image_depth=2, units=16)
+        >>> model = IsoDreamV3WorldModel(config)
+        >>> td = TensorDict({
+        ...     ("next", "pixels"): torch.zeros(2, 3, 3, 64, 64, dtype=torch.uint8),
+        ...     "action": torch.zeros(2, 3, 2), "is_init": torch.zeros(2, 3, 1, dtype=torch.bool),
+        ...     "state": torch.zeros(2, 3, config.packed_state_dim),
+        ...     "belief": torch.zeros(2, 3, config.packed_belief_dim)}, [2, 3])
+        >>> model(td)["next", "reco_pixels"].shape
+        torch.Size([2, 3, 3, 64, 64])
+    """
+
+    def __init__(self, config: IsoDreamV3Config, *, device: torch.device | str | None = None) -> None:
+        super().__init__()
+        self.config = cfg = config
+        settings = cfg.settings
+        self.check = WindowInputCheck(action_dim=cfg.action_dim)
+        self.encoder = DreamerV3ImageEncoder(depth=cfg.image_depth, device=device)
+        embed = self.encoder.output_features((3, 64, 64))
+        self.control_prior, self.control_posterior = make_rssm(
+            cfg, action_dim=cfg.action_dim, embed_dim=embed, device=device
+        )
+        self.control_rollout = branch_rollout(self.control_prior, self.control_posterior)
+        single = not (cfg.free_branch or cfg.static_branch)
+        decoder = {"depth": cfg.image_depth, "num_blocks": settings.num_blocks, "device": device}
+        channels = 3 if single else 4
+        self.control_decoder = DreamerV3ImageDecoder(
+            cfg.branch_feature_dim, image_shape=(channels, 64, 64), **decoder
+        )
+        if cfg.free_branch:
+            self.free_prior, self.free_posterior = make_rssm(
+                cfg, action_dim=FREE_ACTION_DIM, embed_dim=embed, device=device
+            )
+            self.free_rollout = branch_rollout(self.free_prior, self.free_posterior)
+            self.free_decoder = DreamerV3ImageDecoder(cfg.branch_feature_dim, image_shape=(4, 64, 64), **decoder)
+        else:
+            self.free_prior = self.free_posterior = self.free_rollout = self.free_decoder = None
+        self.static_decoder = (
+            DreamerV3ImageDecoder(cfg.static_frames * embed, image_shape=(4, 64, 64), **{**decoder, "num_blocks": 1})
+            if cfg.static_branch
+            else None
+        )
+        self.composition = MaskComposition(mask_mode="softmax")
+        self.reward_head = DreamerV3MLP(
+            cfg.head_feature_dim, settings.num_bins, depth=1, num_cells=cfg.units, outscale=0.0, device=device
+        )
+        self.reward_decode = SymExpTwoHot(settings.num_bins)
+        self.continuation_head = DreamerV3MLP(cfg.head_feature_dim, 1, depth=1, num_cells=cfg.units, device=device)
+        self.inverse_cell = (
+            InverseDynamicsCell(
+                in_features=cfg.state_dim, action_dim=cfg.action_dim, num_cells=cfg.units, device=device
+            )
+            if cfg.inverse_dynamics
+            else None
+        )
+        self.in_keys = [PIXELS, "action", "is_init", "state", "belief"]
+        out = ["state", "belief", "prior_logits", "posterior_logits", "reco_pixels", "reco_control", "mask_control"]
+        out += ["reward_logits", "reward", "continue_pred"]
+        if cfg.free_branch:
+            out += ["reco_free", "mask_free", "free_window"]
+        if cfg.static_branch:
+            out += ["mask_static"]
+        if cfg.inverse_dynamics:
+            out += ["action_pred", "action_pred_valid"]
+        self.out_keys = [_next(k) for k in out] + (["background"] if cfg.static_branch else [])
+
+    # ------------------------------------------------------------------ packing
+    def split_state(self, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Packed ``[*N, S]`` -> ``(s [*N, S_c], z [*N, S_c] or None)``."""
+        width = self.config.state_dim
+        return state[..., :width], (state[..., width:] if self.config.free_branch else None)
+
+    def split_belief(self, belief: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Packed ``[*N, D]`` -> ``(h [*N, D_c], h' [*N, D_c] or None)``."""
+        width = self.config.deter
+        return belief[..., :width], (belief[..., width:] if self.config.free_branch else None)
+
+    def head_features(self, state: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
+        """The reward / continuation heads' input from the packed latent: ``[h, s]`` or ``[h, s, h', z]``."""
+        s, z = self.split_state(state)
+        h, h_free = self.split_belief(belief)
+        if self.config.reward_uses_free and z is not None:
+            return torch.cat([h, s, h_free, z], dim=-1)
+        return torch.cat([h, s], dim=-1)
+
+    def reward(self, state: torch.Tensor, belief: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(logits [*N, bins], decoded reward [*N, 1])`` of the reward head on a packed latent."""
+        logits = self.reward_head(self.head_features(state, belief))
+        return logits, self.reward_decode(logits)
+
+    def continuation_logit(self, state: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
+        """The continuation head's logit ``[*N, 1]`` on a packed latent."""
+        return self.continuation_head(self.head_features(state, belief))
+
+    # ------------------------------------------------------------------ the action-free branch
+    def free_step(self, free_state: torch.Tensor, free_belief: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """One step of the action-free prior (eq. 3): ``(z, h')`` ``[*N, S_c]``, ``[*N, D_c]`` -> the next ones."""
+        zero = free_state.new_zeros(*free_state.shape[:-1], FREE_ACTION_DIM)
+        _, free_state, free_belief = self.free_prior(free_state, free_belief, zero)
+        return free_state, free_belief
+
+    def free_window(self, free_state: torch.Tensor, free_belief: torch.Tensor) -> torch.Tensor:
+        """``[z_t, h'_t]`` and ``tau - 1`` action-free prior steps rolled from it: ``[*N, tau, S_c + D_c]`` (the
+        attention's window, eq. 6). The rolled steps carry no gradient."""
+        window = [torch.cat([free_state, free_belief], dim=-1)]
+        with torch.no_grad():
+            state, belief = free_state.detach(), free_belief.detach()
+            for _ in range(self.config.attention_window - 1):
+                state, belief = self.free_step(state, belief)
+                window.append(torch.cat([state, belief], dim=-1))
+        return torch.stack(window, dim=-2)
+
+    # ------------------------------------------------------------------ forward
+    def _roll(self, rollout: RSSMRolloutV3, tensordict, *, state, belief, action, embed) -> TensorDictBase:
+        branch = TensorDict(
+            {
+                "state": state,
+                "belief": belief,
+                "action": action,
+                "is_init": tensordict.get("is_init"),
+                _next("encoded_latents"): embed,
+            },
+            tensordict.batch_size,
+        )
+        return rollout(branch)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        cfg = self.config
+        self.check(tensordict)
+        for key in ("state", "belief"):
+            if tensordict.get(key, None) is None:
+                raise KeyError(
+                    f"IsoDreamV3WorldModel needs the root {key!r} [B, T, {getattr(cfg, f'packed_{key}_dim')}] "
+                    "(zeros: the start of each window)"
+                )
+        pixels = tensordict.get(PIXELS)
+        embed = self.encoder(pixels)
+        s0, z0 = self.split_state(tensordict.get("state"))
+        h0, hz0 = self.split_belief(tensordict.get("belief"))
+        action = tensordict.get("action")
+        control = self._roll(self.control_rollout, tensordict, state=s0, belief=h0, action=action, embed=embed)
+        s, h = control.get(_next("state")), control.get(_next("belief"))
+        states, beliefs = [s], [h]
+        prior, posterior = [control.get(_next("prior_logits"))], [control.get(_next("posterior_logits"))]
+        outputs = {"control": self.control_decoder(s, h)}
+        if cfg.free_branch:
+            zero = action.new_zeros(*action.shape[:-1], FREE_ACTION_DIM)
+            free = self._roll(self.free_rollout, tensordict, state=z0, belief=hz0, action=zero, embed=embed)
+            z, hz = free.get(_next("state")), free.get(_next("belief"))
+            states.append(z)
+            beliefs.append(hz)
+            prior.append(free.get(_next("prior_logits")))
+            posterior.append(free.get(_next("posterior_logits")))
+            outputs["free"] = self.free_decoder(z, hz)
+            tensordict.set(_next("free_window"), self.free_window(z, hz))
+        if cfg.static_branch:
+            batch, time = embed.shape[:2]
+            frames = embed[:, : cfg.static_frames]
+            if time < cfg.static_frames:
+                frames = torch.cat([frames, frames[:, -1:].expand(batch, cfg.static_frames - time, -1)], dim=1)
+            outputs["static"] = self.static_decoder(frames.reshape(batch, -1)).unsqueeze(1)
+        # The decoders add 0.5 (pixels / 255 units); the composition works in [-0.5, 0.5] (its clamp range) and
+        # the mask logits are shifted alike, which the softmax ignores.
+        composite, masks, colors = self.composition.compose_decoded({k: v - 0.5 for k, v in outputs.items()})
+        state, belief = torch.cat(states, dim=-1), torch.cat(beliefs, dim=-1)
+        reward_logits, reward = self.reward(state, belief)
+        new = {
+            "state": state,
+            "belief": belief,
+            "prior_logits": torch.cat(prior, dim=-2),
+            "posterior_logits": torch.cat(posterior, dim=-2),
+            "reco_pixels": composite + 0.5,
+            "reco_control": colors["control"] + 0.5,
+            "mask_control": masks["control"],
+            "reward_logits": reward_logits,
+            "reward": reward,
+            "continue_pred": self.continuation_logit(state, belief),
+        }
+        if cfg.free_branch:
+            new.update(reco_free=colors["free"] + 0.5, mask_free=masks["free"])
+        if cfg.static_branch:
+            new["mask_static"] = masks["static"]
+            tensordict.set("background", (colors["static"] + 0.5).expand_as(composite))
+        if cfg.inverse_dynamics:
+            new.update(self._inverse(s, tensordict.get("is_init")))
+        for key, value in new.items():
+            tensordict.set(_next(key), value)
+        return tensordict
+
+    def _inverse(self, s: torch.Tensor, is_init: torch.Tensor) -> dict[str, torch.Tensor]:
+        """``action_pred[t]`` from ``[s_t, s_{t+1}]`` (the posteriors before and after ``action[t]``, i.e. ``("next",
+        "state")`` at ``t - 1`` and ``t``); valid where both lie in one episode of the window (``t >= 1``, no
+        reset at ``t``: the rollout zeroes a reset step's action)."""
+        previous = torch.cat([torch.zeros_like(s[:, :1]), s[:, :-1]], dim=1)
+        predicted = self.inverse_cell(previous, s)
+        valid = ~is_init.reshape(*s.shape[:2], 1)
+        valid[:, 0] = False
+        return {"action_pred": predicted, "action_pred_valid": valid}

@@ -1,0 +1,150 @@
+"""The parts of an ``algo=isodream_v3`` run: Iso-Dream's decomposition on DreamerV3's learner.
+
+The world model, actor and critic of :func:`~isodream_rl.objectives.isodream_v3.make_isodream_v3`, one
+``DreamerV3Optimizer`` per parameter group (:func:`~isodream_rl.trainers.dreamer_v3.make_dreamer_v3_optimizers`)
+and the DreamerV3 update (:class:`~isodream_rl.trainers.dreamer_v3.DreamerV3OptimizationStepper`), both shared with
+``algo=torchrl_dreamer_v3``; the replay side is every run's.
+
+Widths. DreamerV3's size rule per branch (``hidden``; ``deter = 8 hidden``; 32 categoricals of ``hidden / 16``
+classes), with ``hidden = HIDDEN_PER_HIDDEN_DIM x`` the size preset's ``hidden_dim``
+(a multiple of 8), and an image depth of ``hidden_dim / 8`` for the encoder and each of the three decoders: at
+``size=bench`` two branches of ``hidden`` 80 and image depth 8, where ``algo=torchrl_dreamer_v3`` has one branch of
+120 and image depth 8, at about its world-model parameter count (``bench/update_speed.py`` writes both).
+
+What it reads of the run configuration: ``model.size`` (``hidden_dim``), ``model.actor_units`` /
+``value_units`` / ``attention_dim``; ``algo.free_branch`` / ``static_branch`` / ``inverse_dynamics`` (the branch
+switches), ``algo.reward_uses_free``, ``algo.policy_input``, ``algo.attention_window`` (tau), ``algo.horizon``
+(L), ``algo.lambda_inverse``; ``train.world_model_lr`` / ``actor_lr`` / ``value_lr``, ``world_model_warmup``,
+``max_nonfinite_updates``, ``sequence_length``, ``device``. DreamerV3's own settings
+(:class:`~isodream_rl.modules.dreamer_v3.DreamerV3Settings`) replace ``algo.gamma`` (the continuation head's
+``1 - 1/333`` discounts), ``algo.lmbda``, ``algo.actor_entropy``, ``algo.free_nats``, ``algo.kl_balance``,
+``algo.slow_target_every``, ``algo.lambda_reward`` and ``train.grad_clip`` / ``adam_eps``, which it does not read.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from torch import nn
+
+from isodream_rl.modules.config import SIZE_PRESETS
+from isodream_rl.modules.dreamer_v3 import DreamerV3Settings
+from isodream_rl.modules.world_model_v3 import IsoDreamV3Config
+from isodream_rl.objectives.isodream_v3 import IsoDreamV3Learner, make_isodream_v3
+from isodream_rl.trainers.components import RunComponents, make_replay_parts
+from isodream_rl.trainers.config import ConfigError, RunConfig
+from isodream_rl.trainers.dreamer_v3 import DreamerV3OptimizationStepper, make_dreamer_v3_optimizers
+
+#: ``hidden`` of each branch per unit of the size preset's ``hidden_dim``.
+HIDDEN_PER_HIDDEN_DIM = 1.25
+
+
+def isodream_v3_config(
+    cfg: RunConfig, *, action_dim: int, settings: DreamerV3Settings = DreamerV3Settings()
+) -> IsoDreamV3Config:
+    """The world model's :class:`~isodream_rl.modules.world_model_v3.IsoDreamV3Config` for ``cfg``.
+
+    Raises:
+        ConfigError: an unknown size preset or a precision other than fp32.
+    """
+    if cfg.model.size not in SIZE_PRESETS:
+        raise ConfigError(f"invalid training configuration: unknown model.size={cfg.model.size!r}")
+    precision = cfg.model.precision or "fp32"
+    if precision != "fp32":
+        raise ConfigError(
+            f"invalid training configuration: algo={cfg.algo.name} trains in fp32 only (TorchRL's DreamerV3 "
+            f"pieces autocast on CUDA only), got model.precision={precision!r}: drop the override"
+        )
+    hidden_dim = cfg.model.hidden_dim or SIZE_PRESETS[cfg.model.size]["hidden_dim"]
+    hidden = 8 * max(1, round(HIDDEN_PER_HIDDEN_DIM * hidden_dim / 8))
+    algo = cfg.algo
+    return IsoDreamV3Config(
+        action_dim=action_dim,
+        hidden=hidden,
+        image_depth=max(2, hidden_dim // 8),
+        units=hidden,
+        attention_window=algo.attention_window,
+        free_branch=bool(algo.free_branch),
+        static_branch=bool(algo.static_branch),
+        inverse_dynamics=bool(algo.inverse_dynamics),
+        reward_uses_free=bool(algo.reward_uses_free and algo.free_branch),
+        settings=settings,
+    )
+
+
+class IsoDreamV3Components(RunComponents):
+    """Models, losses, optimisers, stepper and replay buffer of an ``algo=isodream_v3`` run (module docstring).
+
+    The interface of :class:`~isodream_rl.trainers.components.RunComponents`.
+
+    Args:
+        cfg: the run configuration.
+        action_dim: width of the env's action.
+        scratch_dir: folder of the replay buffer's memmap files.
+        settings: DreamerV3's settings. Defaults to TorchRL's reproduction's.
+
+    Attributes:
+        learner (:class:`~isodream_rl.objectives.isodream_v3.IsoDreamV3Learner`), model_loss, world_model,
+        behavior (``policy``, ``actor_loss``, ``value_loss``), stepper, replay_buffer, preparation, returns.
+    """
+
+    algo = "isodream_v3"
+
+    def __init__(
+        self,
+        cfg: RunConfig,
+        *,
+        action_dim: int,
+        scratch_dir: Path,
+        settings: DreamerV3Settings = DreamerV3Settings(),
+    ) -> None:
+        train, model = cfg.train, cfg.model
+        config = isodream_v3_config(cfg, action_dim=action_dim, settings=settings)
+        self.learner: IsoDreamV3Learner = make_isodream_v3(
+            config,
+            policy_input=cfg.algo.policy_input,
+            attention_dim=model.attention_dim,
+            actor_units=model.actor_units,
+            value_units=model.value_units,
+            horizon=cfg.algo.horizon,
+            lambda_inverse=cfg.algo.lambda_inverse,
+            device=train.device,
+        )
+        self.model_loss = self.learner.model_loss
+        self.world_model = None
+        self.behavior = self.learner
+        rates = {"world_model": train.world_model_lr, "actor": train.actor_lr, "value": train.value_lr}
+        self.stepper = DreamerV3OptimizationStepper(
+            loss_module=self.learner.loss_module,
+            optimizers=make_dreamer_v3_optimizers(self.learner.parameter_groups(), rates=rates, settings=settings),
+            target_updater=self.learner.target_updater,
+            sequence_length=train.sequence_length,
+            state_dim=config.packed_state_dim,
+            belief_dim=config.packed_belief_dim,
+            max_nonfinite=train.max_nonfinite_updates,
+            world_model_warmup=train.world_model_warmup,
+            device=train.device,
+        )
+        self.replay_buffer, self.preparation, self.returns = make_replay_parts(cfg, scratch_dir=scratch_dir)
+
+    def modules(self) -> dict[str, nn.Module]:
+        """The trained modules and the return normalisation's statistics, by checkpoint name."""
+        return {
+            "world_model": self.learner.world_model,
+            "actor": self.learner.actor,
+            "value_loss": self.learner.value_loss,
+            "return_norm": self.learner.actor_loss.retnorm,
+        }
+
+    def load_models(self, state: dict) -> None:
+        """Load the weights saved by :meth:`state`.
+
+        Raises:
+            KeyError: the checkpoint lacks one of :meth:`modules`' weights (another algorithm's).
+        """
+        missing = set(self.modules()) - set(state["models"])
+        if missing:
+            raise KeyError(
+                f"the checkpoint has no {sorted(missing)} weights: it was not written by an algo={self.algo} run"
+            )
+        super().load_models(state)
