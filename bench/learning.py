@@ -56,8 +56,9 @@ ROOT = Path(__file__).resolve().parents[1]
 #: The default bench: Iso-Dream, its single-branch DreamerV2 baseline and TorchRL's DreamerV3 (the world-model
 #: agent a TorchRL user would pick instead).
 ALGOS = ("isodream", "dreamerv2", "torchrl_dreamer_v3")
-#: Accepted by ``--algos`` but not run by default: TorchRL's older (DreamerV1-style) Dreamer pieces.
-MORE_ALGOS = ("torchrl_dreamer",)
+#: Accepted by ``--algos`` but not run by default: Iso-Dream on DreamerV3's learner, TorchRL's older
+#: (DreamerV1-style) Dreamer pieces.
+MORE_ALGOS = ("isodream_v3", "torchrl_dreamer")
 #: The task's success count reported beside the return, per env.
 SUCCESS_KEY = {"sprites": "reaches", "highway": "distance"}
 #: Seconds between polls of the running runs.
