@@ -294,13 +294,13 @@ class TestPolicy:
         assert not torch.allclose(a["action"], c["action"])
 
 
-def test_resume_is_exact(tmp_path):
+def assert_resume_is_exact(builder, cfg, tmp_path):
     """Components restored from a checkpoint continue with the uninterrupted run's metrics, bit for bit (optimiser
-    moments and counters, slow critic, return statistics, random generators)."""
-    cfg = tiny_config(tmp_path / "run", ALGO)
+    moments and counters, slow critic, return statistics, random generators); ``builder(cfg, action_dim=...,
+    scratch_dir=...)`` builds the components of a DreamerV3-learner run."""
     manager = CheckpointManager(tmp_path / "checkpoints", keep=2)
     torch.manual_seed(0)
-    live = TorchRLDreamerV3Components(cfg, action_dim=A, scratch_dir=tmp_path / "scratch_a")
+    live = builder(cfg, action_dim=A, scratch_dir=tmp_path / "scratch_a")
     steps = TensorDict(
         {
             "action": torch.rand(40, A) * 2 - 1,
@@ -324,12 +324,16 @@ def test_resume_is_exact(tmp_path):
     after = [update(live) for _ in range(2)]
     assert after[0]["loss_actor"] != 0.0 and live.learner.actor_loss.return_high != 0
 
-    restored = TorchRLDreamerV3Components(cfg, action_dim=A, scratch_dir=tmp_path / "scratch_b")
+    restored = builder(cfg, action_dim=A, scratch_dir=tmp_path / "scratch_b")
     state, _ = manager.load_latest(replay_buffer=restored.replay_buffer)
     restored.load_models(state)
     restored.stepper.load_state_dict(state["stepper"])
     set_rng_state(state["rng"])
     assert [update(restored) for _ in range(2)] == after
+
+
+def test_resume_is_exact(tmp_path):
+    assert_resume_is_exact(TorchRLDreamerV3Components, tiny_config(tmp_path / "run", ALGO), tmp_path)
 
 
 def test_bf16_is_refused_in_one_line(tmp_path):
@@ -342,5 +346,7 @@ def test_bf16_is_refused_in_one_line(tmp_path):
 def test_world_model_mode_is_refused(tmp_path):
     cfg = tiny_config(tmp_path, ALGO)
     cfg.mode = "world_model"
-    with pytest.raises(ConfigError, match="mode=world_model trains Iso-Dream's world model"):
+    with pytest.raises(
+        ConfigError, match="mode=world_model trains the DreamerV2-style Iso-Dream world model"
+    ):
         validate_config(cfg)

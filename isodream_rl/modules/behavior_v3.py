@@ -51,7 +51,9 @@ class PolicyFeaturesV3(nn.Module):
         if mode not in POLICY_INPUTS:
             raise ValueError(f"unknown policy_input {mode!r}; valid: {POLICY_INPUTS}")
         if mode != "controllable" and not config.free_branch:
-            raise ValueError(f"policy_input={mode!r} reads the noncontrollable branch, which this model lacks")
+            raise ValueError(
+                f"policy_input={mode!r} reads the noncontrollable branch, which this model lacks"
+            )
         self.mode = mode
         self.state_dim, self.deter = config.state_dim, config.deter
         width = config.branch_feature_dim
@@ -126,7 +128,9 @@ def make_value_v3(
     features = PolicyFeaturesV3(config, mode=mode, attention_dim=attention_dim, device=device)
     head = DreamerV3MLP(features.feature_dim, bins, depth=3, num_cells=units, outscale=0.0, device=device)
     return TensorDictSequential(
-        TensorDictModule(_OnFeatures(features, head), in_keys=features.in_keys, out_keys=["state_value_logits"]),
+        TensorDictModule(
+            _OnFeatures(features, head), in_keys=features.in_keys, out_keys=["state_value_logits"]
+        ),
         TensorDictModule(SymExpTwoHot(bins), in_keys=["state_value_logits"], out_keys=["state_value"]),
     )
 
@@ -209,10 +213,17 @@ class IsoDreamV3Policy(CarriedStatePolicy):
         n = pixels.shape[0]
         if reset is None:
             reset = torch.zeros(n, 1, dtype=torch.bool, device=pixels.device)
-        work = TensorDict({"pixels": pixels, "is_init": reset, **carried}, batch_size=[n], device=pixels.device)
+        work = TensorDict(
+            {"pixels": pixels, "is_init": reset, **carried}, batch_size=[n], device=pixels.device
+        )
         self.module(work)
         action = work.get("action").clamp(-1.0, 1.0)
-        return {"action": action, "state": work.get("state"), "belief": work.get("belief"), "previous_action": action}
+        return {
+            "action": action,
+            "state": work.get("state"),
+            "belief": work.get("belief"),
+            "previous_action": action,
+        }
 
 
 __all__ = [

@@ -29,7 +29,6 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase
-from torch import nn
 from torchrl.modules import (
     DreamerV3ImageDecoder,
     DreamerV3ImageEncoder,
@@ -91,8 +90,8 @@ class IsoDreamV3Config:
 
     @property
     def classes(self) -> int:
-        """Classes of each categorical."""
-        return max(1, (self.hidden + 8) // 16)
+        """Classes of each categorical (at least 2: one class would carry no information and no gradient)."""
+        return max(2, (self.hidden + 8) // 16)
 
     @property
     def state_dim(self) -> int:
@@ -157,7 +156,9 @@ def branch_rollout(prior: RSSMPriorV3, posterior: RSSMPosteriorV3) -> RSSMRollou
     """``RSSMRolloutV3`` over one branch with TorchRL's standard keys (its tensor fast path), reset at ``is_init``."""
     return RSSMRolloutV3(
         TensorDictModule(
-            prior, in_keys=["state", "belief", "action"], out_keys=[_next(k) for k in ("prior_logits", "state", "belief")]
+            prior,
+            in_keys=["state", "belief", "action"],
+            out_keys=[_next(k) for k in ("prior_logits", "state", "belief")],
         ),
         TensorDictModule(
             posterior,
@@ -222,11 +223,15 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
                 cfg, action_dim=FREE_ACTION_DIM, embed_dim=embed, device=device
             )
             self.free_rollout = branch_rollout(self.free_prior, self.free_posterior)
-            self.free_decoder = DreamerV3ImageDecoder(cfg.branch_feature_dim, image_shape=(4, 64, 64), **decoder)
+            self.free_decoder = DreamerV3ImageDecoder(
+                cfg.branch_feature_dim, image_shape=(4, 64, 64), **decoder
+            )
         else:
             self.free_prior = self.free_posterior = self.free_rollout = self.free_decoder = None
         self.static_decoder = (
-            DreamerV3ImageDecoder(cfg.static_frames * embed, image_shape=(4, 64, 64), **{**decoder, "num_blocks": 1})
+            DreamerV3ImageDecoder(
+                cfg.static_frames * embed, image_shape=(4, 64, 64), **{**decoder, "num_blocks": 1}
+            )
             if cfg.static_branch
             else None
         )
@@ -235,7 +240,9 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
             cfg.head_feature_dim, settings.num_bins, depth=1, num_cells=cfg.units, outscale=0.0, device=device
         )
         self.reward_decode = SymExpTwoHot(settings.num_bins)
-        self.continuation_head = DreamerV3MLP(cfg.head_feature_dim, 1, depth=1, num_cells=cfg.units, device=device)
+        self.continuation_head = DreamerV3MLP(
+            cfg.head_feature_dim, 1, depth=1, num_cells=cfg.units, device=device
+        )
         self.inverse_cell = (
             InverseDynamicsCell(
                 in_features=cfg.state_dim, action_dim=cfg.action_dim, num_cells=cfg.units, device=device
@@ -244,7 +251,15 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
             else None
         )
         self.in_keys = [PIXELS, "action", "is_init", "state", "belief"]
-        out = ["state", "belief", "prior_logits", "posterior_logits", "reco_pixels", "reco_control", "mask_control"]
+        out = [
+            "state",
+            "belief",
+            "prior_logits",
+            "posterior_logits",
+            "reco_pixels",
+            "reco_control",
+            "mask_control",
+        ]
         out += ["reward_logits", "reward", "continue_pred"]
         if cfg.free_branch:
             out += ["reco_free", "mask_free", "free_window"]
@@ -283,7 +298,9 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
         return self.continuation_head(self.head_features(state, belief))
 
     # ------------------------------------------------------------------ the action-free branch
-    def free_step(self, free_state: torch.Tensor, free_belief: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def free_step(
+        self, free_state: torch.Tensor, free_belief: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """One step of the action-free prior (eq. 3): ``(z, h')`` ``[*N, S_c]``, ``[*N, D_c]`` -> the next ones."""
         zero = free_state.new_zeros(*free_state.shape[:-1], FREE_ACTION_DIM)
         _, free_state, free_belief = self.free_prior(free_state, free_belief, zero)
@@ -328,7 +345,9 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
         s0, z0 = self.split_state(tensordict.get("state"))
         h0, hz0 = self.split_belief(tensordict.get("belief"))
         action = tensordict.get("action")
-        control = self._roll(self.control_rollout, tensordict, state=s0, belief=h0, action=action, embed=embed)
+        control = self._roll(
+            self.control_rollout, tensordict, state=s0, belief=h0, action=action, embed=embed
+        )
         s, h = control.get(_next("state")), control.get(_next("belief"))
         states, beliefs = [s], [h]
         prior, posterior = [control.get(_next("prior_logits"))], [control.get(_next("posterior_logits"))]
@@ -347,7 +366,9 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
             batch, time = embed.shape[:2]
             frames = embed[:, : cfg.static_frames]
             if time < cfg.static_frames:
-                frames = torch.cat([frames, frames[:, -1:].expand(batch, cfg.static_frames - time, -1)], dim=1)
+                frames = torch.cat(
+                    [frames, frames[:, -1:].expand(batch, cfg.static_frames - time, -1)], dim=1
+                )
             outputs["static"] = self.static_decoder(frames.reshape(batch, -1)).unsqueeze(1)
         # The decoders add 0.5 (pixels / 255 units); the composition works in [-0.5, 0.5] (its clamp range) and
         # the mask logits are shifted alike, which the softmax ignores.

@@ -78,7 +78,9 @@ class IsoDreamV3ModelLoss(DreamerV3ModelLoss):
             detach_output=False,
         )
         self.inverse_loss = (
-            InverseDynamicsLoss(lambda_inverse=lambda_inverse) if world_model.config.inverse_dynamics else None
+            InverseDynamicsLoss(lambda_inverse=lambda_inverse)
+            if world_model.config.inverse_dynamics
+            else None
         )
 
     def forward(self, tensordict: TensorDictBase) -> tuple[TensorDictBase, TensorDictBase]:
@@ -115,7 +117,9 @@ class IsoDreamV3Transition(nn.Module):
         width = model.config.state_dim
         last = free_window[..., -1, :]
         z, h_free = model.free_step(last[..., :width], last[..., width:])
-        free_window = torch.cat([free_window[..., 1:, :], torch.cat([z, h_free], dim=-1).unsqueeze(-2)], dim=-2)
+        free_window = torch.cat(
+            [free_window[..., 1:, :], torch.cat([z, h_free], dim=-1).unsqueeze(-2)], dim=-2
+        )
         first = free_window[..., 0, :]
         state = torch.cat([s, first[..., :width]], dim=-1)
         belief = torch.cat([h, first[..., width:]], dim=-1)
@@ -153,7 +157,9 @@ def isodream_imagination_env(world_model: IsoDreamV3WorldModel, *, device=None) 
                 in_keys=["state", "belief", "action", *transition_keys[2:]],
                 out_keys=transition_keys,
             ),
-            TensorDictModule(world_model.reward, in_keys=["state", "belief"], out_keys=["reward_logits", "reward"]),
+            TensorDictModule(
+                world_model.reward, in_keys=["state", "belief"], out_keys=["reward_logits", "reward"]
+            ),
         ),
         action_spec=Bounded(-1.0, 1.0, (cfg.action_dim,), device=device),
         state_dim=cfg.packed_state_dim,
@@ -225,7 +231,9 @@ def make_isodream_v3(
     model_based_env = isodream_imagination_env(world_model, device=device)
     model_loss = IsoDreamV3ModelLoss(world_model, lambda_inverse=lambda_inverse, settings=settings)
     continuation = TensorDictSequential(
-        TensorDictModule(world_model.continuation_logit, in_keys=["state", "belief"], out_keys=["continue_logits"]),
+        TensorDictModule(
+            world_model.continuation_logit, in_keys=["state", "belief"], out_keys=["continue_logits"]
+        ),
         TensorDictModule(torch.sigmoid, in_keys=["continue_logits"], out_keys=["continuation"]),
     )
     actor_loss = DreamerV3ActorLoss(

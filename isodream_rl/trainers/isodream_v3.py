@@ -116,7 +116,9 @@ class IsoDreamV3Components(RunComponents):
         rates = {"world_model": train.world_model_lr, "actor": train.actor_lr, "value": train.value_lr}
         self.stepper = DreamerV3OptimizationStepper(
             loss_module=self.learner.loss_module,
-            optimizers=make_dreamer_v3_optimizers(self.learner.parameter_groups(), rates=rates, settings=settings),
+            optimizers=make_dreamer_v3_optimizers(
+                self.learner.parameter_groups(), rates=rates, settings=settings
+            ),
             target_updater=self.learner.target_updater,
             sequence_length=train.sequence_length,
             state_dim=config.packed_state_dim,

@@ -1,0 +1,218 @@
+"""``algo=isodream_v3``: Iso-Dream's decomposition on TorchRL's DreamerV3 learner.
+
+The decomposition's properties (masks, an action-free branch, inverse dynamics that reach the controllable branch
+only, the sliding window that is the paper's ``L + tau`` chain), the TorchRL composition (losses, optimisers, keys),
+the acting policy, and a run that trains, evaluates and resumes exactly."""
+
+import json
+import math
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration_type
+from torchrl.objectives import DreamerV3ActorLoss, DreamerV3Loss, DreamerV3ModelLoss, DreamerV3ValueLoss
+from torchrl.trainers.algorithms import DreamerV3Optimizer
+
+from isodream_rl.envs import make_env
+from isodream_rl.modules.behavior_v3 import PolicyFeaturesV3
+from isodream_rl.modules.world_model_v3 import IsoDreamV3Config
+from isodream_rl.trainers import ConfigError, train, validate_config
+from isodream_rl.trainers.isodream_v3 import IsoDreamV3Components, isodream_v3_config
+from isodream_rl.trainers.registry import components_builder
+from tests.test_torchrl_dreamer import A, B, T, env_batch, replay_batch, tiny_config
+from tests.test_torchrl_dreamer_v3 import assert_resume_is_exact
+
+ALGO = "isodream_v3"
+
+
+def v3_config(tmp_path, **train_changes):
+    """The tiny run of the baselines' tests with Iso-Dream's branches and the attention policy input."""
+    cfg = tiny_config(tmp_path, ALGO, **train_changes)
+    cfg.algo.free_branch = cfg.algo.static_branch = cfg.algo.inverse_dynamics = True
+    cfg.algo.policy_input, cfg.algo.reward_uses_free, cfg.algo.attention_window = "attention", True, 3
+    cfg.model.attention_dim = 8
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def parts(tmp_path_factory):
+    torch.manual_seed(0)
+    cfg = v3_config(tmp_path_factory.mktemp("run"))
+    return IsoDreamV3Components(cfg, action_dim=A, scratch_dir=tmp_path_factory.mktemp("scratch"))
+
+
+def model_batch(parts, **changes) -> TensorDict:
+    batch = parts.stepper.prepare(replay_batch()).reshape(B, T)
+    for key, value in changes.items():
+        batch.set(key, value)
+    return batch
+
+
+class TestDecomposition:
+    def test_masks_sum_to_one_and_mix_the_components(self, parts):
+        out = parts.learner.world_model(model_batch(parts))
+        masks = [out["next", f"mask_{name}"] for name in ("control", "free", "static")]
+        torch.testing.assert_close(sum(masks), torch.ones_like(masks[0]))
+        components = [out["next", "reco_control"], out["next", "reco_free"], out["background"]]
+        mixed = sum(m * c for m, c in zip(masks, components))
+        torch.testing.assert_close(out["next", "reco_pixels"], mixed)
+
+    def test_action_free_branch_does_not_see_the_actions(self, parts):
+        model = parts.learner.world_model
+        batch = model_batch(parts)
+        flipped = batch.clone().set("action", -batch["action"])
+        torch.manual_seed(1)
+        a = model(batch.clone())
+        torch.manual_seed(1)
+        b = model(flipped)
+        width = model.config.state_dim
+        torch.testing.assert_close(
+            a["next", "belief"][..., model.config.deter :], b["next", "belief"][..., model.config.deter :]
+        )
+        torch.testing.assert_close(a["next", "state"][..., width:], b["next", "state"][..., width:])
+        assert not torch.allclose(
+            a["next", "belief"][..., : model.config.deter], b["next", "belief"][..., : model.config.deter]
+        )
+
+    def test_inverse_loss_trains_the_controllable_branch_only(self, parts):
+        model = parts.learner.world_model
+        model.zero_grad()
+        losses, _ = parts.model_loss(model_batch(parts))
+        losses["loss_model_inverse"].sum().backward()
+        grad = lambda module: sum(p.grad.abs().sum() for p in module.parameters() if p.grad is not None)  # noqa: E731
+        assert grad(model.control_posterior) > 0 and grad(model.encoder) > 0
+        assert (
+            grad(model.free_prior) == 0 and grad(model.free_posterior) == 0 and grad(model.free_decoder) == 0
+        )
+        model.zero_grad()
+
+    def test_inverse_prediction_is_masked_at_window_and_episode_starts(self, parts):
+        batch = model_batch(parts)
+        batch["is_init"][:, 5] = True
+        valid = parts.learner.world_model(batch)["next", "action_pred_valid"]
+        assert not valid[:, 0].any() and not valid[:, 5].any() and valid[:, 1:5].all()
+
+
+class TestImagination:
+    def test_window_slides_along_one_action_free_chain(self, parts):
+        """At imagined step j the window holds z_{j..j+tau-1} of one chain from the start: the paper's L + tau
+        rollout (Algorithm 1, line 9), and the free half of the latent is the window's first entry."""
+        learner, model = parts.learner, parts.learner.world_model
+        posterior = model(model_batch(parts))
+        start = TensorDict({k: posterior["next", k][:, -1].detach() for k in ("state", "belief")}, [B])
+        env = learner.model_based_env
+        with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+            rollout = env.rollout(4, learner.actor, auto_reset=False, tensordict=env.reset(start.clone()))
+        window = rollout["free_window"]  # [B, L, tau, F]
+        torch.testing.assert_close(window[:, 1:, :-1], window[:, :-1, 1:])
+        width = model.config.state_dim
+        torch.testing.assert_close(rollout["state"][..., width:], window[..., 0, :width])
+        torch.testing.assert_close(rollout["belief"][..., model.config.deter :], window[..., 0, width:])
+        torch.testing.assert_close(window[:, 0, 0, :width], start["state"][:, width:])
+
+    def test_imagination_env_specs(self, parts):
+        check_env_specs(parts.learner.model_based_env)
+
+    @pytest.mark.parametrize("mode, width", [("attention", 1), ("controllable", 1), ("concat", 2)])
+    def test_policy_features_of_each_mode(self, mode, width):
+        config = IsoDreamV3Config(action_dim=A, hidden=16, image_depth=2, units=8)
+        features = PolicyFeaturesV3(config, mode=mode, attention_dim=4)
+        window = torch.randn(5, config.attention_window, config.branch_feature_dim)
+        state, belief = torch.randn(5, config.packed_state_dim), torch.randn(5, config.packed_belief_dim)
+        out = features(state, belief, window) if mode == "attention" else features(state, belief)
+        assert out.shape == (5, width * config.branch_feature_dim) == (5, features.feature_dim)
+
+
+class TestComposition:
+    def test_torchrls_dreamerv3_losses_and_optimisers(self, parts):
+        learner = parts.learner
+        assert isinstance(learner.model_loss, DreamerV3ModelLoss)
+        assert isinstance(learner.actor_loss, DreamerV3ActorLoss) and learner.actor_loss.use_reinforce
+        assert isinstance(learner.value_loss, DreamerV3ValueLoss)
+        assert isinstance(learner.loss_module, DreamerV3Loss)
+        assert all(isinstance(o, DreamerV3Optimizer) for o in parts.stepper.optimizers.values())
+
+    def test_every_trained_parameter_is_in_one_optimiser(self, parts):
+        seen = [id(p) for o in parts.stepper.optimizers.values() for g in o.param_groups for p in g["params"]]
+        trained = {id(p) for m in parts.modules().values() for p in m.parameters()}
+        assert len(seen) == len(set(seen)) and set(seen) == trained
+
+    def test_one_update_returns_every_loss_term(self, parts):
+        metrics = parts.stepper.step(None, replay_batch())
+        for key in (
+            "loss_model_reco",
+            "loss_model_dynamic",
+            "loss_model_inverse",
+            "loss_actor",
+            "loss_value",
+        ):
+            assert math.isfinite(float(metrics[key])), key
+        assert metrics["nonfinite_skipped"] == 0
+
+    def test_registered_and_sized_from_the_preset(self, tmp_path):
+        assert components_builder(ALGO) is IsoDreamV3Components
+        config = isodream_v3_config(v3_config(tmp_path), action_dim=A)
+        assert (config.hidden, config.deter, config.classes, config.image_depth) == (16, 128, 2, 2)
+
+    def test_bad_pixels_get_one_line(self, parts):
+        with pytest.raises(ValueError, match="pixels"):
+            parts.model_loss(model_batch(parts).set(("next", "pixels"), torch.full((B, T, 3, 64, 64), 2.0)))
+
+    def test_bf16_and_world_model_mode_are_refused(self, tmp_path):
+        cfg = v3_config(tmp_path)
+        cfg.model.precision = "bf16"
+        with pytest.raises(ConfigError, match="fp32 only"):
+            isodream_v3_config(cfg, action_dim=A)
+        cfg = v3_config(tmp_path)
+        cfg.mode = "world_model"
+        with pytest.raises(ConfigError, match="not algo=isodream_v3's"):
+            validate_config(cfg)
+
+
+class TestPolicy:
+    def test_acts_with_the_window_and_carries_the_packed_latent(self, parts):
+        policy = parts.behavior.policy
+        out = policy(env_batch(policy))
+        config = parts.learner.world_model.config
+        assert out["action"].shape == (3, A) and out["action"].abs().max() <= 1
+        assert out["next", "state"].shape == (3, config.packed_state_dim)
+        assert out["next", "belief"].shape == (3, config.packed_belief_dim)
+        assert "free_window" not in out.keys()
+
+    def test_evaluation_takes_the_actors_mean(self, parts):
+        """Same seed (the posterior's categorical draws): the deterministic action repeats, a sampled one differs."""
+        policy = parts.behavior.policy
+        td = env_batch(policy)
+
+        def act(kind):
+            torch.manual_seed(0)
+            with set_exploration_type(kind):
+                return policy(td.clone())["action"]
+
+        mean = act(ExplorationType.DETERMINISTIC)
+        torch.testing.assert_close(mean, act(ExplorationType.DETERMINISTIC))
+        assert not torch.allclose(mean, act(ExplorationType.RANDOM))
+
+    def test_runs_in_a_primed_env(self, parts):
+        policy = parts.behavior.policy
+        env = make_env("sprites", task="reach", max_steps=20)
+        env.append_transform(policy.make_tensordict_primer())
+        rollout = env.rollout(4, policy)
+        torch.testing.assert_close(rollout["previous_action"][1:], rollout["action"][:-1])
+        torch.testing.assert_close(rollout["belief"][1:], rollout["next", "belief"][:-1])
+
+
+def test_train_writes_a_summary_and_resumes(tmp_path):
+    cfg = v3_config(tmp_path)
+    result = train(cfg)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["algo"] == ALGO and math.isfinite(summary["eval_return"])
+    assert math.isfinite(result.metrics["loss_model_inverse"]) and math.isfinite(result.metrics["loss_actor"])
+    cfg.resume, cfg.train.total_steps = True, 80
+    resumed = train(cfg)
+    assert resumed.resumed_from == result.checkpoint and resumed.env_steps == 80
+
+
+def test_resume_is_exact(tmp_path):
+    assert_resume_is_exact(IsoDreamV3Components, v3_config(tmp_path / "run"), tmp_path)
