@@ -14,11 +14,14 @@ from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration
 from torchrl.objectives import DreamerV3ActorLoss, DreamerV3Loss, DreamerV3ModelLoss, DreamerV3ValueLoss
 from torchrl.trainers.algorithms import DreamerV3Optimizer
 
+from isodream_rl.data.sprites_episodes import collect_sprites_episodes, episode_windows
 from isodream_rl.envs import make_env
+from isodream_rl.evaluation import decomposition_scores
 from isodream_rl.modules.behavior_v3 import PolicyFeaturesV3
 from isodream_rl.modules.world_model_v3 import IsoDreamV3Config
 from isodream_rl.trainers import ConfigError, train, validate_config
 from isodream_rl.trainers.isodream_v3 import IsoDreamV3Components, isodream_v3_config
+from isodream_rl.trainers.openloop import open_loop_prediction
 from isodream_rl.trainers.registry import components_builder
 from tests.test_torchrl_dreamer import A, B, T, env_batch, replay_batch, tiny_config
 from tests.test_torchrl_dreamer_v3 import assert_resume_is_exact
@@ -216,3 +219,23 @@ def test_train_writes_a_summary_and_resumes(tmp_path):
 
 def test_resume_is_exact(tmp_path):
     assert_resume_is_exact(IsoDreamV3Components, v3_config(tmp_path / "run"), tmp_path)
+
+
+class TestPictures:
+    def test_open_loop_prediction_draws_every_branch(self, parts):
+        window = parts.stepper.prepare(replay_batch()).reshape(B, T)
+        prediction = open_loop_prediction(parts.world_model, window, context=3)
+        for key in ("reco_pixels", "reco_control", "reco_free", "background"):
+            assert prediction[key].shape == (B, T, 3, 64, 64), key
+            assert prediction[key].min() >= -0.5 - 1e-6 and prediction[key].max() <= 0.5 + 1e-6, key
+        masks = sum(prediction[f"mask_{name}"] for name in ("control", "free", "static"))
+        torch.testing.assert_close(masks, torch.ones_like(masks))
+        assert prediction["imagined"][:, 3:].all() and not prediction["imagined"][:, :3].any()
+
+    def test_decomposition_scores_read_the_composite_in_the_ground_truths_units(self, parts):
+        windows = episode_windows(collect_sprites_episodes(episodes=1, steps=8), window=8)
+        scores = decomposition_scores(parts.world_model, windows)
+        output = parts.world_model(windows.select("action", "is_init", ("next", "pixels")))
+        truth = windows["next", "pixels"].float() / 255
+        expected = (output["next", "reco_pixels"] - truth).pow(2).mean()
+        assert scores["reco_mse"] == pytest.approx(float(expected.detach()), rel=0.05)

@@ -22,6 +22,8 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
+from isodream_rl.modules.world_model_v3 import IsoDreamV3WorldModel
+
 #: The world model's branches, in the order their masks are stacked.
 BRANCHES = ("control", "free", "static")
 #: The ground-truth classes; ``background`` is every pixel of neither of the other two.
@@ -193,4 +195,6 @@ def decomposition_scores(
     check_windows(windows)
     inputs = windows.select(*_MODEL_KEYS).to(device)
     output = world_model(inputs)
+    if isinstance(world_model, IsoDreamV3WorldModel):  # its composite is in pixels / 255 units
+        output.set(("next", "reco_pixels"), output.get(("next", "reco_pixels")) - 0.5)
     return score_decomposition(output, windows, threshold=threshold)

@@ -174,7 +174,7 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
 
     Reads ``("next", "pixels")`` uint8 ``[B, T, 3, 64, 64]`` (or floats in [0, 1]), ``"action"`` ``[B, T, A]``,
     ``"is_init"`` ``[B, T, 1]`` and root ``"state"`` ``[B, T, S]`` / ``"belief"`` ``[B, T, D]`` (packed; each
-    window starts from their first step, zeros in training).
+    window starts from their first step; zeros when absent, as in training).
 
     Writes under ``"next"``: the packed ``state`` / ``belief`` and ``prior_logits`` / ``posterior_logits``
     ``[B, T, 2K, C]``; ``reco_pixels`` (the composite, eq. 4, in [0, 1] units) ``[B, T, 3, 64, 64]``,
@@ -334,13 +334,10 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         cfg = self.config
         self.check(tensordict)
-        for key in ("state", "belief"):
-            if tensordict.get(key, None) is None:
-                raise KeyError(
-                    f"IsoDreamV3WorldModel needs the root {key!r} [B, T, {getattr(cfg, f'packed_{key}_dim')}] "
-                    "(zeros: the start of each window)"
-                )
         pixels = tensordict.get(PIXELS)
+        for key, width in (("state", cfg.packed_state_dim), ("belief", cfg.packed_belief_dim)):
+            if tensordict.get(key, None) is None:  # each window starts from zeros, as in training
+                tensordict.set(key, pixels.new_zeros(*tensordict.batch_size, width, dtype=torch.float32))
         embed = self.encoder(pixels)
         s0, z0 = self.split_state(tensordict.get("state"))
         h0, hz0 = self.split_belief(tensordict.get("belief"))
@@ -397,6 +394,64 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
         for key, value in new.items():
             tensordict.set(_next(key), value)
         return tensordict
+
+    @torch.no_grad()
+    def open_loop(self, window: TensorDictBase, *, context: int = 5) -> TensorDictBase:
+        """Filter ``context`` steps of ``window``, imagine the rest (the controllable branch with the window's
+        actions, the action-free one alone), decode every step with each branch.
+
+        The output is that of :func:`~isodream_rl.trainers.openloop.open_loop_prediction` for the DreamerV2-style
+        model: a ``[B, T]`` tensordict with ``pixels`` (truth, uint8), ``reco_pixels``, ``reco_control``,
+        ``reco_free``, ``background`` in ``[-0.5, 0.5]``, the masks and ``imagined`` ``[B, T]`` bool.
+        """
+        cfg = self.config
+        batch, time = window.shape
+        if not 2 <= context < time:
+            raise ValueError(
+                f"context must be in [2, {time - 1}] for a window of {time} steps, got {context}"
+            )
+        was_training = self.training
+        self.eval()
+        observed = window[:, :context].select("action", PIXELS, "is_init", strict=False).clone()
+        filtered = self(observed).get("next")
+        s, z = self.split_state(filtered.get("state"))
+        h, h_free = self.split_belief(filtered.get("belief"))
+        controls, frees = [torch.cat([s, h], -1)], [torch.cat([z, h_free], -1)] if z is not None else []
+        s, h = s[:, -1], h[:, -1]
+        if z is not None:
+            z, h_free = z[:, -1], h_free[:, -1]
+        action = window.get("action").float()
+        for t in range(context, time):
+            _, s, h = self.control_prior(s, h, action[:, t])
+            controls.append(torch.cat([s, h], -1)[:, None])
+            if z is not None:
+                z, h_free = self.free_step(z, h_free)
+                frees.append(torch.cat([z, h_free], -1)[:, None])
+        decoded = {"control": self.control_decoder(torch.cat(controls, 1))}
+        if z is not None:
+            decoded["free"] = self.free_decoder(torch.cat(frees, 1))
+        if cfg.static_branch:
+            decoded["static"] = self.static_decoder(
+                self.encoder(window.get(PIXELS)[:, : cfg.static_frames]).reshape(batch, -1)
+            ).unsqueeze(1)
+        composite, masks, colors = self.composition.compose_decoded({k: v - 0.5 for k, v in decoded.items()})
+        self.train(was_training)
+        out = TensorDict(
+            {
+                "pixels": window.get(PIXELS),
+                "reco_pixels": composite,
+                "reco_control": colors["control"],
+                "imagined": (torch.arange(time, device=composite.device) >= context).expand(batch, time),
+            },
+            [batch, time],
+        )
+        if "free" in colors:
+            out["reco_free"] = colors["free"]
+        if "static" in colors:
+            out["background"] = colors["static"].expand(batch, time, -1, -1, -1)
+        for name, mask in masks.items():
+            out[f"mask_{name}"] = mask
+        return out
 
     def _inverse(self, s: torch.Tensor, is_init: torch.Tensor) -> dict[str, torch.Tensor]:
         """``action_pred[t]`` from ``[s_t, s_{t+1}]`` (the posteriors before and after ``action[t]``, i.e. ``("next",

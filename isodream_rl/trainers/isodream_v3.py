@@ -111,7 +111,7 @@ class IsoDreamV3Components(RunComponents):
             device=train.device,
         )
         self.model_loss = self.learner.model_loss
-        self.world_model = None
+        self.world_model = self.learner.world_model
         self.behavior = self.learner
         rates = {"world_model": train.world_model_lr, "actor": train.actor_lr, "value": train.value_lr}
         self.stepper = DreamerV3OptimizationStepper(

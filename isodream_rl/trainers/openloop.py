@@ -16,6 +16,7 @@ from tensordict import TensorDict, TensorDictBase
 
 from isodream_rl.modules import IsoDreamWorldModel
 from isodream_rl.modules.encoder import IMAGE_SHAPE
+from isodream_rl.modules.world_model_v3 import IsoDreamV3WorldModel
 
 #: Columns of each GIF frame: (label, key in the prediction tensordict, kind).
 _COLUMNS = (
@@ -32,12 +33,13 @@ _COLUMNS = (
 
 @torch.no_grad()
 def open_loop_prediction(
-    world_model: IsoDreamWorldModel, window: TensorDictBase, *, context: int = 5
+    world_model: IsoDreamWorldModel | IsoDreamV3WorldModel, window: TensorDictBase, *, context: int = 5
 ) -> TensorDictBase:
     """Filter ``context`` steps of ``window``, imagine the rest with its actions, decode every step.
 
     Args:
-        world_model: the trained world model.
+        world_model: the trained world model (an ``IsoDreamV3WorldModel`` predicts with its own
+            :meth:`~isodream_rl.modules.world_model_v3.IsoDreamV3WorldModel.open_loop`).
         window: a ``[B, T]`` replay window with ``("next", "pixels")`` uint8 ``[B, T, 3, 64, 64]`` and
             ``"action"`` ``[B, T, A]``.
         context: observed steps, ``2 <= context < T`` (the world model filters windows of 2 steps or more).
@@ -47,6 +49,8 @@ def open_loop_prediction(
         ``reco_free``, ``background`` when the branches exist) in ``[-0.5, 0.5]``, masks ``[B, T, 1, 64, 64]``
         and ``imagined`` ``[B, T]`` bool (``False`` on context steps).
     """
+    if isinstance(world_model, IsoDreamV3WorldModel):
+        return world_model.open_loop(window, context=context)
     batch, time = window.shape
     if not 2 <= context < time:
         raise ValueError(f"context must be in [2, {time - 1}] for a window of {time} steps, got {context}")

@@ -39,7 +39,7 @@ from isodream_rl.trainers.run_lifecycle import (
     train_with_checkpoints,
     write_summary,
 )
-from isodream_rl.trainers.world_model_config import OTHER_WORLD_MODELS
+from isodream_rl.trainers.world_model_config import TORCHRL_BASELINES
 from isodream_rl.trainers.world_model_run import LatentProbe
 
 logger = logging.getLogger(__name__)
@@ -156,7 +156,7 @@ def _train_rl(cfg: RunConfig) -> RunResult:
     # the decomposition scores of the evaluations, where the env renders the ground truth and the world model
     # is Iso-Dream's (any of its variants)
     decomposition = (
-        cfg.algo.name not in OTHER_WORLD_MODELS
+        cfg.algo.name not in TORCHRL_BASELINES
         and not cfg.env.factory
         and bool(ground_truth_mask_keys(cfg.env.name))
     )

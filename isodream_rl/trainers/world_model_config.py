@@ -19,7 +19,7 @@ MODES = ("rl", "world_model")
 #: The algorithms built from TorchRL's own Dreamer pieces (``isodream_rl.baselines``): no Iso-Dream world model.
 TORCHRL_BASELINES = ("torchrl_dreamer", "torchrl_dreamer_v3")
 #: The algorithms whose world model is not :class:`~isodream_rl.modules.IsoDreamWorldModel` (TorchRL's baselines and
-#: Iso-Dream on DreamerV3's learner): no ``mode=world_model``, no open-loop pictures or probes of that class.
+#: Iso-Dream on DreamerV3's learner): no ``mode=world_model`` nor its probes.
 OTHER_WORLD_MODELS = (*TORCHRL_BASELINES, "isodream_v3")
 
 
