@@ -41,7 +41,7 @@ from isodream_rl.trainers.run_lifecycle import probe_action_dim  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "isodream_rl" / "configs"
-ALGOS = ("isodream", "dreamerv2", "torchrl_dreamer_v3")
+ALGOS = ("isodream", "isodream_v3", "dreamerv2", "torchrl_dreamer_v3")
 
 
 def run_config(algo: str, size: str):

@@ -69,14 +69,10 @@ class TestDecomposition:
         a = model(batch.clone())
         torch.manual_seed(1)
         b = model(flipped)
-        width = model.config.state_dim
-        torch.testing.assert_close(
-            a["next", "belief"][..., model.config.deter :], b["next", "belief"][..., model.config.deter :]
-        )
+        width, deter = model.config.control.state_dim, model.config.control.deter
+        torch.testing.assert_close(a["next", "belief"][..., deter:], b["next", "belief"][..., deter:])
         torch.testing.assert_close(a["next", "state"][..., width:], b["next", "state"][..., width:])
-        assert not torch.allclose(
-            a["next", "belief"][..., : model.config.deter], b["next", "belief"][..., : model.config.deter]
-        )
+        assert not torch.allclose(a["next", "belief"][..., :deter], b["next", "belief"][..., :deter])
 
     def test_inverse_loss_trains_the_controllable_branch_only(self, parts):
         model = parts.learner.world_model
@@ -109,22 +105,43 @@ class TestImagination:
             rollout = env.rollout(4, learner.actor, auto_reset=False, tensordict=env.reset(start.clone()))
         window = rollout["free_window"]  # [B, L, tau, F]
         torch.testing.assert_close(window[:, 1:, :-1], window[:, :-1, 1:])
-        width = model.config.state_dim
-        torch.testing.assert_close(rollout["state"][..., width:], window[..., 0, :width])
-        torch.testing.assert_close(rollout["belief"][..., model.config.deter :], window[..., 0, width:])
-        torch.testing.assert_close(window[:, 0, 0, :width], start["state"][:, width:])
+        control, free = model.config.control, model.config.free
+        torch.testing.assert_close(
+            rollout["state"][..., control.state_dim :], window[..., 0, : free.state_dim]
+        )
+        torch.testing.assert_close(rollout["belief"][..., control.deter :], window[..., 0, free.state_dim :])
+        torch.testing.assert_close(window[:, 0, 0, : free.state_dim], start["state"][:, control.state_dim :])
 
     def test_imagination_env_specs(self, parts):
         check_env_specs(parts.learner.model_based_env)
 
-    @pytest.mark.parametrize("mode, width", [("attention", 1), ("controllable", 1), ("concat", 2)])
-    def test_policy_features_of_each_mode(self, mode, width):
-        config = IsoDreamV3Config(action_dim=A, hidden=16, image_depth=2, units=8)
+    @pytest.mark.parametrize("mode", ["attention", "controllable", "concat"])
+    def test_policy_features_of_each_mode(self, mode):
+        config = IsoDreamV3Config(action_dim=A, hidden=32, free_hidden=16, image_depth=2, units=8)
+        control, free = config.control, config.free
         features = PolicyFeaturesV3(config, mode=mode, attention_dim=4)
-        window = torch.randn(5, config.attention_window, config.branch_feature_dim)
+        window = torch.randn(5, config.attention_window, free.feature_dim)
         state, belief = torch.randn(5, config.packed_state_dim), torch.randn(5, config.packed_belief_dim)
         out = features(state, belief, window) if mode == "attention" else features(state, belief)
-        assert out.shape == (5, width * config.branch_feature_dim) == (5, features.feature_dim)
+        width = control.feature_dim + (free.feature_dim if mode == "concat" else 0)
+        assert out.shape == (5, width) == (5, features.feature_dim)
+
+    def test_attention_reads_the_windows_stochastic_states(self):
+        """Eq. 6 attends over the noncontrollable states z; the beliefs h' the window carries are not read."""
+        config = IsoDreamV3Config(action_dim=A, hidden=32, free_hidden=16, image_depth=2, units=8)
+        features = PolicyFeaturesV3(config, mode="attention", attention_dim=4)
+        window = torch.randn(5, config.attention_window, config.free.feature_dim)
+        state, belief = torch.randn(5, config.packed_state_dim), torch.randn(5, config.packed_belief_dim)
+        other = window.clone()
+        other[..., config.free.state_dim :] = torch.randn_like(other[..., config.free.state_dim :])
+        torch.testing.assert_close(features(state, belief, window), features(state, belief, other))
+        other[..., : config.free.state_dim] += 1.0
+        assert not torch.allclose(features(state, belief, window), features(state, belief, other))
+
+    def test_free_branch_has_the_controllable_classes_and_fewer_categoricals(self):
+        config = IsoDreamV3Config(action_dim=A, hidden=80, free_hidden=40, image_depth=8, units=80)
+        assert (config.control.deter, config.control.num_categoricals, config.control.classes) == (640, 32, 5)
+        assert (config.free.deter, config.free.num_categoricals, config.free.classes) == (320, 16, 5)
 
 
 class TestComposition:
@@ -156,7 +173,16 @@ class TestComposition:
     def test_registered_and_sized_from_the_preset(self, tmp_path):
         assert components_builder(ALGO) is IsoDreamV3Components
         config = isodream_v3_config(v3_config(tmp_path), action_dim=A)
-        assert (config.hidden, config.deter, config.classes, config.image_depth) == (16, 128, 2, 2)
+        assert (config.hidden, config.free_hidden, config.control.classes, config.image_depth) == (
+            16,
+            8,
+            2,
+            2,
+        )
+        cfg = v3_config(tmp_path)
+        cfg.model.size = "bench"
+        bench = isodream_v3_config(cfg, action_dim=A)
+        assert (bench.hidden, bench.free_hidden, bench.image_depth) == (80, 40, 8)
 
     def test_bad_pixels_get_one_line(self, parts):
         with pytest.raises(ValueError, match="pixels"):

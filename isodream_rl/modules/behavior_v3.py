@@ -32,16 +32,21 @@ from isodream_rl.modules.world_model_v3 import FREE_ACTION_DIM, IsoDreamV3Config
 class PolicyFeaturesV3(nn.Module):
     """``e_t`` (eq. 7) from the packed latent.
 
+    In ``"attention"`` mode the query is the controllable features ``[s, h]`` and the keys and values are the
+    stochastic states ``z`` of the window (eq. 6 attends over the noncontrollable states): the window also holds
+    each entry's belief ``h'`` (the chain continues from it, and the reward reads it), which the attention leaves
+    out, as it would multiply the attention's cost by about ``(S_z + D_z) / S_z``.
+
     Args:
         config: the world model's :class:`~isodream_rl.modules.world_model_v3.IsoDreamV3Config`.
-        mode: ``"attention"`` (eq. 6: ``[s, h]`` attends over the window of ``[z, h']``), ``"controllable"``
-            (``[h, s]``, the DMC setting) or ``"concat"`` (``[h, s, h', z]``).
+        mode: ``"attention"`` (eq. 6), ``"controllable"`` (``[h, s]``, the DMC setting) or ``"concat"``
+            (``[h, s, h', z]``).
         attention_dim: width of the attention's projections.
         device: where the parameters live.
 
     Shapes:
-        ``state`` ``[*N, S]``, ``belief`` ``[*N, D]`` (packed), ``free_window`` ``[*N, tau, F]`` (attention mode
-        only) -> ``[*N, feature_dim]``.
+        ``state`` ``[*N, S]``, ``belief`` ``[*N, D]`` (packed), ``free_window`` ``[*N, tau, S_z + D_z]``
+        (attention mode only) -> ``[*N, feature_dim]``.
     """
 
     def __init__(
@@ -55,11 +60,13 @@ class PolicyFeaturesV3(nn.Module):
                 f"policy_input={mode!r} reads the noncontrollable branch, which this model lacks"
             )
         self.mode = mode
-        self.state_dim, self.deter = config.state_dim, config.deter
-        width = config.branch_feature_dim
-        self.feature_dim = 2 * width if mode == "concat" else width
+        control, free = config.control, config.free
+        self.state_dim, self.deter, self.free_state_dim = control.state_dim, control.deter, free.state_dim
+        self.feature_dim = control.feature_dim + (free.feature_dim if mode == "concat" else 0)
         self.attention = (
-            FutureStateAttention(query_dim=width, key_dim=width, width=attention_dim, device=device)
+            FutureStateAttention(
+                query_dim=control.feature_dim, key_dim=free.state_dim, width=attention_dim, device=device
+            )
             if mode == "attention"
             else None
         )
@@ -77,7 +84,7 @@ class PolicyFeaturesV3(nn.Module):
             return torch.cat([h, s], dim=-1)
         if self.mode == "concat":
             return torch.cat([h, s, belief[..., self.deter :], state[..., self.state_dim :]], dim=-1)
-        return self.attention(torch.cat([s, h], dim=-1), free_window)
+        return self.attention(torch.cat([s, h], dim=-1), free_window[..., : self.free_state_dim])
 
 
 class _OnFeatures(nn.Module):

@@ -52,22 +52,53 @@ def _next(key: str) -> tuple[str, str]:
     return ("next", key)
 
 
+def dreamer_v3_classes(hidden: int) -> int:
+    """Classes of each categorical by DreamerV3's size rule, ``hidden / 16`` (at least 2: one class carries no
+    information and no gradient)."""
+    return max(2, (hidden + 8) // 16)
+
+
+@dataclass(frozen=True)
+class BranchWidths:
+    """One latent branch's widths: DreamerV3's ``hidden`` (``deter = 8 hidden``) and its categoricals."""
+
+    hidden: int
+    """DreamerV3's ``hidden``: the RSSM's hidden layers."""
+    num_categoricals: int
+    """Categorical variables of the stochastic state."""
+    classes: int
+    """Classes of each categorical (both branches have the same, so that their logits stack)."""
+
+    @property
+    def deter(self) -> int:
+        """Belief width."""
+        return 8 * self.hidden
+
+    @property
+    def state_dim(self) -> int:
+        """The one-hot ``state`` width: categoricals x classes."""
+        return self.num_categoricals * self.classes
+
+    @property
+    def feature_dim(self) -> int:
+        """Width of the branch's features ``[state, belief]``."""
+        return self.state_dim + self.deter
+
+
 @dataclass(frozen=True)
 class IsoDreamV3Config:
-    """Widths and switches of :class:`IsoDreamV3WorldModel`.
-
-    DreamerV3's size rule per branch: ``hidden`` (RSSM hidden layers, heads), ``deter = 8 hidden`` (GRU state),
-    ``settings.num_categoricals`` categoricals of ``hidden / 16`` classes; image depth ``hidden / 16``.
-    """
+    """Widths and switches of :class:`IsoDreamV3WorldModel`."""
 
     action_dim: int
     """Width of the action."""
     hidden: int
-    """DreamerV3's ``hidden`` of each branch."""
+    """DreamerV3's ``hidden`` of the controllable branch (:class:`BranchWidths`)."""
     image_depth: int
     """Base channel count of the encoder and of each decoder."""
     units: int
     """Width of the reward, continuation and inverse-dynamics hidden layers."""
+    free_hidden: int | None = None
+    """``hidden`` of the action-free branch; ``None``: ``hidden``."""
     attention_window: int = 3
     """tau: the noncontrollable states a window holds (the current one and ``tau - 1`` predicted)."""
     free_branch: bool = True
@@ -84,54 +115,44 @@ class IsoDreamV3Config:
     """DreamerV3's settings (unimix, categoricals, bins, blocks)."""
 
     @property
-    def deter(self) -> int:
-        """Belief width of each branch."""
-        return 8 * self.hidden
+    def control(self) -> BranchWidths:
+        """The controllable branch's widths: DreamerV3's size rule at ``hidden``."""
+        return BranchWidths(self.hidden, self.settings.num_categoricals, dreamer_v3_classes(self.hidden))
 
     @property
-    def classes(self) -> int:
-        """Classes of each categorical (at least 2: one class would carry no information and no gradient)."""
-        return max(2, (self.hidden + 8) // 16)
-
-    @property
-    def state_dim(self) -> int:
-        """One branch's one-hot ``state`` width: categoricals x classes."""
-        return self.settings.num_categoricals * self.classes
-
-    @property
-    def branches(self) -> int:
-        """1 or 2 latent branches."""
-        return 2 if self.free_branch else 1
+    def free(self) -> BranchWidths:
+        """The action-free branch's widths (also when the branch is off): ``free_hidden``, the controllable
+        branch's classes and as many categoricals as ``free_hidden`` is a fraction of ``hidden``."""
+        hidden = self.free_hidden or self.hidden
+        categoricals = max(1, round(self.settings.num_categoricals * hidden / self.hidden))
+        return BranchWidths(hidden, categoricals, dreamer_v3_classes(self.hidden))
 
     @property
     def packed_state_dim(self) -> int:
         """Width of the packed ``state`` ``[s, z]``."""
-        return self.branches * self.state_dim
+        return self.control.state_dim + (self.free.state_dim if self.free_branch else 0)
 
     @property
     def packed_belief_dim(self) -> int:
         """Width of the packed ``belief`` ``[h, h']``."""
-        return self.branches * self.deter
-
-    @property
-    def branch_feature_dim(self) -> int:
-        """Width of one branch's features ``[s, h]`` (or ``[z, h']``)."""
-        return self.state_dim + self.deter
+        return self.control.deter + (self.free.deter if self.free_branch else 0)
 
     @property
     def head_feature_dim(self) -> int:
         """Width of the reward / continuation heads' input."""
-        return self.branch_feature_dim * (self.branches if self.reward_uses_free else 1)
+        free = self.free.feature_dim if self.reward_uses_free and self.free_branch else 0
+        return self.control.feature_dim + free
 
 
-def make_rssm(config: IsoDreamV3Config, *, action_dim: int, embed_dim: int, device=None):
+def make_rssm(
+    widths: BranchWidths, *, action_dim: int, embed_dim: int, settings: DreamerV3Settings, device=None
+):
     """One branch's ``RSSMPriorV3`` (block GRU) and ``RSSMPosteriorV3`` (RMS-normed), DreamerV3's settings."""
-    settings = config.settings
-    categorical = {"num_categoricals": settings.num_categoricals, "num_classes": config.classes}
+    categorical = {"num_categoricals": widths.num_categoricals, "num_classes": widths.classes}
     prior = RSSMPriorV3(
         action_shape=(action_dim,),
-        hidden_dim=config.hidden,
-        rnn_hidden_dim=config.deter,
+        hidden_dim=widths.hidden,
+        rnn_hidden_dim=widths.deter,
         action_dim=action_dim,
         recurrent_model="block_gru",
         num_blocks=settings.num_blocks,
@@ -141,8 +162,8 @@ def make_rssm(config: IsoDreamV3Config, *, action_dim: int, embed_dim: int, devi
         **categorical,
     )
     posterior = RSSMPosteriorV3(
-        hidden_dim=config.hidden,
-        rnn_hidden_dim=config.deter,
+        hidden_dim=widths.hidden,
+        rnn_hidden_dim=widths.deter,
         obs_embed_dim=embed_dim,
         use_rms_norm=True,
         unimix=settings.unimix,
@@ -209,22 +230,22 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
         self.encoder = DreamerV3ImageEncoder(depth=cfg.image_depth, device=device)
         embed = self.encoder.output_features((3, 64, 64))
         self.control_prior, self.control_posterior = make_rssm(
-            cfg, action_dim=cfg.action_dim, embed_dim=embed, device=device
+            cfg.control, action_dim=cfg.action_dim, embed_dim=embed, settings=settings, device=device
         )
         self.control_rollout = branch_rollout(self.control_prior, self.control_posterior)
         single = not (cfg.free_branch or cfg.static_branch)
         decoder = {"depth": cfg.image_depth, "num_blocks": settings.num_blocks, "device": device}
         channels = 3 if single else 4
         self.control_decoder = DreamerV3ImageDecoder(
-            cfg.branch_feature_dim, image_shape=(channels, 64, 64), **decoder
+            cfg.control.feature_dim, image_shape=(channels, 64, 64), **decoder
         )
         if cfg.free_branch:
             self.free_prior, self.free_posterior = make_rssm(
-                cfg, action_dim=FREE_ACTION_DIM, embed_dim=embed, device=device
+                cfg.free, action_dim=FREE_ACTION_DIM, embed_dim=embed, settings=settings, device=device
             )
             self.free_rollout = branch_rollout(self.free_prior, self.free_posterior)
             self.free_decoder = DreamerV3ImageDecoder(
-                cfg.branch_feature_dim, image_shape=(4, 64, 64), **decoder
+                cfg.free.feature_dim, image_shape=(4, 64, 64), **decoder
             )
         else:
             self.free_prior = self.free_posterior = self.free_rollout = self.free_decoder = None
@@ -245,7 +266,10 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
         )
         self.inverse_cell = (
             InverseDynamicsCell(
-                in_features=cfg.state_dim, action_dim=cfg.action_dim, num_cells=cfg.units, device=device
+                in_features=cfg.control.state_dim,
+                action_dim=cfg.action_dim,
+                num_cells=cfg.units,
+                device=device,
             )
             if cfg.inverse_dynamics
             else None
@@ -271,13 +295,13 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
 
     # ------------------------------------------------------------------ packing
     def split_state(self, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Packed ``[*N, S]`` -> ``(s [*N, S_c], z [*N, S_c] or None)``."""
-        width = self.config.state_dim
+        """Packed ``[*N, S]`` -> ``(s [*N, S_c], z [*N, S_z] or None)``."""
+        width = self.config.control.state_dim
         return state[..., :width], (state[..., width:] if self.config.free_branch else None)
 
     def split_belief(self, belief: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Packed ``[*N, D]`` -> ``(h [*N, D_c], h' [*N, D_c] or None)``."""
-        width = self.config.deter
+        """Packed ``[*N, D]`` -> ``(h [*N, D_c], h' [*N, D_z] or None)``."""
+        width = self.config.control.deter
         return belief[..., :width], (belief[..., width:] if self.config.free_branch else None)
 
     def head_features(self, state: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
@@ -301,13 +325,13 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
     def free_step(
         self, free_state: torch.Tensor, free_belief: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """One step of the action-free prior (eq. 3): ``(z, h')`` ``[*N, S_c]``, ``[*N, D_c]`` -> the next ones."""
+        """One step of the action-free prior (eq. 3): ``(z, h')`` ``[*N, S_z]``, ``[*N, D_z]`` -> the next ones."""
         zero = free_state.new_zeros(*free_state.shape[:-1], FREE_ACTION_DIM)
         _, free_state, free_belief = self.free_prior(free_state, free_belief, zero)
         return free_state, free_belief
 
     def free_window(self, free_state: torch.Tensor, free_belief: torch.Tensor) -> torch.Tensor:
-        """``[z_t, h'_t]`` and ``tau - 1`` action-free prior steps rolled from it: ``[*N, tau, S_c + D_c]`` (the
+        """``[z_t, h'_t]`` and ``tau - 1`` action-free prior steps rolled from it: ``[*N, tau, S_z + D_z]`` (the
         attention's window, eq. 6). The rolled steps carry no gradient."""
         window = [torch.cat([free_state, free_belief], dim=-1)]
         with torch.no_grad():

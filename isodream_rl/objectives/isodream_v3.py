@@ -114,7 +114,7 @@ class IsoDreamV3Transition(nn.Module):
         _, s, h = model.control_prior(s, h, action)
         if free_window is None:
             return s, h
-        width = model.config.state_dim
+        width = model.config.free.state_dim
         last = free_window[..., -1, :]
         z, h_free = model.free_step(last[..., :width], last[..., width:])
         free_window = torch.cat(
@@ -149,7 +149,7 @@ def isodream_imagination_env(world_model: IsoDreamV3WorldModel, *, device=None) 
     two-hot reward as the reward."""
     cfg = world_model.config
     transition_keys = ["state", "belief"] + (["free_window"] if cfg.free_branch else [])
-    extra = {"free_window": (cfg.attention_window, cfg.branch_feature_dim)} if cfg.free_branch else None
+    extra = {"free_window": (cfg.attention_window, cfg.free.feature_dim)} if cfg.free_branch else None
     return latent_dreamer_env(
         WorldModelWrapper(
             TensorDictModule(

@@ -5,11 +5,13 @@ The world model, actor and critic of :func:`~isodream_rl.objectives.isodream_v3.
 and the DreamerV3 update (:class:`~isodream_rl.trainers.dreamer_v3.DreamerV3OptimizationStepper`), both shared with
 ``algo=torchrl_dreamer_v3``; the replay side is every run's.
 
-Widths. DreamerV3's size rule per branch (``hidden``; ``deter = 8 hidden``; 32 categoricals of ``hidden / 16``
-classes), with ``hidden = HIDDEN_PER_HIDDEN_DIM x`` the size preset's ``hidden_dim``
-(a multiple of 8), and an image depth of ``hidden_dim / 8`` for the encoder and each of the three decoders: at
-``size=bench`` two branches of ``hidden`` 80 and image depth 8, where ``algo=torchrl_dreamer_v3`` has one branch of
-120 and image depth 8, at about its world-model parameter count (``bench/update_speed.py`` writes both).
+Widths. DreamerV3's size rule per branch (``hidden``; ``deter = 8 hidden``; categoricals of ``hidden / 16``
+classes): the controllable branch at ``hidden = HIDDEN_PER_HIDDEN_DIM x`` the size preset's ``hidden_dim`` (a multiple
+of 8) with 32 categoricals, the action-free branch at :data:`FREE_HIDDEN_FRACTION` of that with as many fewer
+categoricals (the same classes, so that both branches' logits stack for the KL terms); an image depth of
+``hidden_dim / 8`` for the encoder and each of the three decoders. At ``size=bench``: ``hidden`` 80 and 40, image
+depth 8, a 1.58 M-parameter world model, where ``algo=torchrl_dreamer_v3`` has one branch of ``hidden`` 120, image
+depth 8 and 1.84 M (``bench/update_speed.py`` writes both counts).
 
 What it reads of the run configuration: ``model.size`` (``hidden_dim``), ``model.actor_units`` /
 ``value_units`` / ``attention_dim``; ``algo.free_branch`` / ``static_branch`` / ``inverse_dynamics`` (the branch
@@ -35,8 +37,10 @@ from isodream_rl.trainers.components import RunComponents, make_replay_parts
 from isodream_rl.trainers.config import ConfigError, RunConfig
 from isodream_rl.trainers.dreamer_v3 import DreamerV3OptimizationStepper, make_dreamer_v3_optimizers
 
-#: ``hidden`` of each branch per unit of the size preset's ``hidden_dim``.
+#: ``hidden`` of the controllable branch per unit of the size preset's ``hidden_dim``.
 HIDDEN_PER_HIDDEN_DIM = 1.25
+#: ``hidden`` of the action-free branch per unit of the controllable branch's.
+FREE_HIDDEN_FRACTION = 0.5
 
 
 def isodream_v3_config(
@@ -57,10 +61,12 @@ def isodream_v3_config(
         )
     hidden_dim = cfg.model.hidden_dim or SIZE_PRESETS[cfg.model.size]["hidden_dim"]
     hidden = 8 * max(1, round(HIDDEN_PER_HIDDEN_DIM * hidden_dim / 8))
+    free_hidden = 8 * max(1, round(FREE_HIDDEN_FRACTION * hidden / 8))
     algo = cfg.algo
     return IsoDreamV3Config(
         action_dim=action_dim,
         hidden=hidden,
+        free_hidden=free_hidden,
         image_depth=max(2, hidden_dim // 8),
         units=hidden,
         attention_window=algo.attention_window,
