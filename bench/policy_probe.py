@@ -38,6 +38,22 @@ Loads the newest readable checkpoint of an ``isodream-train`` run, plays ``--epi
     of the slow value of the last imagined state (``cosine_value``; negative: the value pays for moving away
     from the target).
 
+Two learners, by the run's ``algo.name`` (:func:`probe_learner`):
+
+- DreamerV2-style Iso-Dream components (``algo=isodream``, ``dreamerv2`` and the other Iso-Dream variants):
+  :class:`DreamerV2Learner`, everything above.
+- TorchRL's DreamerV3 learner (:data:`DREAMER_V3_ALGOS`: ``algo=isodream_v3``, Iso-Dream's decomposition on it,
+  and ``algo=torchrl_dreamer_v3``, TorchRL's DreamerV3): :class:`DreamerV3Learner`. The same episodes, context
+  windows, replays and reach counts; the world model filters from zero root ``state``/``belief`` (as the
+  training stepper gives them), its filtered reward prediction is the decoded two-hot ``("next", "reward")``,
+  and imagination is ``DreamerV3ActorLoss``'s (its ``DreamerEnv`` reset on the posteriors, which for
+  ``isodream_v3`` also rolls the action-free window, then the actor's rollout; ``lambda_target`` its
+  continuation-weighted lambda-returns). ``value_vs_potential`` fits the critic that bootstraps those returns
+  (``DreamerV3ActorLoss.value_model``, the two-hot value; the fit keeps the ``v_slow_*`` names) on the start
+  states. ``gradient_check`` is ``null``, with its reason under ``gradient_check_skipped``: the actor learns by
+  REINFORCE there, so the model's pathwise action gradients are not what it follows. These results also carry
+  ``algo`` and ``learner`` (``"dreamer_v3"``); the DreamerV2-style results are as they were.
+
     python bench/policy_probe.py runs/ladder/R2_dv2 --json docs/results/ladder/policy_probe_R2_dv2.json
 """
 
@@ -51,7 +67,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -68,6 +84,113 @@ from isodream_rl.trainers.registry import make_components
 #: an imagined step whose predicted reward exceeds this counts as a reach: a real reach step earns 1 plus its
 #: progress, the progress term alone at most about 0.71 (a full-speed diagonal step), so 0.7 would count those
 REACH_THRESHOLD = 0.85
+#: the algorithms that learn on TorchRL's DreamerV3 learner (:class:`DreamerV3Learner`)
+DREAMER_V3_ALGOS = ("isodream_v3", "torchrl_dreamer_v3")
+
+
+class DreamerV2Learner:
+    """What the probe runs of DreamerV2-style Iso-Dream components: the model loss filters a ``[B, T]`` window,
+    its output is the actor loss's input (imagination from every posterior), ``("next", "reward_pred")`` the
+    filtered reward prediction, and the imagination is pathwise (``gradient_check``).
+
+    Args:
+        components: the run's components (``model_loss``, ``behavior.actor_loss`` / ``value_loss`` / ``policy``).
+    """
+
+    #: the world model's reward prediction in the filtered output
+    predicted_reward_key = ("next", "reward_pred")
+    #: entries the probe adds to its results (what this learner reports differently)
+    notes: dict = {}
+    #: entries it adds to ``imagination_check``
+    check_notes: dict = {}
+
+    def __init__(self, components) -> None:
+        self.components = components
+
+    def filter(self, window: TensorDictBase) -> TensorDictBase:
+        """The world model's output on a ``[B, T]`` window (``action``, ``("next", "pixels")``, ``is_init``)."""
+        _, out = self.components.model_loss(window)
+        return out
+
+    def starts(self, out: TensorDictBase) -> TensorDictBase:
+        """The actor loss's input that imagines from every filtered posterior of ``out``."""
+        return out
+
+    def last_starts(self, out: TensorDictBase, samples: int) -> TensorDictBase:
+        """The actor loss's input that imagines ``samples`` times from the last posterior of ``out`` ``[1, T]``."""
+        return out[:, -1:].expand(samples, 1).clone()
+
+    def imagine(self, starts: TensorDictBase) -> TensorDictBase:
+        """The actor's imagined trajectories ``[N, H]`` from ``starts`` (``action``, ``("next", "reward")``,
+        ``lambda_target``)."""
+        _, imagined = self.components.behavior.actor_loss(starts)
+        return imagined
+
+    def start_value(self, imagined: TensorDictBase) -> float:
+        """The slow value of the imagined trajectories' start state ``e_0``, averaged over the samples (they
+        differ only through the sampled noncontrollable window of the attention)."""
+        behavior, start = self.components.behavior, imagined[:, 0]
+        with behavior.actor_loss.imagination.autocast(start["state"].device.type):
+            value = behavior.value_loss.target_value(policy_features(behavior.policy_input, start))
+        return float(value.float().mean())
+
+    def gradients(self, starts: TensorDictBase, env) -> dict | None:
+        """``gradient_check``'s entries from ``starts`` (:meth:`last_starts`) in ``env``."""
+        return action_gradients(self.components, starts, env)
+
+
+class DreamerV3Learner(DreamerV2Learner):
+    """What the probe runs of a TorchRL DreamerV3 learner (``algo=isodream_v3``, ``torchrl_dreamer_v3``): the
+    world model filters from zero root ``state``/``belief``, its decoded two-hot ``("next", "reward")`` is the
+    reward prediction, ``DreamerV3ActorLoss`` imagines from flat ``state``/``belief`` starts, the critic it
+    bootstraps from gives the start value, and there is no pathwise ``gradient_check`` (REINFORCE).
+
+    Args:
+        components: the run's components (``model_loss``, ``stepper.state_dim`` / ``belief_dim``,
+            ``behavior.actor_loss``, ``behavior.policy``).
+    """
+
+    predicted_reward_key = ("next", "reward")
+    notes = {"learner": "dreamer_v3"}
+    check_notes = {
+        "gradient_check_skipped": "the actor learns by REINFORCE (DreamerV3ActorLoss), not through the model's "
+        "pathwise action gradients",
+        "value_model": "the critic that bootstraps the actor's lambda-returns (DreamerV3ActorLoss.value_model, "
+        "two-hot); the fit's v_slow_* entries name it",
+    }
+
+    def filter(self, window: TensorDictBase) -> TensorDictBase:
+        stepper = self.components.stepper
+        window = window.clone(False)
+        window.set("state", torch.zeros(*window.batch_size, stepper.state_dim))
+        window.set("belief", torch.zeros(*window.batch_size, stepper.belief_dim))
+        return super().filter(window)
+
+    def starts(self, out: TensorDictBase) -> TensorDictBase:
+        state, belief = out["next", "state"], out["next", "belief"]
+        return TensorDict(
+            {"state": state.reshape(-1, state.shape[-1]), "belief": belief.reshape(-1, belief.shape[-1])},
+            [out.numel()],
+        )
+
+    def last_starts(self, out: TensorDictBase, samples: int) -> TensorDictBase:
+        return self.starts(out[:, -1:]).expand(samples).clone()
+
+    def start_value(self, imagined: TensorDictBase) -> float:
+        """The critic's value of the imagined trajectories' start state (the reset ``DreamerEnv``'s root, with
+        the action-free window for ``isodream_v3``), averaged over the samples."""
+        loss = self.components.behavior.actor_loss
+        start = imagined[:, 0].select(*loss.value_model.in_keys)
+        return float(loss.value_model(start).get(loss.tensor_keys.value).float().mean())
+
+    def gradients(self, starts: TensorDictBase, env) -> dict | None:
+        return None
+
+
+def probe_learner(components, algo: str) -> DreamerV2Learner:
+    """The probe's view of a run's ``components`` by its ``algo.name``: :class:`DreamerV3Learner` for
+    :data:`DREAMER_V3_ALGOS`, :class:`DreamerV2Learner` otherwise."""
+    return (DreamerV3Learner if algo in DREAMER_V3_ALGOS else DreamerV2Learner)(components)
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -93,29 +216,20 @@ def main(argv: list[str] | None = None) -> dict:
         cfg, action_dim=2, scratch_dir=Path("/tmp") / f"policy_probe_{args.run_dir.name}"
     )
     components.load_models(state)
-    policy = components.behavior.policy
-    env = make_env(cfg.env.name, seed=args.seed, **dict(cfg.env.kwargs))
-    env.append_transform(policy.make_tensordict_primer())
-    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
-        rollouts = [env.rollout(args.steps, policy, break_when_any_done=False) for _ in range(args.episodes)]
-    batch = TensorDict(
-        {
-            "action": torch.stack([r["action"] for r in rollouts]),
-            ("next", "pixels"): torch.stack([r["next", "pixels"] for r in rollouts]),
-            ("next", "reward"): torch.stack([r["next", "reward"] for r in rollouts]),
-            "is_init": torch.zeros(args.episodes, args.steps, 1, dtype=torch.bool),
-        },
-        [args.episodes, args.steps],
+    learner = probe_learner(components, cfg.algo.name)
+    batch = play_episodes(
+        components.behavior.policy, cfg, episodes=args.episodes, steps=args.steps, seed=args.seed
     )
-    batch["is_init"][:, 0] = True
     with torch.no_grad():
-        _, out = components.model_loss(batch)
-        _, imagined = components.behavior.actor_loss(out)
+        out = learner.filter(batch)
+        imagined = learner.imagine(learner.starts(out))
     true = batch["next", "reward"][:, 2:].flatten().numpy()
-    predicted = out["next", "reward_pred"][:, 2:].flatten().numpy()
+    predicted = out[learner.predicted_reward_key][:, 2:].flatten().numpy()
     actions = batch["action"].reshape(-1, 2).numpy()
+    notes = {"algo": cfg.algo.name, **learner.notes} if learner.notes else {}
     result = {
         "run": str(args.run_dir),
+        **notes,
         "checkpoint": str(path),
         "updates": int(state["stepper"]["updates"]),
         "true_reward_mean": float(true.mean()),
@@ -129,7 +243,7 @@ def main(argv: list[str] | None = None) -> dict:
         "imagined_reward_mean": float(imagined["next", "reward"].mean()),
         "lambda_target_mean": float(imagined["lambda_target"].mean()),
         "imagination_check": imagination_check(
-            components, cfg, starts=args.starts, value_starts=args.value_starts
+            learner, cfg, starts=args.starts, value_starts=args.value_starts
         )
         if cfg.env.name == "sprites"
         else None,
@@ -143,7 +257,28 @@ def main(argv: list[str] | None = None) -> dict:
     return result
 
 
-def context_window(components, env, rng: np.random.Generator, context: int) -> TensorDict:
+def play_episodes(policy, cfg, *, episodes: int, steps: int, seed: int) -> TensorDict:
+    """``episodes`` fresh episodes of ``steps`` steps of the run's env under the deterministic ``policy``: a
+    ``[episodes, steps]`` window (``action``, ``("next", "pixels")``, ``("next", "reward")``, ``is_init`` at the
+    first step)."""
+    env = make_env(cfg.env.name, seed=seed, **dict(cfg.env.kwargs))
+    env.append_transform(policy.make_tensordict_primer())
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        rollouts = [env.rollout(steps, policy, break_when_any_done=False) for _ in range(episodes)]
+    batch = TensorDict(
+        {
+            "action": torch.stack([r["action"] for r in rollouts]),
+            ("next", "pixels"): torch.stack([r["next", "pixels"] for r in rollouts]),
+            ("next", "reward"): torch.stack([r["next", "reward"] for r in rollouts]),
+            "is_init": torch.zeros(episodes, steps, 1, dtype=torch.bool),
+        },
+        [episodes, steps],
+    )
+    batch["is_init"][:, 0] = True
+    return batch
+
+
+def context_window(learner: DreamerV2Learner, env, rng: np.random.Generator, context: int) -> TensorDict:
     """Steps ``env`` ``context`` times with random actions held 4 steps and filters them with the world model:
     the model output ``[1, context]`` (its last posterior is the state of ``env`` now)."""
     actions, pixels, rewards = [], [], []
@@ -164,17 +299,7 @@ def context_window(components, env, rng: np.random.Generator, context: int) -> T
         [1, context],
     )
     window["is_init"][:, 0] = True
-    _, out = components.model_loss(window)
-    return out
-
-
-def start_value(components, imagined: TensorDict) -> float:
-    """The slow value of the imagined trajectories' start state ``e_0``, averaged over the samples (they
-    differ only through the sampled noncontrollable window of the attention)."""
-    behavior, start = components.behavior, imagined[:, 0]
-    with behavior.actor_loss.imagination.autocast(start["state"].device.type):
-        value = behavior.value_loss.target_value(policy_features(behavior.policy_input, start))
-    return float(value.float().mean())
+    return learner.filter(window)
 
 
 def potential(env) -> float:
@@ -211,11 +336,30 @@ def linear_fit(x: np.ndarray, y: np.ndarray) -> dict:
     return fit
 
 
+def replay_plans(env, plan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each imagined action sequence ``plan[k]`` (``[samples, H, 2]``) replayed in its own copy of the sprites
+    ``env``: the real rewards and ``info["reached"]`` flags, ``[samples, H]`` each."""
+    real = np.zeros(plan.shape[:2], dtype=np.float32)
+    reached = np.zeros(plan.shape[:2], dtype=bool)
+    for k in range(plan.shape[0]):
+        replay = copy.deepcopy(env)
+        for j in range(plan.shape[1]):
+            _, real[k, j], _, _, info = replay.step(plan[k, j])
+            reached[k, j] = info["reached"]
+    return real, reached
+
+
 @torch.no_grad()
 def imagination_check(
-    components, cfg, *, starts: int, value_starts: int = 0, samples: int = 32, context: int = 24
+    learner: DreamerV2Learner,
+    cfg,
+    *,
+    starts: int,
+    value_starts: int = 0,
+    samples: int = 32,
+    context: int = 24,
 ) -> dict:
-    """Imagined against real rewards and reaches of the actor's own imagined action sequences, and the slow
+    """Imagined against real rewards and reaches of the actor's own imagined action sequences, and the start
     value against the true potential (see the module doc)."""
     from isodream_rl.envs.sprites import SpritesEnv
 
@@ -226,27 +370,22 @@ def imagination_check(
 
     def imagine_from(seed: int, generator: np.random.Generator):
         """A fresh env after a context window from ``seed``, the actor's imagined plans from its state, and the
-        (slow value, potential) pair of that state."""
+        (start value, potential) pair of that state."""
         env = SpritesEnv(**kwargs)
         env.reset(seed=seed)
-        out = context_window(components, env, generator, context)
-        _, imagined = components.behavior.actor_loss(out[:, -1:].expand(samples, 1).clone())
-        values.append(start_value(components, imagined))
+        out = context_window(learner, env, generator, context)
+        imagined = learner.imagine(learner.last_starts(out, samples))
+        values.append(learner.start_value(imagined))
         potentials.append(potential(env))
-        gradients.append(action_gradients(components, out[:, -1:].expand(samples, 1).clone(), env))
+        grads = learner.gradients(learner.last_starts(out, samples), env)
+        if grads is not None:
+            gradients.append(grads)
         return env, imagined
 
     for start in range(starts):
         env, imagined = imagine_from(20_000 + start, rng)
-        plan = imagined["action"].numpy()
         dreamt = imagined["next", "reward"].squeeze(-1).numpy()
-        real = np.zeros_like(dreamt)
-        reached = np.zeros(dreamt.shape, dtype=bool)
-        for k in range(samples):
-            replay = copy.deepcopy(env)
-            for j in range(plan.shape[1]):
-                _, real[k, j], _, _, info = replay.step(plan[k, j])
-                reached[k, j] = info["reached"]
+        real, reached = replay_plans(env, imagined["action"].numpy())
         imagined_sums.append(dreamt.sum(1).mean())
         real_sums.append(real.sum(1).mean())
         imagined_all.append(dreamt.ravel())
@@ -266,7 +405,10 @@ def imagination_check(
         **reach_rates(dreamt, np.concatenate(reached_all)),
         "value_starts": value_starts,
         "value_vs_potential": linear_fit(np.array(potentials), np.array(values)),
-        "gradient_check": {key: float(np.mean([g[key] for g in gradients])) for key in gradients[0]},
+        "gradient_check": {key: float(np.mean([g[key] for g in gradients])) for key in gradients[0]}
+        if gradients
+        else None,
+        **learner.check_notes,
     }
 
 

@@ -1,5 +1,6 @@
 """``bench/policy_probe.py`` on a tiny sprites reach run: the imagined against the real reaches and the slow
-value against the true potential come out with values in range."""
+value against the true potential come out with values in range, for the DreamerV2-style Iso-Dream components and
+for the two DreamerV3-learner algorithms (``algo=isodream_v3``, ``torchrl_dreamer_v3``)."""
 
 import json
 import math
@@ -93,6 +94,75 @@ def test_probe_reports_reaches_and_value_against_potential(tmp_path, algo):
     for key in ("cosine_reward", "cosine_lambda_return", "cosine_value"):
         assert -1.0 - 1e-6 <= grads[key] <= 1.0 + 1e-6
     assert grads["norm_reward"] >= 0.0 and math.isfinite(grads["norm_lambda_return"])
+
+
+def in_range_or_nan(x, low=-1.0, high=1.0) -> bool:
+    return x is None or math.isnan(x) or low - 1e-6 <= x <= high + 1e-6
+
+
+def test_the_learner_follows_the_algo():
+    for algo in ("isodream", "dreamerv2", "isodream_paper"):
+        assert type(probe.probe_learner(None, algo)) is probe.DreamerV2Learner
+    for algo in ("isodream_v3", "torchrl_dreamer_v3"):
+        assert type(probe.probe_learner(None, algo)) is probe.DreamerV3Learner
+
+
+@pytest.mark.parametrize("algo", probe.DREAMER_V3_ALGOS)
+def test_probe_reports_imagined_and_real_reaches_of_a_dreamer_v3_learner(tmp_path, algo):
+    from tests.test_isodream_v3 import v3_config
+    from tests.test_torchrl_dreamer import tiny_config
+
+    steps = {"prefill_steps": 10, "frames_per_batch": 10, "total_steps": 30}
+    run = tmp_path / "run"
+    cfg = v3_config(run, **steps) if algo == "isodream_v3" else tiny_config(run, algo, **steps)
+    cfg.logging.final_eval_episodes = 0
+    assert train(cfg).updates >= 1
+
+    out = tmp_path / "probe.json"
+    report = probe.main(
+        [
+            str(run),
+            "--json",
+            str(out),
+            "--starts",
+            "2",
+            "--value-starts",
+            "1",
+            "--episodes",
+            "1",
+            "--steps",
+            "8",
+        ]
+    )
+    written = json.loads(out.read_text())
+    assert written["imagination_check"].keys() == report["imagination_check"].keys()
+    assert report["algo"] == algo and report["learner"] == "dreamer_v3"
+    for key in ("true_reward_mean", "predicted_reward_mean", "imagined_reward_mean", "lambda_target_mean"):
+        assert math.isfinite(report[key]), key
+    assert in_range_or_nan(report["reward_correlation"])
+    assert len(report["action_mean"]) == len(report["action_std_within_episode"]) == 2
+
+    check = report["imagination_check"]
+    assert check["starts"] == 2 and check["samples"] == 32
+    steps = check["starts"] * check["samples"] * cfg.algo.horizon
+    for rate, count in (("imagined_reach_rate", "imagined_reaches"), ("real_reach_rate", "real_reaches")):
+        assert 0.0 <= check[rate] <= 1.0
+        assert check[count] == round(check[rate] * steps)
+    if check["real_reaches"]:
+        assert 0.0 <= check["reach_recall"] <= 1.0
+    else:
+        assert check["reach_recall"] is None
+    assert math.isfinite(check["imagined_return"])
+    # A real step earns at least -0.71 (progress at full speed away) and at most 1.71 (a reach).
+    assert -0.72 * cfg.algo.horizon <= check["real_return"] <= 1.72 * cfg.algo.horizon
+    assert in_range_or_nan(check["reward_correlation"])
+
+    fit = check["value_vs_potential"]
+    assert fit["points"] == check["starts"] + check["value_starts"] == 3
+    assert math.isfinite(fit["v_slow_mean"]) and -10.0 * math.sqrt(2) <= fit["phi_mean"] < 0.0
+    assert in_range_or_nan(fit["correlation"])
+    assert check["gradient_check"] is None and "REINFORCE" in check["gradient_check_skipped"]
+    assert "value_model" in check
 
 
 def test_the_direction_to_the_target_is_in_action_coordinates():
