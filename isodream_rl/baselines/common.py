@@ -47,8 +47,7 @@ def preset_widths(cfg: RunConfig, keys: Sequence[str], *, algo: str) -> dict[str
 class BaselineComponents(RunComponents):
     """The interface of :class:`~isodream_rl.trainers.components.RunComponents` for a baseline whose
     ``__init__`` builds its own models, losses and stepper: :meth:`set_replay_parts` gives it the run's replay
-    buffer, preparation and episode-return hooks, and :meth:`load_models` refuses a checkpoint of another
-    algorithm in one line."""
+    buffer, preparation and episode-return hooks."""
 
     #: the ``algo.name`` the subclass is registered under (named by :meth:`load_models`)
     algo: ClassVar[str]
@@ -57,17 +56,3 @@ class BaselineComponents(RunComponents):
         """``replay_buffer``, ``preparation``, ``returns``: the Iso-Dream run's
         (:func:`~isodream_rl.trainers.components.make_replay_parts`)."""
         self.replay_buffer, self.preparation, self.returns = make_replay_parts(cfg, scratch_dir=scratch_dir)
-
-    def load_models(self, state: dict) -> None:
-        """Load the weights saved by :meth:`state` (checkpoint key ``"models"``).
-
-        Raises:
-            KeyError: the checkpoint lacks one of :meth:`modules`' weights (another algorithm's).
-        """
-        missing = set(self.modules()) - set(state["models"])
-        if missing:
-            raise KeyError(
-                f"the checkpoint has no {sorted(missing)} weights: it was not written by an "
-                f"algo={self.algo} run"
-            )
-        super().load_models(state)

@@ -92,10 +92,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from tensordict import TensorDict
 from tensordict.nn import (
-    InteractionType,
-    ProbabilisticTensorDictModule,
     ProbabilisticTensorDictSequential,
     TensorDictModule,
     TensorDictModuleBase,
@@ -108,7 +105,6 @@ from torchrl.modules import (
     DreamerV3ImageDecoder,
     DreamerV3ImageEncoder,
     DreamerV3MLP,
-    IndependentNormal,
     RSSMPosteriorV3,
     RSSMPriorV3,
     RSSMRolloutV3,
@@ -124,12 +120,15 @@ from isodream_rl.modules.dreamer_v3 import (
     PIXELS,
     DreamerV3ContinuousActor,
     DreamerV3Settings,
+    SequenceActingPolicy,
     WindowInputCheck,
+    bounded_normal_actor,
+    two_hot_value,
 )
-from isodream_rl.modules.policy import CarriedStatePolicy
+from isodream_rl.modules.world_model_v3 import BranchWidths, make_rssm
 from isodream_rl.objectives.imagination_env import latent_dreamer_env
 from isodream_rl.trainers.config import ConfigError, RunConfig
-from isodream_rl.trainers.dreamer_v3 import DreamerV3OptimizationStepper, make_dreamer_v3_optimizers
+from isodream_rl.trainers.dreamer_v3 import dreamer_v3_checkpoint_modules, make_dreamer_v3_stepper
 from isodream_rl.trainers.registry import register_algorithm
 
 #: ``hidden`` of DreamerV3's size rule per unit of our preset's ``hidden_dim`` (fitted to Iso-Dream's counts).
@@ -201,30 +200,17 @@ def _parts(
     depth, hidden, deter = widths.classes, widths.hidden, widths.deter
     latent = widths.state_dim(settings) + deter
     encoder = DreamerV3ImageEncoder(depth=depth, device=device)
-    categorical = {"num_categoricals": settings.num_categoricals, "num_classes": widths.classes}
+    prior, posterior = make_rssm(
+        BranchWidths(hidden, settings.num_categoricals, widths.classes),
+        action_dim=action_dim,
+        embed_dim=encoder.output_features((3, 64, 64)),
+        settings=settings,
+        device=device,
+    )
     return DreamerV3Parts(
         encoder=encoder,
-        prior=RSSMPriorV3(
-            action_shape=(action_dim,),
-            hidden_dim=hidden,
-            rnn_hidden_dim=deter,
-            action_dim=action_dim,
-            recurrent_model="block_gru",
-            num_blocks=settings.num_blocks,
-            prior_num_layers=settings.prior_layers,
-            unimix=settings.unimix,
-            device=device,
-            **categorical,
-        ),
-        posterior=RSSMPosteriorV3(
-            hidden_dim=hidden,
-            rnn_hidden_dim=deter,
-            obs_embed_dim=encoder.output_features((3, 64, 64)),
-            use_rms_norm=True,
-            unimix=settings.unimix,
-            device=device,
-            **categorical,
-        ),
+        prior=prior,
+        posterior=posterior,
         decoder=DreamerV3ImageDecoder(latent, depth=depth, num_blocks=settings.num_blocks, device=device),
         reward=DreamerV3MLP(
             latent, settings.num_bins, depth=1, num_cells=hidden, outscale=0.0, device=device
@@ -294,42 +280,23 @@ def _model_based_env(
 
 # ---------------------------------------------------------------------------------------------- behaviour
 def _actor(*, latent: int, action_dim: int, units: int, settings: DreamerV3Settings, device):
-    return ProbabilisticTensorDictSequential(
-        TensorDictModule(
-            DreamerV3ContinuousActor(
-                latent,
-                action_dim,
-                num_cells=units,
-                min_std=settings.policy_min_std,
-                max_std=settings.policy_max_std,
-                device=device,
-            ),
-            in_keys=["belief", "state"],
-            out_keys=["loc", "scale"],
-        ),
-        ProbabilisticTensorDictModule(
-            in_keys=["loc", "scale"],
-            out_keys=["action"],
-            default_interaction_type=InteractionType.RANDOM,
-            distribution_class=IndependentNormal,
-            return_log_prob=True,
-            log_prob_key="action_log_prob",
-        ),
+    net = DreamerV3ContinuousActor(
+        latent,
+        action_dim,
+        num_cells=units,
+        min_std=settings.policy_min_std,
+        max_std=settings.policy_max_std,
+        device=device,
     )
+    return bounded_normal_actor(TensorDictModule(net, in_keys=["belief", "state"], out_keys=["loc", "scale"]))
 
 
 def _value(*, latent: int, units: int, num_bins: int, device) -> TensorDictSequential:
-    return TensorDictSequential(
-        TensorDictModule(
-            DreamerV3MLP(latent, num_bins, depth=3, num_cells=units, outscale=0.0, device=device),
-            in_keys=["belief", "state"],
-            out_keys=["state_value_logits"],
-        ),
-        TensorDictModule(SymExpTwoHot(num_bins), in_keys=["state_value_logits"], out_keys=["state_value"]),
-    )
+    net = DreamerV3MLP(latent, num_bins, depth=3, num_cells=units, outscale=0.0, device=device)
+    return two_hot_value(net, in_keys=["belief", "state"], num_bins=num_bins)
 
 
-class TorchRLDreamerV3Policy(CarriedStatePolicy):
+class TorchRLDreamerV3Policy(SequenceActingPolicy):
     """Acting policy around TorchRL's DreamerV3 acting sequence (encoder, ``RSSMStateEstimatorV3``, actor).
 
     At each env step: ``DreamerV3ImageEncoder`` on uint8 ``"pixels"`` ``[*B, 3, 64, 64]``;
@@ -340,7 +307,7 @@ class TorchRLDreamerV3Policy(CarriedStatePolicy):
 
     Writes ``"action"`` and, following TorchRL's recurrent convention, ``("next", "state")``, ``("next",
     "belief")`` and ``("next", "previous_action")``; prime the env with :meth:`make_tensordict_primer` (a
-    :class:`~isodream_rl.modules.policy.CarriedStatePolicy`). Runs without gradients, on the device of
+    :class:`~isodream_rl.modules.dreamer_v3.SequenceActingPolicy`). Runs without gradients, on the device of
     ``module``'s parameters; any batch shape (or none).
 
     Args:
@@ -352,43 +319,6 @@ class TorchRLDreamerV3Policy(CarriedStatePolicy):
         pixels_key: the observation key. Defaults to ``"pixels"``.
         action_key: where the action is written. Defaults to ``"action"``.
     """
-
-    def __init__(
-        self,
-        module: TensorDictModuleBase,
-        *,
-        state_dim: int,
-        belief_dim: int,
-        action_dim: int,
-        pixels_key: str = "pixels",
-        action_key: str = "action",
-    ) -> None:
-        super().__init__(
-            module,
-            widths={"state": state_dim, "belief": belief_dim, "previous_action": action_dim},
-            pixels_key=pixels_key,
-            action_key=action_key,
-        )
-
-    def act(
-        self, pixels: torch.Tensor, carried: dict[str, torch.Tensor], reset: torch.Tensor | None
-    ) -> dict[str, torch.Tensor]:
-        """The acting sequence (which resets the carried keys at ``is_init`` itself); the action clamped to
-        [-1, 1], also the next ``previous_action``."""
-        n = pixels.shape[0]
-        if reset is None:
-            reset = torch.zeros(n, 1, dtype=torch.bool, device=pixels.device)
-        work = TensorDict(
-            {"pixels": pixels, "is_init": reset, **carried}, batch_size=[n], device=pixels.device
-        )
-        self.module(work)
-        action = work.get("action").clamp(-1.0, 1.0)
-        return {
-            self.action_key: action,
-            "state": work.get("state"),
-            "belief": work.get("belief"),
-            "previous_action": action,
-        }
 
 
 @dataclass
@@ -583,29 +513,16 @@ class TorchRLDreamerV3Components(BaselineComponents):
         self.behavior = TorchRLDreamerV3Behavior(
             policy=self.learner.policy, actor_loss=self.learner.actor_loss, value_loss=self.learner.value_loss
         )
-        rates = {"world_model": train.world_model_lr, "actor": train.actor_lr, "value": train.value_lr}
-        optimizers = make_dreamer_v3_optimizers(
-            self.learner.parameter_groups(), rates=rates, settings=settings
-        )
-        self.stepper = DreamerV3OptimizationStepper(
-            loss_module=self.learner.loss_module,
-            optimizers=optimizers,
-            target_updater=self.learner.target_updater,
-            sequence_length=train.sequence_length,
+        self.stepper = make_dreamer_v3_stepper(
+            cfg,
+            self.learner,
             state_dim=widths.state_dim(settings),
             belief_dim=widths.deter,
-            max_nonfinite=train.max_nonfinite_updates,
-            world_model_warmup=train.world_model_warmup,
-            device=train.device,
+            settings=settings,
         )
         self.set_replay_parts(cfg, scratch_dir=scratch_dir)
 
     def modules(self) -> dict[str, nn.Module]:
-        """The trained modules and the return normalisation's statistics, by checkpoint name (imagination, the
-        losses and the policy share them)."""
-        return {
-            "world_model": self.learner.world_model,
-            "actor": self.learner.actor,
-            "value_loss": self.learner.value_loss,
-            "return_norm": self.learner.actor_loss.retnorm,
-        }
+        """The trained modules and the return normalisation's statistics, by checkpoint name
+        (:func:`~isodream_rl.trainers.dreamer_v3.dreamer_v3_checkpoint_modules`)."""
+        return dreamer_v3_checkpoint_modules(self.learner)

@@ -13,19 +13,21 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict
 from tensordict.nn import (
-    InteractionType,
-    ProbabilisticTensorDictModule,
     ProbabilisticTensorDictSequential,
     TensorDictModule,
     TensorDictModuleBase,
     TensorDictSequential,
 )
 from torch import nn
-from torchrl.modules import DreamerV3MLP, IndependentNormal, SymExpTwoHot
+from torchrl.modules import DreamerV3MLP
 
 from isodream_rl.modules.attention import POLICY_INPUTS, FutureStateAttention
-from isodream_rl.modules.dreamer_v3 import DreamerV3ContinuousActor
-from isodream_rl.modules.policy import CarriedStatePolicy
+from isodream_rl.modules.dreamer_v3 import (
+    DreamerV3ContinuousActor,
+    SequenceActingPolicy,
+    bounded_normal_actor,
+    two_hot_value,
+)
 from isodream_rl.modules.world_model_v3 import FREE_ACTION_DIM, IsoDreamV3Config, IsoDreamV3WorldModel
 
 
@@ -101,8 +103,8 @@ class _OnFeatures(nn.Module):
 def make_actor_v3(
     config: IsoDreamV3Config, *, mode: str, attention_dim: int, units: int, device=None
 ) -> ProbabilisticTensorDictSequential:
-    """The actor ``pi(a | e_t)``: features, DreamerV3's bounded-normal head (3 hidden layers of ``units``), an
-    ``IndependentNormal`` sampled (``RANDOM``) or at its mean (deterministic), with ``action_log_prob``."""
+    """The actor ``pi(a | e_t)``: features, DreamerV3's bounded-normal head (3 hidden layers of ``units``)
+    (:func:`~isodream_rl.modules.dreamer_v3.bounded_normal_actor`)."""
     settings = config.settings
     features = PolicyFeaturesV3(config, mode=mode, attention_dim=attention_dim, device=device)
     head = DreamerV3ContinuousActor(
@@ -113,33 +115,19 @@ def make_actor_v3(
         max_std=settings.policy_max_std,
         device=device,
     )
-    return ProbabilisticTensorDictSequential(
-        TensorDictModule(_OnFeatures(features, head), in_keys=features.in_keys, out_keys=["loc", "scale"]),
-        ProbabilisticTensorDictModule(
-            in_keys=["loc", "scale"],
-            out_keys=["action"],
-            default_interaction_type=InteractionType.RANDOM,
-            distribution_class=IndependentNormal,
-            return_log_prob=True,
-            log_prob_key="action_log_prob",
-        ),
-    )
+    net = TensorDictModule(_OnFeatures(features, head), in_keys=features.in_keys, out_keys=["loc", "scale"])
+    return bounded_normal_actor(net)
 
 
 def make_value_v3(
     config: IsoDreamV3Config, *, mode: str, attention_dim: int, units: int, device=None
 ) -> TensorDictSequential:
     """The critic ``v(e_t)``: features, a two-hot ``DreamerV3MLP`` (3 hidden layers, output initialised to zero)
-    writing ``state_value_logits``, decoded to ``state_value`` by ``SymExpTwoHot``."""
+    (:func:`~isodream_rl.modules.dreamer_v3.two_hot_value`)."""
     bins = config.settings.num_bins
     features = PolicyFeaturesV3(config, mode=mode, attention_dim=attention_dim, device=device)
     head = DreamerV3MLP(features.feature_dim, bins, depth=3, num_cells=units, outscale=0.0, device=device)
-    return TensorDictSequential(
-        TensorDictModule(
-            _OnFeatures(features, head), in_keys=features.in_keys, out_keys=["state_value_logits"]
-        ),
-        TensorDictModule(SymExpTwoHot(bins), in_keys=["state_value_logits"], out_keys=["state_value"]),
-    )
+    return two_hot_value(_OnFeatures(features, head), in_keys=features.in_keys, num_bins=bins)
 
 
 class IsoDreamV3StateEstimator(TensorDictModuleBase):
@@ -184,13 +172,10 @@ class IsoDreamV3StateEstimator(TensorDictModuleBase):
         return tensordict
 
 
-class IsoDreamV3Policy(CarriedStatePolicy):
-    """Iso-Dream's acting policy on the DreamerV3 learner: encoder, :class:`IsoDreamV3StateEstimator`, actor.
-
-    At each env step, uint8 ``"pixels"`` ``[*B, 3, 64, 64]`` and the carried packed ``state``, ``belief`` and
-    ``previous_action`` in; the action (sampled under exploration type ``RANDOM`` or unset, the mean under
-    ``DETERMINISTIC``/``MODE``/``MEAN``) clamped to [-1, 1] out, with the next carried keys under ``"next"``
-    (a :class:`~isodream_rl.modules.policy.CarriedStatePolicy`: prime the env with :meth:`make_tensordict_primer`).
+class IsoDreamV3Policy(SequenceActingPolicy):
+    """Iso-Dream's acting policy on the DreamerV3 learner: encoder, :class:`IsoDreamV3StateEstimator`, actor, as a
+    :class:`~isodream_rl.modules.dreamer_v3.SequenceActingPolicy` carrying the packed ``state``, ``belief`` and
+    ``previous_action``.
 
     Args:
         world_model: the trained world model (shared).
@@ -206,31 +191,10 @@ class IsoDreamV3Policy(CarriedStatePolicy):
         )
         super().__init__(
             module,
-            widths={
-                "state": cfg.packed_state_dim,
-                "belief": cfg.packed_belief_dim,
-                "previous_action": cfg.action_dim,
-            },
+            state_dim=cfg.packed_state_dim,
+            belief_dim=cfg.packed_belief_dim,
+            action_dim=cfg.action_dim,
         )
-
-    def act(
-        self, pixels: torch.Tensor, carried: dict[str, torch.Tensor], reset: torch.Tensor | None
-    ) -> dict[str, torch.Tensor]:
-        """The acting sequence; the action clamped to [-1, 1], also the next ``previous_action``."""
-        n = pixels.shape[0]
-        if reset is None:
-            reset = torch.zeros(n, 1, dtype=torch.bool, device=pixels.device)
-        work = TensorDict(
-            {"pixels": pixels, "is_init": reset, **carried}, batch_size=[n], device=pixels.device
-        )
-        self.module(work)
-        action = work.get("action").clamp(-1.0, 1.0)
-        return {
-            "action": action,
-            "state": work.get("state"),
-            "belief": work.get("belief"),
-            "previous_action": action,
-        }
 
 
 __all__ = [

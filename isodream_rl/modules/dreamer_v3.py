@@ -5,7 +5,9 @@
 - :class:`WindowInputCheck`: the one-line errors the other algorithms' world models give on a bad ``[B, T]``
   replay batch, as a DreamerV3 world model's first module;
 - :class:`DreamerV3ContinuousActor`: the bounded-normal actor of TorchRL's reproduction (TorchRL ships DreamerV3's
-  discrete actor only), built from ``DreamerV3MLP``.
+  discrete actor only), built from ``DreamerV3MLP``; :func:`bounded_normal_actor` and :func:`two_hot_value` wrap
+  an actor and a critic network as TorchRL's DreamerV3 losses read them;
+- :class:`SequenceActingPolicy`: the acting policy around an acting sequence (encoder, filter, actor).
 
 Both ``algo=torchrl_dreamer_v3`` (:mod:`isodream_rl.baselines.torchrl_dreamer_v3`) and Iso-Dream's DreamerV3
 learner use them.
@@ -16,12 +18,20 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModuleBase
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import (
+    InteractionType,
+    ProbabilisticTensorDictModule,
+    ProbabilisticTensorDictSequential,
+    TensorDictModule,
+    TensorDictModuleBase,
+    TensorDictSequential,
+)
 from torch import nn
-from torchrl.modules import DreamerV3MLP
+from torchrl.modules import DreamerV3MLP, IndependentNormal, SymExpTwoHot
 
 from isodream_rl.modules.encoder import check_pixel_values, check_pixels
+from isodream_rl.modules.policy import CarriedStatePolicy
 
 #: The observation key of the world model (uint8 pixels of the step's outcome).
 PIXELS = ("next", "pixels")
@@ -169,3 +179,82 @@ class DreamerV3ContinuousActor(nn.Module):
         hidden = self.trunk(*features)
         scale = (self.max_std - self.min_std) * torch.sigmoid(self.std(hidden) + 2.0) + self.min_std
         return self.mean(hidden).tanh(), scale
+
+
+def bounded_normal_actor(net: TensorDictModule) -> ProbabilisticTensorDictSequential:
+    """The DreamerV3 actor around ``net`` (a ``TensorDictModule`` writing ``"loc"`` and ``"scale"``, e.g. a
+    :class:`DreamerV3ContinuousActor`): an ``IndependentNormal`` sampled under ``RANDOM`` exploration (its mean
+    otherwise), writing ``"action"`` and ``"action_log_prob"``, as TorchRL's DreamerV3 losses read it."""
+    return ProbabilisticTensorDictSequential(
+        net,
+        ProbabilisticTensorDictModule(
+            in_keys=["loc", "scale"],
+            out_keys=["action"],
+            default_interaction_type=InteractionType.RANDOM,
+            distribution_class=IndependentNormal,
+            return_log_prob=True,
+            log_prob_key="action_log_prob",
+        ),
+    )
+
+
+def two_hot_value(net: nn.Module, *, in_keys: list, num_bins: int) -> TensorDictSequential:
+    """DreamerV3's two-hot critic around ``net`` (its inputs read from ``in_keys``, ``num_bins`` logits out):
+    ``"state_value_logits"``, decoded to ``"state_value"`` by ``SymExpTwoHot``."""
+    return TensorDictSequential(
+        TensorDictModule(net, in_keys=in_keys, out_keys=["state_value_logits"]),
+        TensorDictModule(SymExpTwoHot(num_bins), in_keys=["state_value_logits"], out_keys=["state_value"]),
+    )
+
+
+class SequenceActingPolicy(CarriedStatePolicy):
+    """An acting policy whose TorchRL acting sequence ``module`` reads ``"pixels"``, ``"is_init"`` and the carried
+    ``"state"``, ``"belief"``, ``"previous_action"`` (resetting them at ``is_init`` itself) and writes the new
+    ``"state"``, ``"belief"`` and the sampled (or, under a deterministic exploration type, mean) ``"action"``: the
+    action is clamped to [-1, 1] and becomes the next ``previous_action`` (a
+    :class:`~isodream_rl.modules.policy.CarriedStatePolicy`: prime the env with :meth:`make_tensordict_primer`).
+
+    Args:
+        module: the acting sequence.
+        state_dim: width of ``"state"``.
+        belief_dim: width of ``"belief"``.
+        action_dim: width of ``"action"``.
+        pixels_key: the observation key. Defaults to ``"pixels"``.
+        action_key: where the action is written. Defaults to ``"action"``.
+    """
+
+    def __init__(
+        self,
+        module: TensorDictModuleBase,
+        *,
+        state_dim: int,
+        belief_dim: int,
+        action_dim: int,
+        pixels_key: str = "pixels",
+        action_key: str = "action",
+    ) -> None:
+        super().__init__(
+            module,
+            widths={"state": state_dim, "belief": belief_dim, "previous_action": action_dim},
+            pixels_key=pixels_key,
+            action_key=action_key,
+        )
+
+    def act(
+        self, pixels: torch.Tensor, carried: dict[str, torch.Tensor], reset: torch.Tensor | None
+    ) -> dict[str, torch.Tensor]:
+        """The acting sequence; the action clamped to [-1, 1], also the next ``previous_action``."""
+        n = pixels.shape[0]
+        if reset is None:
+            reset = torch.zeros(n, 1, dtype=torch.bool, device=pixels.device)
+        work = TensorDict(
+            {"pixels": pixels, "is_init": reset, **carried}, batch_size=[n], device=pixels.device
+        )
+        self.module(work)
+        action = work.get("action").clamp(-1.0, 1.0)
+        return {
+            self.action_key: action,
+            "state": work.get("state"),
+            "belief": work.get("belief"),
+            "previous_action": action,
+        }

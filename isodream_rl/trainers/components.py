@@ -54,8 +54,13 @@ class RunComponents:
         episode-return hooks).
     """
 
+    #: the ``algo.name`` of the run, named by :meth:`load_models` (this class serves Iso-Dream's DreamerV2-style
+    #: variants and ``algo=dreamerv2``; a subclass registered under one name sets it on the class)
+    algo: str
+
     def __init__(self, cfg: RunConfig, *, action_dim: int, scratch_dir: Path) -> None:
         train = cfg.train
+        self.algo = cfg.algo.name
         self.model_loss = make_world_model_loss(cfg, action_dim=action_dim)
         self.world_model = self.model_loss.world_model
         self.behavior = make_behavior(cfg, self.world_model)
@@ -106,5 +111,16 @@ class RunComponents:
         )
 
     def load_models(self, state: dict) -> None:
+        """Load the weights saved by :meth:`state` (checkpoint key ``"models"``).
+
+        Raises:
+            KeyError: the checkpoint lacks one of :meth:`modules`' weights (another algorithm's).
+        """
+        missing = set(self.modules()) - set(state["models"])
+        if missing:
+            raise KeyError(
+                f"the checkpoint has no {sorted(missing)} weights: it was not written by an "
+                f"algo={self.algo} run"
+            )
         for name, module in self.modules().items():
             module.load_state_dict(state["models"][name])

@@ -17,15 +17,17 @@ learner use them.
 from __future__ import annotations
 
 import math
+from typing import Protocol
 
 import torch
 from tensordict import TensorDictBase
 from torch import nn
-from torchrl.objectives import DreamerV3Loss
+from torchrl.objectives import DreamerV3ActorLoss, DreamerV3Loss, DreamerV3ValueLoss
 from torchrl.objectives.utils import SoftUpdate
 from torchrl.trainers.algorithms import DreamerV3Optimizer
 
 from isodream_rl.modules.dreamer_v3 import PIXELS, DreamerV3Settings
+from isodream_rl.trainers.config import RunConfig
 from isodream_rl.trainers.stepper import ZeroStateStepper, loss_sum
 
 #: The parameter groups, each with its own optimiser and learning rate.
@@ -165,3 +167,54 @@ class DreamerV3OptimizationStepper(ZeroStateStepper):
         # grad_clip is inf: _clip_and_step only measures the norms, TorchRL's optimiser clips
         stepped = ["world_model"] if warming_up else list(GROUPS)
         return self._backward(loss_sum(losses), list(GROUPS)) and self._clip_and_step(stepped, metrics)
+
+
+class DreamerV3Learner(Protocol):
+    """What a DreamerV3 learner gives its run: the modules and losses its stepper and checkpoints read."""
+
+    world_model: nn.Module
+    actor: nn.Module
+    actor_loss: DreamerV3ActorLoss
+    value_loss: DreamerV3ValueLoss
+    loss_module: DreamerV3Loss
+    target_updater: SoftUpdate
+
+    def parameter_groups(self) -> dict[str, list[nn.Parameter]]: ...
+
+
+def make_dreamer_v3_stepper(
+    cfg: RunConfig,
+    learner: DreamerV3Learner,
+    *,
+    state_dim: int,
+    belief_dim: int,
+    settings: DreamerV3Settings,
+) -> DreamerV3OptimizationStepper:
+    """The run's DreamerV3 update for ``learner``: :func:`make_dreamer_v3_optimizers` at ``train.world_model_lr`` /
+    ``actor_lr`` / ``value_lr``, the slow critic's updater, ``train.sequence_length``, ``max_nonfinite_updates``,
+    ``world_model_warmup`` and ``device``; ``state_dim`` / ``belief_dim`` are the widths of the latent the losses
+    read (:class:`~isodream_rl.trainers.stepper.ZeroStateStepper` zeroes them at each window's start)."""
+    train = cfg.train
+    rates = {"world_model": train.world_model_lr, "actor": train.actor_lr, "value": train.value_lr}
+    return DreamerV3OptimizationStepper(
+        loss_module=learner.loss_module,
+        optimizers=make_dreamer_v3_optimizers(learner.parameter_groups(), rates=rates, settings=settings),
+        target_updater=learner.target_updater,
+        sequence_length=train.sequence_length,
+        state_dim=state_dim,
+        belief_dim=belief_dim,
+        max_nonfinite=train.max_nonfinite_updates,
+        world_model_warmup=train.world_model_warmup,
+        device=train.device,
+    )
+
+
+def dreamer_v3_checkpoint_modules(learner: DreamerV3Learner) -> dict[str, nn.Module]:
+    """The trained modules of a DreamerV3 learner and the return normalisation's statistics, by checkpoint name
+    (imagination, the losses and the policy share them)."""
+    return {
+        "world_model": learner.world_model,
+        "actor": learner.actor,
+        "value_loss": learner.value_loss,
+        "return_norm": learner.actor_loss.retnorm,
+    }

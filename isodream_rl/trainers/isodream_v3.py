@@ -35,7 +35,7 @@ from isodream_rl.modules.world_model_v3 import IsoDreamV3Config
 from isodream_rl.objectives.isodream_v3 import IsoDreamV3Learner, make_isodream_v3
 from isodream_rl.trainers.components import RunComponents, make_replay_parts
 from isodream_rl.trainers.config import ConfigError, RunConfig
-from isodream_rl.trainers.dreamer_v3 import DreamerV3OptimizationStepper, make_dreamer_v3_optimizers
+from isodream_rl.trainers.dreamer_v3 import dreamer_v3_checkpoint_modules, make_dreamer_v3_stepper
 
 #: ``hidden`` of the controllable branch per unit of the size preset's ``hidden_dim``.
 HIDDEN_PER_HIDDEN_DIM = 1.25
@@ -119,40 +119,16 @@ class IsoDreamV3Components(RunComponents):
         self.model_loss = self.learner.model_loss
         self.world_model = self.learner.world_model
         self.behavior = self.learner
-        rates = {"world_model": train.world_model_lr, "actor": train.actor_lr, "value": train.value_lr}
-        self.stepper = DreamerV3OptimizationStepper(
-            loss_module=self.learner.loss_module,
-            optimizers=make_dreamer_v3_optimizers(
-                self.learner.parameter_groups(), rates=rates, settings=settings
-            ),
-            target_updater=self.learner.target_updater,
-            sequence_length=train.sequence_length,
+        self.stepper = make_dreamer_v3_stepper(
+            cfg,
+            self.learner,
             state_dim=config.packed_state_dim,
             belief_dim=config.packed_belief_dim,
-            max_nonfinite=train.max_nonfinite_updates,
-            world_model_warmup=train.world_model_warmup,
-            device=train.device,
+            settings=settings,
         )
         self.replay_buffer, self.preparation, self.returns = make_replay_parts(cfg, scratch_dir=scratch_dir)
 
     def modules(self) -> dict[str, nn.Module]:
-        """The trained modules and the return normalisation's statistics, by checkpoint name."""
-        return {
-            "world_model": self.learner.world_model,
-            "actor": self.learner.actor,
-            "value_loss": self.learner.value_loss,
-            "return_norm": self.learner.actor_loss.retnorm,
-        }
-
-    def load_models(self, state: dict) -> None:
-        """Load the weights saved by :meth:`state`.
-
-        Raises:
-            KeyError: the checkpoint lacks one of :meth:`modules`' weights (another algorithm's).
-        """
-        missing = set(self.modules()) - set(state["models"])
-        if missing:
-            raise KeyError(
-                f"the checkpoint has no {sorted(missing)} weights: it was not written by an algo={self.algo} run"
-            )
-        super().load_models(state)
+        """The trained modules and the return normalisation's statistics, by checkpoint name
+        (:func:`~isodream_rl.trainers.dreamer_v3.dreamer_v3_checkpoint_modules`)."""
+        return dreamer_v3_checkpoint_modules(self.learner)
