@@ -11,7 +11,8 @@ Examples::
     isodream-eval runs/walker --episodes 10 --video walker.gif
 
 A user error is one line on stderr and exit status 2; ``--debug`` (or ``HYDRA_FULL_ERROR=1``) shows the
-traceback (``isodream_rl/user_errors.py``).
+traceback (``isodream_rl/user_errors.py``). A run stopped by Ctrl-C (SIGINT) or SIGTERM writes a checkpoint, says
+in one line where it stopped and exits with status 130 or 143: continue it with ``resume=true``.
 
 ``python -m isodream_rl.cli ...`` runs ``isodream-train``; ``python -m isodream_rl.cli eval ...`` runs
 ``isodream-eval``; ``python -m isodream_rl.cli probe RUN_DIR [--encoder]`` runs :func:`probe_run`.
@@ -44,7 +45,7 @@ from isodream_rl.trainers.disk_space import DiskFullError  # noqa: E402
 from isodream_rl.trainers.run_lifecycle import RunResult  # noqa: E402
 from isodream_rl.trainers.stepper import NonFiniteLossError  # noqa: E402
 from isodream_rl.trainers.world_model_run import load_world_model, probe_scene  # noqa: E402
-from isodream_rl.user_errors import log_to_stderr, report_user_errors, take_debug_flag  # noqa: E402
+from isodream_rl.user_errors import exit_stopped, log_to_stderr, report_user_errors, take_debug_flag  # noqa: E402
 
 ConfigStore.instance().store(name="run_schema", node=RunConfig)
 register_dmc_envs()  # env=dmc_<domain>_<task> for every dm_control suite task
@@ -81,6 +82,15 @@ def _train_main(dict_cfg: DictConfig) -> None:
         # the algorithm is the registered one of cfg.algo.name (isodream_rl.trainers.registry); a world-model run
         # on sprites ends with the latent probe
         result = run_module.train(cfg, probe=probe)
+    if result.stopped_by_signal is not None:
+        at = f"{result.updates} updates" if cfg.mode == "world_model" else f"{result.env_steps} env steps"
+        exit_stopped(
+            "isodream-train",
+            at=at,
+            signum=result.stopped_by_signal,
+            checkpoint=result.checkpoint,
+            resume="resume=true",
+        )
     print(_summary(result))
 
 

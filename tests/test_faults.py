@@ -506,7 +506,7 @@ def test_resume_while_the_run_trains_is_refused_naming_its_pid(tmp_path, said):
     """fault: resume=true, then a new run with another seed, started in a run_dir whose run still trains (was:
     both trained, each checkpoint save deleted the other's checkpoint in progress, both wrote the logs) |
     refused: each in one line naming the training process's pid (exit 2); that run trains on alone (stopped
-    with SIGTERM: a checkpoint, then exit 0)"""
+    with SIGTERM: a checkpoint, then exit 143)"""
     run_dir = tmp_path / "run"
     first = start_command(
         "isodream_rl.cli", [*TINY_TRAIN, "run_dir=run", "train.total_steps=20000"], tmp_path
@@ -526,7 +526,8 @@ def test_resume_while_the_run_trains_is_refused_naming_its_pid(tmp_path, said):
     finally:
         first.send_signal(signal.SIGTERM)
         out = first.communicate(timeout=900)
-    assert first.returncode == 0, out[1][-2000:]
+    assert first.returncode == 128 + signal.SIGTERM, out[1][-2000:]
+    assert user_error(out).startswith("isodream-train: stopped at ")
     state, _ = CheckpointManager(run_dir / "checkpoints").load_latest()
     assert (
         state["config"]["train"]["seed"] == 0
@@ -565,6 +566,41 @@ def test_sigkill_then_resume_takes_over_the_lock_and_logs_one_timeline(tmp_path,
     said(takeover.partition(": ")[2])
     assert_one_timeline(run_dir)
     assert logged_steps(run_dir)["loss_model_reco"][-1] == 300 and not (run_dir / LOCK_FILE).exists()
+
+
+def test_ctrl_c_exits_as_a_stopped_run_and_resume_continues_it(tmp_path, said):
+    """fault: SIGINT (Ctrl-C) to isodream-train after its first checkpoint (was: a checkpoint, then exit 0, as a
+    finished run: `isodream-train ... && isodream-eval ...` or a scheduler took it for done) | recovered: a
+    checkpoint, one line saying where it stopped and to continue with resume=true, exit status 130 (143 for
+    SIGTERM, the shell's convention); resume=true continues from that checkpoint to the end"""
+    run_dir = tmp_path / "run"
+    first = start_command(
+        "isodream_rl.cli", [*TINY_TRAIN, "run_dir=run", "train.total_steps=20000"], tmp_path
+    )
+    try:
+        wait_for(lambda: any((run_dir / "checkpoints").glob("step_*[0-9]")), first)
+    finally:
+        first.send_signal(signal.SIGINT)
+        out = first.communicate(timeout=900)
+    assert first.returncode == 130, out[1][-3000:]
+    state, checkpoint = CheckpointManager(run_dir / "checkpoints").load_latest()
+    steps = state["counters"]["env_steps"]
+    line = user_error(out)
+    assert line == (
+        f"isodream-train: stopped at {steps} env steps by SIGINT (checkpoint run/checkpoints/{checkpoint.name}); "
+        "continue with resume=true"
+    )
+    said(line)
+    assert "run finished" not in out[0]
+    resumed = run_command(
+        "isodream_rl.cli",
+        [*TINY_TRAIN, "run_dir=run", f"train.total_steps={steps + 50}", "resume=true"],
+        tmp_path,
+    )
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert f"resumed from run/checkpoints/{checkpoint.name}" in resumed.stdout
+    assert f"run finished: {steps + 50} env steps" in resumed.stdout
+    assert_one_timeline(run_dir)
 
 
 @pytest.fixture
@@ -759,6 +795,38 @@ def test_video_cli_names_an_unreadable_file_in_one_line(case, video_run, tmp_pat
     line = video_error(argv, capsys)
     assert str(path) in line
     said(line.replace(str(tmp_path) + "/", ""))
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_video_train_stopped_by_a_signal_exits_as_stopped_and_resumes(signum, bair_files, tmp_path, said):
+    """fault: SIGINT or SIGTERM to isodream-video train after its first checkpoint (was: a KeyboardInterrupt
+    traceback, no checkpoint of the iteration reached; SIGTERM killed it) | recovered: a checkpoint of the
+    iteration reached, one line saying where it stopped and to continue with --resume, exit status 130 or 143;
+    --resume continues from that checkpoint with one timeline of logs"""
+    from isodream_rl.video_prediction.trainer import read_checkpoint
+
+    out_dir = tmp_path / "run"
+    args = ["train", "--dataset", "bair", "--data-path", str(bair_files), *TINY_VIDEO, "--out-dir", "run"]
+    proc = start_command("isodream_rl.video_prediction.cli", [*args, "--iterations", "100000"], tmp_path)
+    try:
+        wait_for(lambda: any((out_dir / "checkpoints").glob("step_*[0-9]")), proc)
+    finally:
+        proc.send_signal(signum)
+        out = proc.communicate(timeout=600)
+    assert proc.returncode == 128 + signum, out[1][-3000:]
+    stopped = read_checkpoint(out_dir)["iteration"]
+    line = user_error(out, "isodream-video")
+    assert line == (
+        f"isodream-video: stopped at {stopped} iterations by {signum.name} (checkpoint "
+        f"run/checkpoints/step_{stopped:08d}); continue with --resume"
+    )
+    said(line)
+    resumed = run_command(
+        "isodream_rl.video_prediction.cli", [*args, "--iterations", str(stopped + 1), "--resume"], tmp_path
+    )
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert read_checkpoint(out_dir)["iteration"] == stopped + 1
+    assert_one_timeline(out_dir)
 
 
 # ---------------------------------------------------------------- bad inputs at the boundary

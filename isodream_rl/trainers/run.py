@@ -238,6 +238,7 @@ def _train_rl(cfg: RunConfig) -> RunResult:
         resumed_from=resumed_from,
         metrics=metrics,
         summary=summary,
+        stopped_by_signal=stopped_by_signal,
     )
 
 

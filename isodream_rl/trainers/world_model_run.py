@@ -557,4 +557,5 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
         resumed_from=resumed_from,
         metrics=cadence.metrics,
         summary=summary,
+        stopped_by_signal=stopped_by_signal,
     )
