@@ -36,6 +36,7 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 import isodream_rl.baselines  # noqa: E402, F401  (registers algo=torchrl_dreamer and torchrl_dreamer_v3)
 from isodream_rl.cli_overrides import check_overrides  # noqa: E402
 from isodream_rl.configs import register_dmc_envs  # noqa: E402
+from isodream_rl.envs.finite import NonFiniteEnvDataError  # noqa: E402
 from isodream_rl.evaluation.latent_probe import probe  # noqa: E402
 from isodream_rl.run_lock import RunDirBusyError  # noqa: E402
 from isodream_rl.trainers import run as run_module  # noqa: E402
@@ -71,7 +72,14 @@ def _summary(result: RunResult) -> str:
 
 
 #: what isodream-train reports in one line (see isodream_rl/user_errors.py)
-TRAIN_ERRORS = (ConfigError, CheckpointError, NonFiniteLossError, RunDirBusyError, DiskFullError)
+TRAIN_ERRORS = (
+    ConfigError,
+    CheckpointError,
+    NonFiniteLossError,
+    NonFiniteEnvDataError,
+    RunDirBusyError,
+    DiskFullError,
+)
 
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="config")
@@ -98,8 +106,11 @@ def train() -> None:
     """``isodream-train [hydra overrides] [--debug]``: train or resume a run (see ``isodream-train --help``).
 
     A user error (invalid setting or group option, a run_dir holding another run or used by another process, a
-    resume with other settings, no readable checkpoint, a full disk) is one line on stderr and exit status 2;
-    ``--debug`` (or ``HYDRA_FULL_ERROR=1``) shows the traceback.
+    resume with other settings, no readable checkpoint, a full disk, NaN/inf in the env's frames or rewards) is
+    one line on stderr and exit status 2; ``--debug`` (or ``HYDRA_FULL_ERROR=1``) shows the traceback. A run that
+    SIGINT or SIGTERM stopped after its checkpoint is one line too, ``stopped at N env steps by SIGINT
+    (checkpoint ...); continue with resume=true`` (``N updates`` in ``mode=world_model``), and exit status 130
+    or 143.
     """
     sys.argv = take_debug_flag(sys.argv)
     with report_user_errors("isodream-train", (ConfigError,)):
@@ -124,7 +135,9 @@ def evaluate(argv: list[str] | None = None) -> None:
     take_debug_flag(["--debug"] if args.debug else [])
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
-    with report_user_errors("isodream-eval", (CheckpointError, ConfigError, FileNotFoundError)):
+    with report_user_errors(
+        "isodream-eval", (CheckpointError, ConfigError, FileNotFoundError, NonFiniteEnvDataError)
+    ):
         mean, std, returns = run_module.evaluate_checkpoint(
             args.run_dir, episodes=args.episodes, video=args.video, seed=args.seed
         )

@@ -32,7 +32,7 @@ import gymnasium as gym
 import pytest
 import torch
 from tensordict import TensorDict
-from torchrl.envs.transforms import DTypeCastTransform
+from torchrl.envs.transforms import DTypeCastTransform, ObservationNorm, Transform
 
 from isodream_rl.envs import make_env
 from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
@@ -603,6 +603,51 @@ def test_ctrl_c_exits_as_a_stopped_run_and_resume_continues_it(tmp_path, said):
     assert_one_timeline(run_dir)
 
 
+#: ``{case: (entry, value, also resumed once the env is fixed)}``
+BAD_ENV_CASES = {
+    "NaN pixels": ("pixels", "nan", True),
+    "inf pixels": ("pixels", "inf", False),
+    "NaN reward": ("reward", "nan", False),
+    "-inf reward": ("reward", "-inf", False),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_ENV_CASES), ids=list(BAD_ENV_CASES))
+def test_nan_or_inf_env_data_stops_the_run_in_one_line(case, tmp_path, said):
+    """fault: an env.factory whose float frames in [0, 1], or rewards, turn NaN or inf after 80 frames, once the
+    policy acts (was: for NaN frames the policy's `normal expects all elements of std >= 0.0` traceback, exit 1,
+    before the loss's own check saw the batch) | refused: one line naming the entry, the env step and the env,
+    and the last checkpoint to continue from (exit 2), the step refused before the policy acts on it or the
+    replay stores it; once the env is fixed, resume=true continues from that checkpoint"""
+    key, value, resume = BAD_ENV_CASES[case]
+    args = [
+        *TINY_TRAIN,
+        "run_dir=run",
+        "env.factory=tests.test_faults:bad_data_sprites",
+        "train.prefill_steps=20",
+        "train.frames_per_batch=20",
+        "checkpoint.every_updates=4",
+        "train.total_steps=120",
+    ]
+    out = run_command("isodream_rl.cli", args, tmp_path, **{BAD_ENV_DATA: f"{key}:{value}"})
+    assert out.returncode == 2, out.stderr[-3000:]
+    line = user_error(out)
+    state, checkpoint = CheckpointManager(tmp_path / "run" / "checkpoints").load_latest()
+    found = "NaN" if value == "nan" else "inf"
+    assert line == (
+        f"isodream-train: env.factory=tests.test_faults:bad_data_sprites gave {key!r} holding {found} at env step "
+        f"80; the last checkpoint, run/checkpoints/{checkpoint.name}, is intact: fix the env, then continue with "
+        "resume=true"
+    )
+    said(line)
+    assert state["counters"]["env_steps"] < 80
+    if resume:
+        resumed = run_command("isodream_rl.cli", [*args, "resume=true"], tmp_path)
+        assert resumed.returncode == 0, resumed.stderr[-3000:]
+        assert f"resumed from run/checkpoints/{checkpoint.name}" in resumed.stdout
+        assert "run finished: 120 env steps" in resumed.stdout
+
+
 @pytest.fixture
 def tmpfs(tmp_path):
     """``tmpfs(size, *options)``: a new tmpfs of ``size`` (mount's ``size=``, e.g. ``"70m"``) under ``tmp_path``,
@@ -944,18 +989,53 @@ def float_pixel_sprites(**kwargs):
     return env
 
 
-def command_env() -> dict[str, str]:
-    """The environment of the commands the tests run: one thread, this checkout first, one-line errors."""
-    environment = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
+class GoesBad(Transform):
+    """Sets ``key`` to ``value`` in every frame from frame ``after + 1`` on (resets count): data going bad mid-run."""
+
+    def __init__(self, key: str, value: float, after: int) -> None:
+        super().__init__(in_keys=[])
+        self.key, self.value, self.after, self.frames = key, value, after, 0
+
+    def _call(self, next_tensordict):
+        self.frames += 1
+        if self.frames > self.after and self.key in next_tensordict.keys():
+            next_tensordict.set(self.key, torch.full_like(next_tensordict.get(self.key), self.value))
+        return next_tensordict
+
+    def _reset(self, tensordict, tensordict_reset):
+        return self._call(tensordict_reset)
+
+
+#: ``<key>:<value>`` in the environment of a command makes :func:`bad_data_sprites` go bad after 80 frames
+BAD_ENV_DATA = "ISODREAM_TEST_BAD_ENV_DATA"
+
+
+def bad_data_sprites(**kwargs):
+    """``env.factory`` of a CLI test: sprites with float frames in [0, 1]; with ``$ISODREAM_TEST_BAD_ENV_DATA``
+    set to ``<key>:<value>`` (``pixels:nan``), that entry holds the value from frame 81 on; unset, the env is
+    fixed."""
+    env = make_env("sprites", **kwargs)
+    env.append_transform(DTypeCastTransform(torch.uint8, torch.float32, in_keys=["pixels"]))
+    env.append_transform(ObservationNorm(loc=0.0, scale=1 / 255, in_keys=["pixels"]))
+    if os.environ.get(BAD_ENV_DATA):
+        key, _, value = os.environ[BAD_ENV_DATA].partition(":")
+        env.append_transform(GoesBad(key, float(value), after=80))
+    return env
+
+
+def command_env(**extra: str) -> dict[str, str]:
+    """The environment of the commands the tests run: one thread, this checkout first, one-line errors, and
+    ``extra``."""
+    environment = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT), **extra)
     environment.pop("HYDRA_FULL_ERROR", None)
     return environment
 
 
-def run_command(module: str, args: list[str], cwd: Path) -> subprocess.CompletedProcess:
+def run_command(module: str, args: list[str], cwd: Path, **extra_env: str) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, "-m", module, *args],
         cwd=cwd,
-        env=command_env(),
+        env=command_env(**extra_env),
         capture_output=True,
         text=True,
         timeout=600,

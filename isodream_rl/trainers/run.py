@@ -19,7 +19,7 @@ from torchrl.trainers import ReplayBufferTrainer, Trainer, UpdateWeights
 from isodream_rl.csv_logs import csv_log_sizes
 from isodream_rl.envs.builder import ground_truth_mask_keys
 from isodream_rl.trainers import trainer_state, world_model_run
-from isodream_rl.trainers.builders import close_logger, env_factory, make_logger
+from isodream_rl.trainers.builders import checked_env_factory, close_logger, make_logger
 from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.collectors import make_collector
 from isodream_rl.trainers.config import RunConfig, config_from_dict, validate_config
@@ -117,6 +117,7 @@ def _train_rl(cfg: RunConfig) -> RunResult:
         total_frames=train_cfg.total_steps - env_steps,
         init_random_frames=max(0, train_cfg.prefill_steps - env_steps),
         env_transform=policy.make_tensordict_primer,
+        first_step=env_steps,
     )
     log = make_logger(cfg, run_dir=run_dir)
     trainer = Trainer(
@@ -162,7 +163,7 @@ def _train_rl(cfg: RunConfig) -> RunResult:
     )
 
     def eval_env(masks: bool = False):
-        make = env_factory(cfg, eval_mode=True)
+        make = checked_env_factory(cfg, eval_mode=True, which=" (evaluation)")
         env = (functools.partial(make, return_masks=True) if masks else make)()
         env.append_transform(policy.make_tensordict_primer())
         return env
@@ -289,7 +290,7 @@ def evaluate_checkpoint(
     )
     components.load_models(state)
     policy = components.behavior.policy
-    env = env_factory(cfg, eval_mode=True)()
+    env = checked_env_factory(cfg, eval_mode=True)()
     env.append_transform(policy.make_tensordict_primer())
     env.set_seed(seed)
     try:

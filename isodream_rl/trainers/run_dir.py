@@ -10,7 +10,8 @@ writes them (:class:`RunDirGuard`).
 
 While a run uses its folder, :func:`hold_run_dir` keeps it to this process (``run.lock``, see
 :mod:`isodream_rl.run_lock`), removes what a start that failed before ``run_config.json`` made (so the corrected
-command is not refused), and turns a full disk or a read-only folder met on the way into one line.
+command is not refused), and turns a full disk, a read-only folder or an env's NaN/inf data met on the way into
+one line naming the checkpoint to continue from.
 :func:`hold_folder` does the same for another program's run folder (``isodream-video train --out-dir``), named
 by its own :class:`RunFlags`.
 """
@@ -32,6 +33,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import OmegaConf
 
+from isodream_rl.envs.finite import NonFiniteEnvDataError
 from isodream_rl.modules.config import SIZE_PRESETS
 from isodream_rl.run_lock import RunDirBusyError, RunDirLock
 from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
@@ -181,13 +183,15 @@ def hold_run_dir(cfg: RunConfig) -> Iterator[Path]:
     On entering: refuse a path that cannot be a writable folder, take the folder's lock
     (:class:`~isodream_rl.run_lock.RunDirLock`), claim it (:func:`claim_run_dir`), and remove the half-written
     checkpoints a killed or failed process left. If the block fails before ``run_config.json`` exists (a new run
-    that did not start), the run files it made are removed. A full disk and a read-only folder met in the block
-    become one-line errors. The lock is released on leaving, however the block ends.
+    that did not start), the run files it made are removed. A full disk, a read-only folder and an env's NaN/inf
+    data met in the block become one-line errors. The lock is released on leaving, however the block ends.
 
     Raises:
         ConfigError: ``run_dir`` is a file, under a file or not writable; the refusals of :func:`claim_run_dir`.
         RunDirBusyError: another live process holds the folder (the message names its pid).
         DiskFullError: the disk filled up; the message names the last verified checkpoint and says to resume.
+        NonFiniteEnvDataError: the env returned NaN/inf; the message names it, the entry, the env step and the
+            last verified checkpoint, and says to fix the env and resume.
     """
     with hold_folder(Path(cfg.run_dir), claim=lambda: claim_run_dir(cfg)) as run_dir:
         new = not resuming(cfg)
@@ -213,13 +217,14 @@ def hold_folder(
     """Hold the run folder ``run_dir``: refuse a path that cannot be a writable folder, take its lock
     (:class:`~isodream_rl.run_lock.RunDirLock`), claim it (``claim()``, or :func:`claim_folder` with ``resume``,
     ``overwrite``, ``run_files`` and ``flags``), and remove the half-written checkpoints of
-    ``<run_dir>/checkpoints`` a killed or failed process left; a full disk and a read-only folder met in the
-    block become one-line errors; the lock is released on leaving.
+    ``<run_dir>/checkpoints`` a killed or failed process left; a full disk, a read-only folder and an env's
+    NaN/inf data met in the block become one-line errors; the lock is released on leaving.
 
     Raises:
         ConfigError: ``run_dir`` is a file, under a file or not writable; the refusals of :func:`claim_folder`.
         RunDirBusyError: another live process holds the folder (the message names its pid).
         DiskFullError: the disk filled up; the message names the last verified checkpoint and says to resume.
+        NonFiniteEnvDataError: as :func:`hold_run_dir`.
     """
     problem = run_dir_problem(run_dir, flags=flags)
     if problem:
@@ -238,21 +243,25 @@ def hold_folder(
         yield run_dir
     except OSError as err:
         raise _os_error(err, run_dir, flags) from err
+    except NonFiniteEnvDataError as err:
+        raise NonFiniteEnvDataError(f"{err}; {_continue_after(run_dir, flags, fix='fix the env')}") from err
     finally:
         lock.release()
+
+
+def _continue_after(run_dir: Path, flags: RunFlags, *, fix: str) -> str:
+    """How to go on after a fault the user can ``fix``: from the last checkpoint, or from the start."""
+    checkpoints = CheckpointManager(run_dir / "checkpoints").checkpoints()
+    if checkpoints:
+        return f"the last checkpoint, {checkpoints[-1]}, is intact: {fix}, then continue with {flags.resume}"
+    return f"no checkpoint was written yet: {fix}, then start again with {flags.overwrite}"
 
 
 def _os_error(err: OSError, run_dir: Path, flags: RunFlags = TRAIN_FLAGS) -> Exception:
     """The one-line error of an ``OSError`` met while writing ``run_dir`` (``err`` itself when it is not the
     user's to fix)."""
     if err.errno in (errno.ENOSPC, errno.EDQUOT):
-        checkpoints = CheckpointManager(run_dir / "checkpoints").checkpoints()
-        then = (
-            f"the last checkpoint, {checkpoints[-1]}, is intact: free disk space, then continue with "
-            f"{flags.resume}"
-            if checkpoints
-            else f"no checkpoint was written yet: free disk space, then start again with {flags.overwrite}"
-        )
+        then = _continue_after(run_dir, flags, fix="free disk space")
         return DiskFullError(f"the disk of {flags.folder} {run_dir} is full ({err.strerror or err}); {then}")
     if err.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
         return ConfigError(
