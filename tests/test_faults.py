@@ -1082,6 +1082,74 @@ def test_train_cli_refuses_a_used_run_dir_before_hydra_writes(finished_run, tmp_
     assert debug.returncode != 0 and "Traceback" in debug.stderr
 
 
+def test_train_cli_refuses_a_corrupt_run_config_naming_it(tmp_path, said):
+    """fault: resume=true on a run whose run_config.json was cut short into invalid JSON (was: Hydra's
+    `UserWarning: Callback RunDirGuard.on_run_start raised JSONDecodeError`, and the run trained on past the
+    guard) | refused: one line naming the file and saying to delete it and resume (exit 2), the run's files
+    (Hydra's .hydra/ too) untouched; with it deleted, resume=true continues from the checkpoints and writes it again"""
+    args = [*TINY_TRAIN, "run_dir=run", "train.prefill_steps=20", "train.frames_per_batch=20"]
+    out = run_command("isodream_rl.cli", [*args, "train.total_steps=40"], tmp_path)
+    assert out.returncode == 0, out.stderr[-3000:]
+    run_dir = tmp_path / "run"
+    saved = run_dir / "run_config.json"
+    saved.write_bytes(saved.read_bytes()[:100])
+    before = snapshot(run_dir)
+    out = run_command("isodream_rl.cli", [*args, "train.total_steps=60", "resume=true"], tmp_path)
+    assert out.returncode == 2, out.stderr[-3000:]
+    line = user_error(out)
+    assert line.startswith(
+        "isodream-train: run/run_config.json holds no readable run configuration (JSONDecodeError"
+    )
+    assert "delete it and continue with resume=true" in line and "UserWarning" not in out.stderr
+    said(line)
+    assert snapshot(run_dir) == before
+    saved.unlink()
+    out = run_command("isodream_rl.cli", [*args, "train.total_steps=60", "resume=true"], tmp_path)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "resumed from" in out.stdout and "run finished: 60 env steps" in out.stdout
+    assert json.loads(saved.read_text())["train"]["total_steps"] == 60
+
+
+_BROKEN_GUARD = textwrap.dedent(
+    """
+    import sys
+    from isodream_rl import cli
+    from isodream_rl.trainers import run_dir
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("injected check failure")
+
+    run_dir.run_dir_problem = broken  # the first check of the run-dir guard
+    sys.argv = ["isodream-train", *sys.argv[1:]]
+    cli.train()
+    """
+)
+
+
+def test_run_dir_guard_fails_closed_whatever_a_check_raises(tmp_path, said):
+    """fault: a check of isodream-train's run-dir guard raising an unexpected error (was: Hydra turns an exception
+    in a callback into a warning, so the run went past the guard) | refused: one line naming run_dir and the
+    error (exit 2), nothing written; with --debug the traceback, then the same line and exit status"""
+    for debug in ([], ["--debug"]):
+        out = subprocess.run(
+            [sys.executable, "-c", _BROKEN_GUARD, *TINY_TRAIN, "run_dir=run", *debug],
+            cwd=tmp_path,
+            env=command_env(),
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert out.returncode == 2, out.stderr[-3000:]
+        line = out.stderr.strip().splitlines()[-1]
+        assert line == (
+            "isodream-train: checking run_dir run failed (RuntimeError: injected check failure); nothing was "
+            "started: --debug shows the traceback"
+        )
+        assert ("Traceback" in out.stderr) == bool(debug) and "UserWarning" not in out.stderr
+        assert not (tmp_path / "run").exists()
+    said(line)
+
+
 @pytest.mark.parametrize(
     "module, args, message",
     [

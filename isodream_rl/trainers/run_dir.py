@@ -24,6 +24,7 @@ import errno
 import json
 import os
 import shutil
+import traceback
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -39,7 +40,7 @@ from isodream_rl.run_lock import RunDirBusyError, RunDirLock
 from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.config import ConfigError, RunConfig, config_from_dict
 from isodream_rl.trainers.disk_space import DiskFullError
-from isodream_rl.user_errors import log_to_stderr, report_user_errors
+from isodream_rl.user_errors import debugging, exit_user_error, log_to_stderr, one_line
 
 #: the files and folders of a run (a folder holding one of them holds a run)
 RUN_FILES = ("run_config.json", "checkpoints", "logs", "pictures", "summary.json", "replay_scratch")
@@ -334,35 +335,71 @@ class RunDirGuard(Callback):
     :func:`hold_run_dir`, :func:`claim_run_dir` and :func:`check_same_run` before Hydra writes ``.hydra/`` into
     the run folder, so a refused start leaves the folder as it was: a path that cannot be a writable folder, a
     folder another live process holds, a folder holding another run without ``resume``/``overwrite``, and a
-    resume whose settings differ from the run's ``run_config.json``. The refusal is one line on stderr and
-    exit status 2 (the exception with ``--debug`` or ``HYDRA_FULL_ERROR=1``). ``overwrite=true`` clears the
-    folder later, in :func:`claim_run_dir`; the checkpoint's own configuration is checked again when it loads.
+    resume whose settings differ from the run's ``run_config.json`` (or whose ``run_config.json`` cannot be
+    read). The refusal is one line on stderr and exit status 2. ``overwrite=true`` clears the folder later, in
+    :func:`claim_run_dir`; the checkpoint's own configuration is checked again when it loads.
+
+    Hydra turns an exception raised in a callback into a warning and runs the job all the same, so the guard
+    fails closed by itself: whatever a check raises ends the process with exit status 2, in one line (after the
+    traceback with ``--debug`` or ``HYDRA_FULL_ERROR=1``).
     """
 
     def on_run_start(self, config, **kwargs) -> None:
+        run_dir = Path(str(OmegaConf.select(config, "run_dir", default=None)))
+        log_to_stderr()  # a taken-over lock says so
+        try:
+            self._check(config, run_dir)
+        except Exception as err:  # whatever a check raises: Hydra would only warn
+            if debugging():
+                traceback.print_exc()
+            if isinstance(err, (ConfigError, RunDirBusyError)):
+                exit_user_error("isodream-train", one_line(err))
+            exit_user_error(
+                "isodream-train",
+                f"checking run_dir {run_dir} failed ({type(err).__name__}: {one_line(err)}); nothing was started: "
+                "--debug shows the traceback",
+            )
+
+    @staticmethod
+    def _check(config, run_dir: Path) -> None:
         def setting(key: str):
             return OmegaConf.select(config, key, default=None)
 
-        run_dir = Path(str(setting("run_dir")))
-        log_to_stderr()  # a taken-over lock says so
-        with report_user_errors("isodream-train", (ConfigError, RunDirBusyError)):
-            problem = run_dir_problem(run_dir)
-            if problem:
-                raise ConfigError(problem)
-            # held from here to the end of the process: a second process started at the same time is refused
-            # before Hydra writes into the folder (the run holds it again, see hold_run_dir)
-            atexit.register(RunDirLock(run_dir).acquire().release)
-            if setting("overwrite"):
-                return
-            if not (setting("resume") or setting("checkpoint.resume")):
-                found = existing_run_files(run_dir)
-                if found:
-                    raise ConfigError(_another_run(run_dir, found))
-                return
-            saved = run_dir / "run_config.json"
-            if saved.exists():
-                task = OmegaConf.masked_copy(config, [key for key in config if key != "hydra"])
-                check_same_run(
-                    json.loads(saved.read_text()),
-                    config_from_dict(OmegaConf.to_container(task, resolve=True)),
-                )
+        problem = run_dir_problem(run_dir)
+        if problem:
+            raise ConfigError(problem)
+        # held from here to the end of the process: a second process started at the same time is refused
+        # before Hydra writes into the folder (the run holds it again, see hold_run_dir)
+        atexit.register(RunDirLock(run_dir).acquire().release)
+        if setting("overwrite"):
+            return
+        if not (setting("resume") or setting("checkpoint.resume")):
+            found = existing_run_files(run_dir)
+            if found:
+                raise ConfigError(_another_run(run_dir, found))
+            return
+        saved = run_dir / "run_config.json"
+        if saved.exists():
+            task = OmegaConf.masked_copy(config, [key for key in config if key != "hydra"])
+            check_same_run(
+                read_run_config(saved), config_from_dict(OmegaConf.to_container(task, resolve=True))
+            )
+
+
+def read_run_config(path: Path) -> dict:
+    """The configuration a run wrote in ``path`` (its ``run_config.json``, :func:`write_run_config`).
+
+    Raises:
+        ConfigError: the file cannot be read or holds no run configuration (cut short, edited); the message names
+            it and says how to go on.
+    """
+    try:
+        saved = json.loads(path.read_text())
+        _compared(config_from_dict(saved))
+    except (OSError, ValueError, TypeError, KeyError, AttributeError) as err:
+        raise ConfigError(
+            f"{path} holds no readable run configuration ({type(err).__name__}: {one_line(err)}): delete it and "
+            "continue with resume=true (the checkpoints hold the run's settings, and the run writes the file "
+            "again), or start a new run with overwrite=true"
+        ) from err
+    return saved
