@@ -1,11 +1,12 @@
-"""Fault injection: each fault of issues 27 and 37, ending in a clear error or a documented recovery.
+"""Fault injection: each fault of issues 27, 37 and 45, ending in a clear error or a documented recovery.
 
 Faults (``fault``): a second run in a used run folder, a truncated replay memmap, a ``state.pt`` without its keys,
 a checkpoint without its manifest, a corrupted byte, a resume with another algorithm, SIGKILL and a full disk
 while a checkpoint is written, a corrupted CSV log, an env raising mid-episode in a parallel collector, NaN
 losses; and, from the command line with real processes and real disks: two runs in one run folder, a resume
-while the run trains, SIGKILL then resume (one lock, one timeline of logs), a tmpfs that fills up, a start that
-fails, ``isodream-video train`` twice into one folder. Bad inputs (``refused``): pixels in the wrong range or NaN,
+while the run trains, SIGKILL then resume (one lock, one timeline of logs), Ctrl-C then resume (exit 130), NaN
+or inf frames and rewards mid-run, a corrupt ``run_config.json`` and a run-dir check that raises, a tmpfs that
+fills up, a start that fails, ``isodream-video train`` twice into one folder and stopped by a signal. Bad inputs (``refused``): pixels in the wrong range or NaN,
 NaN actions, no ``is_init``, 1-step windows, image sizes, argument types, and the CLIs' user errors (unknown
 settings and group options, run folders that cannot be written, damaged files). Where a checkpoint survives, it
 is the last verified one and continuing from it gives the very losses the run gave after it (``continued``).
@@ -1101,7 +1102,7 @@ def test_train_cli_refuses_a_corrupt_run_config_naming_it(tmp_path, said):
         "isodream-train: run/run_config.json holds no readable run configuration (JSONDecodeError"
     )
     assert "delete it and continue with resume=true" in line and "UserWarning" not in out.stderr
-    said(line)
+    said(line, limit=400)
     assert snapshot(run_dir) == before
     saved.unlink()
     out = run_command("isodream_rl.cli", [*args, "train.total_steps=60", "resume=true"], tmp_path)
