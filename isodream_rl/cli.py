@@ -119,7 +119,8 @@ def train() -> None:
 
 
 def evaluate(argv: list[str] | None = None) -> None:
-    """``isodream-eval RUN_DIR [--episodes N] [--video PATH] [--seed S]``: mean +- std return of a checkpoint.
+    """``isodream-eval RUN_DIR [--episodes N] [--video PATH] [--seed S] [--device D]``: mean +- std return of a
+    checkpoint.
 
     Returns ``None`` (a console-script return value becomes the exit status).
     """
@@ -130,6 +131,9 @@ def evaluate(argv: list[str] | None = None) -> None:
     parser.add_argument("--episodes", type=int, default=5, help="episodes to run (default 5)")
     parser.add_argument("--video", default=None, help="write the first episode as a GIF here")
     parser.add_argument("--seed", type=int, default=0, help="env and policy seed (default 0)")
+    parser.add_argument(
+        "--device", default="cpu", help="where the policy acts (default cpu, whichever device trained it)"
+    )
     parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     args = parser.parse_args(argv)
     take_debug_flag(["--debug"] if args.debug else [])
@@ -139,7 +143,7 @@ def evaluate(argv: list[str] | None = None) -> None:
         "isodream-eval", (CheckpointError, ConfigError, FileNotFoundError, NonFiniteEnvDataError)
     ):
         mean, std, returns = run_module.evaluate_checkpoint(
-            args.run_dir, episodes=args.episodes, video=args.video, seed=args.seed
+            args.run_dir, episodes=args.episodes, video=args.video, seed=args.seed, device=args.device
         )
     print(f"return over {len(returns)} episodes: {mean:.2f} +- {std:.2f}")
     if args.video:

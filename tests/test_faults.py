@@ -35,6 +35,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs.transforms import DTypeCastTransform, ObservationNorm, Transform
 
+from isodream_rl.data import write_tiny_bair
 from isodream_rl.envs import make_env
 from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
 from isodream_rl.objectives import IsoDreamModelLoss
@@ -52,7 +53,7 @@ from isodream_rl.trainers import checkpoint as checkpoint_module
 from isodream_rl.trainers.checkpoint import set_rng_state, write_manifest
 from isodream_rl.trainers.hooks import ReplayPreparation
 from isodream_rl.trainers.run_dir import existing_run_files
-from tests.conftest import tiny_run_config, write_tiny_bair
+from tests.conftest import tiny_run_config
 
 ROOT = Path(__file__).resolve().parents[1]
 A = 2  # sprites' action width

@@ -153,41 +153,33 @@ class CarriedStatePolicy(TensorDictModuleBase):
 
 
 class ZeroStateStepper(IsoDreamOptimizationStepper):
-    """An :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` whose :meth:`step` takes a flat
-    ``[B * T]`` replay sample and updates on :meth:`prepare`'s output: the loss's input (:meth:`loss_inputs`) with
-    zero root ``"state"`` ``[N, S]`` / ``"belief"`` ``[N, D]`` (a rollout reads each window's first step, as
-    TorchRL's examples set them), on the training device.
+    """An :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` whose :meth:`step` updates on
+    :meth:`prepare`'s output: the loss's input (:meth:`loss_inputs`) of the flat ``[B * T]`` replay sample, moved to
+    the model's device first, with zero root ``"state"`` ``[N, S]`` / ``"belief"`` ``[N, D]`` (a rollout reads each
+    window's first step, as TorchRL's examples set them).
 
     Args:
         state_dim: width of ``"state"``.
         belief_dim: width of ``"belief"``.
-        device: the training device.
         **stepper_kwargs: the arguments of :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper`.
     """
 
-    def __init__(
-        self, *, state_dim: int, belief_dim: int, device: str | torch.device = "cpu", **stepper_kwargs
-    ) -> None:
+    def __init__(self, *, state_dim: int, belief_dim: int, **stepper_kwargs) -> None:
         super().__init__(**stepper_kwargs)
         self.state_dim, self.belief_dim = state_dim, belief_dim
-        self.device = torch.device(device)
 
     def loss_inputs(self, sub_batch: TensorDictBase) -> TensorDictBase:
         """The entries of a flat ``[N]`` replay sample the loss reads, as it reads them (a new tensordict)."""
         raise NotImplementedError(f"{type(self).__name__} must define loss_inputs(): what its loss reads")
 
-    def prepare(self, sub_batch: TensorDictBase) -> TensorDictBase:
-        """:meth:`loss_inputs` of a flat ``[N]`` replay sample, zero ``"state"``/``"belief"`` added, on the
-        training device."""
-        n = sub_batch.numel()
-        batch = self.loss_inputs(sub_batch)
-        batch.set("state", torch.zeros(n, self.state_dim))
-        batch.set("belief", torch.zeros(n, self.belief_dim))
-        return batch.to(self.device)
-
-    def step(self, trainer, sub_batch: TensorDictBase) -> TensorDictBase:
-        """One update on a flat ``[B * T]`` replay sample; returns detached scalar metrics (fixed key set)."""
-        return super().step(trainer, self.prepare(sub_batch.reshape(-1)))
+    def prepare(self, sample: TensorDictBase) -> TensorDictBase:
+        """:meth:`loss_inputs` of a flat ``[N]`` replay sample on the model's device, zero ``"state"``/``"belief"``
+        added on the same device."""
+        n = sample.numel()
+        batch = self.loss_inputs(sample)
+        batch.set("state", torch.zeros(n, self.state_dim, device=sample.device))
+        batch.set("belief", torch.zeros(n, self.belief_dim, device=sample.device))
+        return batch
 
 
 class BaselineComponents(RunComponents):

@@ -676,8 +676,8 @@ def make_torchrl_dreamer_v3(
 class TorchRLDreamerV3OptimizationStepper(ZeroStateStepper):
     """One DreamerV3 update (TorchRL's ``DreamerV3OptimizationStepper``'s, eager) as the run's stepper.
 
-    Per :meth:`step` on a flat ``[B * T]`` replay sample: :meth:`prepare` (zero root ``"state"``/``"belief"``, as
-    TorchRL's reproduction sets them; on the training device: a
+    Per :meth:`step` on a flat ``[B * T]`` replay sample: :meth:`prepare` on the model's device (zero root
+    ``"state"``/``"belief"``, as TorchRL's reproduction sets them: a
     :class:`~isodream_rl.baselines.common.ZeroStateStepper`), windows ``[B, T]``, then ``DreamerV3Loss`` (world
     model, imagination from every posterior, actor, critic, replay critic), one backward of the sum of its
     ``loss_*`` terms, one step of each ``DreamerV3Optimizer`` and of the slow critic's ``SoftUpdate``. During the
@@ -698,7 +698,6 @@ class TorchRLDreamerV3OptimizationStepper(ZeroStateStepper):
         belief_dim: width of ``"belief"``.
         max_nonfinite: non-finite updates in a row that stop the run.
         world_model_warmup: updates of the world model alone first.
-        device: the training device.
     """
 
     def __init__(
@@ -712,7 +711,6 @@ class TorchRLDreamerV3OptimizationStepper(ZeroStateStepper):
         belief_dim: int,
         max_nonfinite: int = 5,
         world_model_warmup: int = 0,
-        device: str | torch.device = "cpu",
     ) -> None:
         if set(optimizers) != set(GROUPS):
             raise ValueError(f"optimizers must be keyed {list(GROUPS)}, got {sorted(optimizers)}")
@@ -726,7 +724,6 @@ class TorchRLDreamerV3OptimizationStepper(ZeroStateStepper):
             world_model_warmup=world_model_warmup,
             state_dim=state_dim,
             belief_dim=belief_dim,
-            device=device,
         )
         self.optimizers = {name: optimizers[name] for name in GROUPS}
         self.loss_module = loss_module
@@ -849,7 +846,6 @@ class TorchRLDreamerV3Components(BaselineComponents):
             belief_dim=widths.deter,
             max_nonfinite=train.max_nonfinite_updates,
             world_model_warmup=train.world_model_warmup,
-            device=train.device,
         )
         self.set_replay_parts(cfg, scratch_dir=scratch_dir)
 

@@ -135,6 +135,8 @@ def make_collector(
         frames_per_batch=train.frames_per_batch,
         total_frames=total_frames,
         init_random_frames=init_random_frames,
+        # the policy acts on train.device (the env's outputs are cast there, its actions back); batches are stored
+        # on the CPU, where the replay stays: the stepper moves each update's sample to the model's device
         device=train.device,
         storing_device="cpu",
         **kwargs,

@@ -484,11 +484,11 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
         save_trainer_file=None,
     )
     trainer.collected_frames = env_steps
-    device = train_cfg.device
 
     def sample(batch: TensorDict) -> TensorDict:
-        """``process_optim_batch``: ``batch_size`` windows of the collected episodes."""
-        return buffer.sample().to(device)
+        """``process_optim_batch``: ``batch_size`` windows of the collected episodes, on the CPU (the stepper
+        moves them to the model's device)."""
+        return buffer.sample()
 
     trainer.register_op("process_optim_batch", sample)
     cadence = UpdateCadence(

@@ -49,6 +49,7 @@ _EVAL_OVERRIDES = (
     "batch_size",
     "eval_batches",
     "threads",
+    "device",
 )
 
 
@@ -123,7 +124,8 @@ def _eval(args: argparse.Namespace) -> dict:
         raise FileNotFoundError(
             f"--checkpoint {args.checkpoint}: no such folder (give the --out-dir of an isodream-video train run)"
         )
-    model, config, _ = load_checkpoint(args.checkpoint)
+    # read onto the CPU, the model built where it evaluates: a GPU run evaluates on a CPU-only machine
+    model, config, _ = load_checkpoint(args.checkpoint, device=args.device or "cpu")
     config = replace(config, **_overrides(args, _EVAL_OVERRIDES))
     config.__post_init__()
     torch.set_num_threads(config.threads)

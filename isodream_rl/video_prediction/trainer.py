@@ -29,6 +29,7 @@ from isodream_rl.data import (
     load_pusher_dataset,
 )
 from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
+from isodream_rl.trainers.config import device_error
 from isodream_rl.trainers.hooks import StopOnSignal
 from isodream_rl.trainers.run_dir import RunFlags, hold_folder, refuse_another_run
 from isodream_rl.video_prediction.config import PredictorConfig, variant_config
@@ -151,6 +152,9 @@ class VideoTrainConfig:
             raise ValueError(
                 f"horizons {self.horizons} exceed the {self.test_frames - self.context} predicted test frames"
             )
+        unusable = device_error(self.device, setting="device")
+        if unusable:
+            raise ValueError(unusable)
 
     def predictor_config(self, action_dim: int) -> PredictorConfig:
         return variant_config(
@@ -302,8 +306,8 @@ def read_checkpoint(path: str | os.PathLike, *, device: str = "cpu") -> dict:
 def load_checkpoint(
     path: str | os.PathLike, *, device: str = "cpu"
 ) -> tuple[ThreeBranchPredictor, VideoTrainConfig, dict]:
-    """Rebuild the model of a checkpoint written by :func:`train` (``path`` as in :func:`read_checkpoint`);
-    returns ``(model, config, state)``.
+    """Rebuild the model of a checkpoint written by :func:`train` (``path`` as in :func:`read_checkpoint`) on
+    ``device``, whichever device trained it; returns ``(model, config, state)`` (``config.device`` is ``device``).
 
     Raises:
         ValueError: no readable checkpoint there (:func:`read_checkpoint`).
