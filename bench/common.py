@@ -1,5 +1,5 @@
-"""What every bench JSON records about where and from what it was made (the CPU and the commit), and the
-reader of a run's CSV logs."""
+"""What every bench JSON records about where and from what it was made (the CPU, the commit and, where it says, the
+device), and the reader of a run's CSV logs."""
 
 from __future__ import annotations
 
@@ -48,6 +48,18 @@ def provenance(script: str, argv: list[str] | None, *, parallel: int) -> dict:
         "parallel_runs": parallel,
         "command": f"python bench/{script} " + " ".join(argv if argv is not None else sys.argv[1:]),
     }
+
+
+def device_provenance(device: str) -> dict:
+    """What a bench JSON records about the device it ran on: the device, torch's version and, on a GPU, its name and
+    the CUDA version torch was built with."""
+    import torch
+
+    device = torch.device(device)
+    out = {"device": str(device), "torch": torch.__version__}
+    if device.type == "cuda":
+        out.update(gpu=torch.cuda.get_device_name(device), cuda=torch.version.cuda)
+    return out
 
 
 def read_scalar(run_dir: Path, name: str) -> list[tuple[int, float]]:

@@ -54,6 +54,17 @@ SCENES = {
     "highway": ["env=highway", "++env.kwargs.view=top_down"],
 }
 ALGOS = ("isodream", "dreamerv2")
+#: the recipe at a tiny size, a check in seconds (each an ``--override``): 2 updates of 2 windows x 8 steps on two
+#: 16-step training episodes and one held-out
+TINY = [
+    "size=tiny",
+    "world_model.updates=2",
+    "world_model.episodes=2",
+    "world_model.held_out_episodes=1",
+    "world_model.episode_length=16",
+    "train.sequence_length=8",
+    "train.batch_size=2",
+]
 #: The summary's entries that are not scores.
 _NOT_SCORES = ("mode", "algo", "env", "updates", "stopped_by", "seconds", "precision", "size", "seed")
 #: The table's columns: (heading, score).

@@ -11,7 +11,8 @@ Examples::
     isodream-eval runs/walker --episodes 10 --video walker.gif
 
 A user error is one line on stderr and exit status 2; ``--debug`` (or ``HYDRA_FULL_ERROR=1``) shows the
-traceback (``isodream_rl/user_errors.py``).
+traceback (``isodream_rl/user_errors.py``). A run stopped by Ctrl-C (SIGINT) or SIGTERM writes a checkpoint, says
+in one line where it stopped and exits with status 130 or 143: continue it with ``resume=true``.
 
 ``python -m isodream_rl.cli ...`` runs ``isodream-train``; ``python -m isodream_rl.cli eval ...`` runs
 ``isodream-eval``; ``python -m isodream_rl.cli probe RUN_DIR [--encoder]`` runs :func:`probe_run`.
@@ -35,6 +36,7 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 import isodream_rl.baselines  # noqa: E402, F401  (registers algo=torchrl_dreamer and torchrl_dreamer_v3)
 from isodream_rl.cli_overrides import check_overrides  # noqa: E402
 from isodream_rl.configs import register_dmc_envs  # noqa: E402
+from isodream_rl.envs.finite import NonFiniteEnvDataError  # noqa: E402
 from isodream_rl.evaluation.latent_probe import probe  # noqa: E402
 from isodream_rl.run_lock import RunDirBusyError  # noqa: E402
 from isodream_rl.trainers import run as run_module  # noqa: E402
@@ -44,7 +46,7 @@ from isodream_rl.trainers.disk_space import DiskFullError  # noqa: E402
 from isodream_rl.trainers.run_lifecycle import RunResult  # noqa: E402
 from isodream_rl.trainers.stepper import NonFiniteLossError  # noqa: E402
 from isodream_rl.trainers.world_model_run import load_world_model, probe_scene  # noqa: E402
-from isodream_rl.user_errors import log_to_stderr, report_user_errors, take_debug_flag  # noqa: E402
+from isodream_rl.user_errors import exit_stopped, log_to_stderr, report_user_errors, take_debug_flag  # noqa: E402
 
 ConfigStore.instance().store(name="run_schema", node=RunConfig)
 register_dmc_envs()  # env=dmc_<domain>_<task> for every dm_control suite task
@@ -70,7 +72,14 @@ def _summary(result: RunResult) -> str:
 
 
 #: what isodream-train reports in one line (see isodream_rl/user_errors.py)
-TRAIN_ERRORS = (ConfigError, CheckpointError, NonFiniteLossError, RunDirBusyError, DiskFullError)
+TRAIN_ERRORS = (
+    ConfigError,
+    CheckpointError,
+    NonFiniteLossError,
+    NonFiniteEnvDataError,
+    RunDirBusyError,
+    DiskFullError,
+)
 
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="config")
@@ -81,6 +90,15 @@ def _train_main(dict_cfg: DictConfig) -> None:
         # the algorithm is the registered one of cfg.algo.name (isodream_rl.trainers.registry); a world-model run
         # on sprites ends with the latent probe
         result = run_module.train(cfg, probe=probe)
+    if result.stopped_by_signal is not None:
+        at = f"{result.updates} updates" if cfg.mode == "world_model" else f"{result.env_steps} env steps"
+        exit_stopped(
+            "isodream-train",
+            at=at,
+            signum=result.stopped_by_signal,
+            checkpoint=result.checkpoint,
+            resume="resume=true",
+        )
     print(_summary(result))
 
 
@@ -88,8 +106,11 @@ def train() -> None:
     """``isodream-train [hydra overrides] [--debug]``: train or resume a run (see ``isodream-train --help``).
 
     A user error (invalid setting or group option, a run_dir holding another run or used by another process, a
-    resume with other settings, no readable checkpoint, a full disk) is one line on stderr and exit status 2;
-    ``--debug`` (or ``HYDRA_FULL_ERROR=1``) shows the traceback.
+    resume with other settings, no readable checkpoint, a full disk, NaN/inf in the env's frames or rewards) is
+    one line on stderr and exit status 2; ``--debug`` (or ``HYDRA_FULL_ERROR=1``) shows the traceback. A run that
+    SIGINT or SIGTERM stopped after its checkpoint is one line too, ``stopped at N env steps by SIGINT
+    (checkpoint ...); continue with resume=true`` (``N updates`` in ``mode=world_model``), and exit status 130
+    or 143.
     """
     sys.argv = take_debug_flag(sys.argv)
     with report_user_errors("isodream-train", (ConfigError,)):
@@ -98,7 +119,8 @@ def train() -> None:
 
 
 def evaluate(argv: list[str] | None = None) -> None:
-    """``isodream-eval RUN_DIR [--episodes N] [--video PATH] [--seed S]``: mean +- std return of a checkpoint.
+    """``isodream-eval RUN_DIR [--episodes N] [--video PATH] [--seed S] [--device D]``: mean +- std return of a
+    checkpoint.
 
     Returns ``None`` (a console-script return value becomes the exit status).
     """
@@ -109,14 +131,19 @@ def evaluate(argv: list[str] | None = None) -> None:
     parser.add_argument("--episodes", type=int, default=5, help="episodes to run (default 5)")
     parser.add_argument("--video", default=None, help="write the first episode as a GIF here")
     parser.add_argument("--seed", type=int, default=0, help="env and policy seed (default 0)")
+    parser.add_argument(
+        "--device", default="cpu", help="where the policy acts (default cpu, whichever device trained it)"
+    )
     parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     args = parser.parse_args(argv)
     take_debug_flag(["--debug"] if args.debug else [])
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
-    with report_user_errors("isodream-eval", (CheckpointError, ConfigError, FileNotFoundError)):
+    with report_user_errors(
+        "isodream-eval", (CheckpointError, ConfigError, FileNotFoundError, NonFiniteEnvDataError)
+    ):
         mean, std, returns = run_module.evaluate_checkpoint(
-            args.run_dir, episodes=args.episodes, video=args.video, seed=args.seed
+            args.run_dir, episodes=args.episodes, video=args.video, seed=args.seed, device=args.device
         )
     print(f"return over {len(returns)} episodes: {mean:.2f} +- {std:.2f}")
     if args.video:

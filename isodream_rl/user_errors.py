@@ -4,19 +4,26 @@
 an error the user can fix (an invalid setting, a missing path, an unreadable checkpoint, a resume with other
 settings) is printed as ``<command>: <message>`` on one line, and the process exits with status 2. With
 ``--debug`` (or ``HYDRA_FULL_ERROR=1`` in the environment) the exception propagates with its traceback.
+
+A run that SIGINT (Ctrl-C) or SIGTERM stopped after its checkpoint is no finished run: :func:`exit_stopped` says
+where it stopped and how to continue, in one line, and exits with the shell's status of that signal (130, 143).
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import signal
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import NoReturn
 
 #: exit status of a user error (as argparse's)
 USER_ERROR = 2
 DEBUG_FLAG = "--debug"
+#: exit status of a process a signal stopped is this plus the signal's number (the shell's convention)
+STOPPED_BY_SIGNAL = 128
 
 
 def debugging() -> bool:
@@ -62,6 +69,12 @@ def log_to_stderr() -> None:
         package.propagate = False
 
 
+def exit_user_error(prog: str, message: str) -> NoReturn:
+    """``<prog>: <message>`` on stderr, then exit status 2."""
+    print(f"{prog}: {message}", file=sys.stderr)
+    sys.exit(USER_ERROR)
+
+
 @contextmanager
 def report_user_errors(prog: str, errors: tuple[type[BaseException], ...]) -> Iterator[None]:
     """Run the block; an exception of ``errors`` becomes ``<prog>: <message>`` on stderr and exit status 2
@@ -71,5 +84,25 @@ def report_user_errors(prog: str, errors: tuple[type[BaseException], ...]) -> It
     except errors as err:
         if debugging():
             raise
-        print(f"{prog}: {one_line(err)}", file=sys.stderr)
-        sys.exit(USER_ERROR)
+        exit_user_error(prog, one_line(err))
+
+
+def exit_stopped(prog: str, *, at: str, signum: int, checkpoint: object, resume: str) -> NoReturn:
+    """End a run that the signal ``signum`` stopped after writing ``checkpoint``: ``<prog>: stopped at <at> by
+    <SIGNAL> (checkpoint <checkpoint>); continue with <resume>`` on stderr and exit status ``128 + signum``
+    (130 for SIGINT, 143 for SIGTERM), so that ``isodream-train ... && isodream-eval ...`` or a scheduler does
+    not take a stopped run for a finished one.
+
+    Args:
+        prog: the command (``"isodream-train"``).
+        at: how far the run got, in its own unit (``"1200 env steps"``, ``"40 iterations"``).
+        signum: the signal that stopped it.
+        checkpoint: the checkpoint it wrote on stopping.
+        resume: the setting that continues it (``"resume=true"``, ``"--resume"``).
+    """
+    name = signal.Signals(signum).name
+    print(
+        f"{prog}: stopped at {at} by {name} (checkpoint {checkpoint}); continue with {resume}",
+        file=sys.stderr,
+    )
+    sys.exit(STOPPED_BY_SIGNAL + signum)

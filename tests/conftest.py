@@ -39,24 +39,6 @@ def cli_process(args, cwd):
     )
 
 
-def write_tiny_bair(root):
-    """A tiny BAIR-format data set under ``root`` (``train/``: 3 clips, ``test/``: 2, of 5 frames); ``root``."""
-    import numpy as np
-
-    from isodream_rl.data import write_bair_tfrecord
-
-    rng = np.random.default_rng(0)
-    for split, n in (("train", 3), ("test", 2)):
-        (root / split).mkdir()
-        write_bair_tfrecord(
-            root / split / "traj.tfrecords",
-            rng.integers(0, 256, (n, 5, 64, 64, 3), dtype=np.uint8),
-            rng.normal(size=(n, 5, 4)).astype(np.float32),
-            rng.normal(size=(n, 5, 3)).astype(np.float32),
-        )
-    return root
-
-
 def tiny_run_config(run_dir, **changes):
     """A sprites ``RunConfig`` at test sizes: tiny world model, 16-unit actor and value, windows of 2 x 6, 10 prefill
     steps, one batch every 10 steps, 20 steps in all, horizon 3. ``changes`` override fields by

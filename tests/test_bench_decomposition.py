@@ -6,22 +6,12 @@ import json
 
 from tests.conftest import load_bench
 
-TINY = [
-    "size=tiny",
-    "world_model.updates=2",
-    "world_model.episodes=2",
-    "world_model.held_out_episodes=1",
-    "world_model.episode_length=16",
-    "train.sequence_length=8",
-    "train.batch_size=2",
-]
-
 
 def test_decomposition_bench_writes_the_schema(tmp_path):
     bench = load_bench("decomposition")
     out = tmp_path / "results" / "decomposition.json"
     args = ["--scenes", "sprites", "--seeds", "0", "--minutes", "5", "--runs", str(tmp_path / "runs")]
-    args += ["--json", str(out), *(f"--override={o}" for o in TINY)]
+    args += ["--json", str(out), *(f"--override={o}" for o in bench.TINY)]
     results = bench.main(args)
     saved = json.loads(out.read_text())
     assert saved == json.loads(json.dumps(results))

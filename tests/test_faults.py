@@ -1,11 +1,12 @@
-"""Fault injection: each fault of issues 27 and 37, ending in a clear error or a documented recovery.
+"""Fault injection: each fault of issues 27, 37 and 45, ending in a clear error or a documented recovery.
 
 Faults (``fault``): a second run in a used run folder, a truncated replay memmap, a ``state.pt`` without its keys,
 a checkpoint without its manifest, a corrupted byte, a resume with another algorithm, SIGKILL and a full disk
 while a checkpoint is written, a corrupted CSV log, an env raising mid-episode in a parallel collector, NaN
 losses; and, from the command line with real processes and real disks: two runs in one run folder, a resume
-while the run trains, SIGKILL then resume (one lock, one timeline of logs), a tmpfs that fills up, a start that
-fails, ``isodream-video train`` twice into one folder. Bad inputs (``refused``): pixels in the wrong range or NaN,
+while the run trains, SIGKILL then resume (one lock, one timeline of logs), Ctrl-C then resume (exit 130), NaN
+or inf frames and rewards mid-run, a corrupt ``run_config.json`` and a run-dir check that raises, a tmpfs that
+fills up, a start that fails, ``isodream-video train`` twice into one folder and stopped by a signal. Bad inputs (``refused``): pixels in the wrong range or NaN,
 NaN actions, no ``is_init``, 1-step windows, image sizes, argument types, and the CLIs' user errors (unknown
 settings and group options, run folders that cannot be written, damaged files). Where a checkpoint survives, it
 is the last verified one and continuing from it gives the very losses the run gave after it (``continued``).
@@ -32,8 +33,9 @@ import gymnasium as gym
 import pytest
 import torch
 from tensordict import TensorDict
-from torchrl.envs.transforms import DTypeCastTransform
+from torchrl.envs.transforms import DTypeCastTransform, ObservationNorm, Transform
 
+from isodream_rl.data import write_tiny_bair
 from isodream_rl.envs import make_env
 from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
 from isodream_rl.objectives import IsoDreamModelLoss
@@ -51,7 +53,7 @@ from isodream_rl.trainers import checkpoint as checkpoint_module
 from isodream_rl.trainers.checkpoint import set_rng_state, write_manifest
 from isodream_rl.trainers.hooks import ReplayPreparation
 from isodream_rl.trainers.run_dir import existing_run_files
-from tests.conftest import tiny_run_config, write_tiny_bair
+from tests.conftest import tiny_run_config
 
 ROOT = Path(__file__).resolve().parents[1]
 A = 2  # sprites' action width
@@ -506,7 +508,7 @@ def test_resume_while_the_run_trains_is_refused_naming_its_pid(tmp_path, said):
     """fault: resume=true, then a new run with another seed, started in a run_dir whose run still trains (was:
     both trained, each checkpoint save deleted the other's checkpoint in progress, both wrote the logs) |
     refused: each in one line naming the training process's pid (exit 2); that run trains on alone (stopped
-    with SIGTERM: a checkpoint, then exit 0)"""
+    with SIGTERM: a checkpoint, then exit 143)"""
     run_dir = tmp_path / "run"
     first = start_command(
         "isodream_rl.cli", [*TINY_TRAIN, "run_dir=run", "train.total_steps=20000"], tmp_path
@@ -526,7 +528,8 @@ def test_resume_while_the_run_trains_is_refused_naming_its_pid(tmp_path, said):
     finally:
         first.send_signal(signal.SIGTERM)
         out = first.communicate(timeout=900)
-    assert first.returncode == 0, out[1][-2000:]
+    assert first.returncode == 128 + signal.SIGTERM, out[1][-2000:]
+    assert user_error(out).startswith("isodream-train: stopped at ")
     state, _ = CheckpointManager(run_dir / "checkpoints").load_latest()
     assert (
         state["config"]["train"]["seed"] == 0
@@ -565,6 +568,86 @@ def test_sigkill_then_resume_takes_over_the_lock_and_logs_one_timeline(tmp_path,
     said(takeover.partition(": ")[2])
     assert_one_timeline(run_dir)
     assert logged_steps(run_dir)["loss_model_reco"][-1] == 300 and not (run_dir / LOCK_FILE).exists()
+
+
+def test_ctrl_c_exits_as_a_stopped_run_and_resume_continues_it(tmp_path, said):
+    """fault: SIGINT (Ctrl-C) to isodream-train after its first checkpoint (was: a checkpoint, then exit 0, as a
+    finished run: `isodream-train ... && isodream-eval ...` or a scheduler took it for done) | recovered: a
+    checkpoint, one line saying where it stopped and to continue with resume=true, exit status 130 (143 for
+    SIGTERM, the shell's convention); resume=true continues from that checkpoint to the end"""
+    run_dir = tmp_path / "run"
+    first = start_command(
+        "isodream_rl.cli", [*TINY_TRAIN, "run_dir=run", "train.total_steps=20000"], tmp_path
+    )
+    try:
+        wait_for(lambda: any((run_dir / "checkpoints").glob("step_*[0-9]")), first)
+    finally:
+        first.send_signal(signal.SIGINT)
+        out = first.communicate(timeout=900)
+    assert first.returncode == 130, out[1][-3000:]
+    state, checkpoint = CheckpointManager(run_dir / "checkpoints").load_latest()
+    steps = state["counters"]["env_steps"]
+    line = user_error(out)
+    assert line == (
+        f"isodream-train: stopped at {steps} env steps by SIGINT (checkpoint run/checkpoints/{checkpoint.name}); "
+        "continue with resume=true"
+    )
+    said(line)
+    assert "run finished" not in out[0]
+    resumed = run_command(
+        "isodream_rl.cli",
+        [*TINY_TRAIN, "run_dir=run", f"train.total_steps={steps + 50}", "resume=true"],
+        tmp_path,
+    )
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert f"resumed from run/checkpoints/{checkpoint.name}" in resumed.stdout
+    assert f"run finished: {steps + 50} env steps" in resumed.stdout
+    assert_one_timeline(run_dir)
+
+
+#: ``{case: (entry, value, also resumed once the env is fixed)}``
+BAD_ENV_CASES = {
+    "NaN pixels": ("pixels", "nan", True),
+    "inf pixels": ("pixels", "inf", False),
+    "NaN reward": ("reward", "nan", False),
+    "-inf reward": ("reward", "-inf", False),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_ENV_CASES), ids=list(BAD_ENV_CASES))
+def test_nan_or_inf_env_data_stops_the_run_in_one_line(case, tmp_path, said):
+    """fault: an env.factory whose float frames in [0, 1], or rewards, turn NaN or inf after 80 frames, once the
+    policy acts (was: for NaN frames the policy's `normal expects all elements of std >= 0.0` traceback, exit 1,
+    before the loss's own check saw the batch) | refused: one line naming the entry, the env step and the env,
+    and the last checkpoint to continue from (exit 2), the step refused before the policy acts on it or the
+    replay stores it; once the env is fixed, resume=true continues from that checkpoint"""
+    key, value, resume = BAD_ENV_CASES[case]
+    args = [
+        *TINY_TRAIN,
+        "run_dir=run",
+        "env.factory=tests.test_faults:bad_data_sprites",
+        "train.prefill_steps=20",
+        "train.frames_per_batch=20",
+        "checkpoint.every_updates=4",
+        "train.total_steps=120",
+    ]
+    out = run_command("isodream_rl.cli", args, tmp_path, **{BAD_ENV_DATA: f"{key}:{value}"})
+    assert out.returncode == 2, out.stderr[-3000:]
+    line = user_error(out)
+    state, checkpoint = CheckpointManager(tmp_path / "run" / "checkpoints").load_latest()
+    found = "NaN" if value == "nan" else "inf"
+    assert line == (
+        f"isodream-train: env.factory=tests.test_faults:bad_data_sprites gave {key!r} holding {found} at env step "
+        f"80; the last checkpoint, run/checkpoints/{checkpoint.name}, is intact: fix the env, then continue with "
+        "resume=true"
+    )
+    said(line)
+    assert state["counters"]["env_steps"] < 80
+    if resume:
+        resumed = run_command("isodream_rl.cli", [*args, "resume=true"], tmp_path)
+        assert resumed.returncode == 0, resumed.stderr[-3000:]
+        assert f"resumed from run/checkpoints/{checkpoint.name}" in resumed.stdout
+        assert "run finished: 120 env steps" in resumed.stdout
 
 
 @pytest.fixture
@@ -761,6 +844,38 @@ def test_video_cli_names_an_unreadable_file_in_one_line(case, video_run, tmp_pat
     said(line.replace(str(tmp_path) + "/", ""))
 
 
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_video_train_stopped_by_a_signal_exits_as_stopped_and_resumes(signum, bair_files, tmp_path, said):
+    """fault: SIGINT or SIGTERM to isodream-video train after its first checkpoint (was: a KeyboardInterrupt
+    traceback, no checkpoint of the iteration reached; SIGTERM killed it) | recovered: a checkpoint of the
+    iteration reached, one line saying where it stopped and to continue with --resume, exit status 130 or 143;
+    --resume continues from that checkpoint with one timeline of logs"""
+    from isodream_rl.video_prediction.trainer import read_checkpoint
+
+    out_dir = tmp_path / "run"
+    args = ["train", "--dataset", "bair", "--data-path", str(bair_files), *TINY_VIDEO, "--out-dir", "run"]
+    proc = start_command("isodream_rl.video_prediction.cli", [*args, "--iterations", "100000"], tmp_path)
+    try:
+        wait_for(lambda: any((out_dir / "checkpoints").glob("step_*[0-9]")), proc)
+    finally:
+        proc.send_signal(signum)
+        out = proc.communicate(timeout=600)
+    assert proc.returncode == 128 + signum, out[1][-3000:]
+    stopped = read_checkpoint(out_dir)["iteration"]
+    line = user_error(out, "isodream-video")
+    assert line == (
+        f"isodream-video: stopped at {stopped} iterations by {signum.name} (checkpoint "
+        f"run/checkpoints/step_{stopped:08d}); continue with --resume"
+    )
+    said(line)
+    resumed = run_command(
+        "isodream_rl.video_prediction.cli", [*args, "--iterations", str(stopped + 1), "--resume"], tmp_path
+    )
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert read_checkpoint(out_dir)["iteration"] == stopped + 1
+    assert_one_timeline(out_dir)
+
+
 # ---------------------------------------------------------------- bad inputs at the boundary
 
 
@@ -876,18 +991,53 @@ def float_pixel_sprites(**kwargs):
     return env
 
 
-def command_env() -> dict[str, str]:
-    """The environment of the commands the tests run: one thread, this checkout first, one-line errors."""
-    environment = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
+class GoesBad(Transform):
+    """Sets ``key`` to ``value`` in every frame from frame ``after + 1`` on (resets count): data going bad mid-run."""
+
+    def __init__(self, key: str, value: float, after: int) -> None:
+        super().__init__(in_keys=[])
+        self.key, self.value, self.after, self.frames = key, value, after, 0
+
+    def _call(self, next_tensordict):
+        self.frames += 1
+        if self.frames > self.after and self.key in next_tensordict.keys():
+            next_tensordict.set(self.key, torch.full_like(next_tensordict.get(self.key), self.value))
+        return next_tensordict
+
+    def _reset(self, tensordict, tensordict_reset):
+        return self._call(tensordict_reset)
+
+
+#: ``<key>:<value>`` in the environment of a command makes :func:`bad_data_sprites` go bad after 80 frames
+BAD_ENV_DATA = "ISODREAM_TEST_BAD_ENV_DATA"
+
+
+def bad_data_sprites(**kwargs):
+    """``env.factory`` of a CLI test: sprites with float frames in [0, 1]; with ``$ISODREAM_TEST_BAD_ENV_DATA``
+    set to ``<key>:<value>`` (``pixels:nan``), that entry holds the value from frame 81 on; unset, the env is
+    fixed."""
+    env = make_env("sprites", **kwargs)
+    env.append_transform(DTypeCastTransform(torch.uint8, torch.float32, in_keys=["pixels"]))
+    env.append_transform(ObservationNorm(loc=0.0, scale=1 / 255, in_keys=["pixels"]))
+    if os.environ.get(BAD_ENV_DATA):
+        key, _, value = os.environ[BAD_ENV_DATA].partition(":")
+        env.append_transform(GoesBad(key, float(value), after=80))
+    return env
+
+
+def command_env(**extra: str) -> dict[str, str]:
+    """The environment of the commands the tests run: one thread, this checkout first, one-line errors, and
+    ``extra``."""
+    environment = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT), **extra)
     environment.pop("HYDRA_FULL_ERROR", None)
     return environment
 
 
-def run_command(module: str, args: list[str], cwd: Path) -> subprocess.CompletedProcess:
+def run_command(module: str, args: list[str], cwd: Path, **extra_env: str) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, "-m", module, *args],
         cwd=cwd,
-        env=command_env(),
+        env=command_env(**extra_env),
         capture_output=True,
         text=True,
         timeout=600,
@@ -932,6 +1082,74 @@ def test_train_cli_refuses_a_used_run_dir_before_hydra_writes(finished_run, tmp_
     assert snapshot(run_dir) == before
     debug = run_command("isodream_rl.cli", ["size=tiny", "run_dir=run", "--debug"], tmp_path)
     assert debug.returncode != 0 and "Traceback" in debug.stderr
+
+
+def test_train_cli_refuses_a_corrupt_run_config_naming_it(tmp_path, said):
+    """fault: resume=true on a run whose run_config.json was cut short into invalid JSON (was: Hydra's
+    `UserWarning: Callback RunDirGuard.on_run_start raised JSONDecodeError`, and the run trained on past the
+    guard) | refused: one line naming the file and saying to delete it and resume (exit 2), the run's files
+    (Hydra's .hydra/ too) untouched; with it deleted, resume=true continues from the checkpoints and writes it again"""
+    args = [*TINY_TRAIN, "run_dir=run", "train.prefill_steps=20", "train.frames_per_batch=20"]
+    out = run_command("isodream_rl.cli", [*args, "train.total_steps=40"], tmp_path)
+    assert out.returncode == 0, out.stderr[-3000:]
+    run_dir = tmp_path / "run"
+    saved = run_dir / "run_config.json"
+    saved.write_bytes(saved.read_bytes()[:100])
+    before = snapshot(run_dir)
+    out = run_command("isodream_rl.cli", [*args, "train.total_steps=60", "resume=true"], tmp_path)
+    assert out.returncode == 2, out.stderr[-3000:]
+    line = user_error(out)
+    assert line.startswith(
+        "isodream-train: run/run_config.json holds no readable run configuration (JSONDecodeError"
+    )
+    assert "delete it and continue with resume=true" in line and "UserWarning" not in out.stderr
+    said(line, limit=400)
+    assert snapshot(run_dir) == before
+    saved.unlink()
+    out = run_command("isodream_rl.cli", [*args, "train.total_steps=60", "resume=true"], tmp_path)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "resumed from" in out.stdout and "run finished: 60 env steps" in out.stdout
+    assert json.loads(saved.read_text())["train"]["total_steps"] == 60
+
+
+_BROKEN_GUARD = textwrap.dedent(
+    """
+    import sys
+    from isodream_rl import cli
+    from isodream_rl.trainers import run_dir
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("injected check failure")
+
+    run_dir.run_dir_problem = broken  # the first check of the run-dir guard
+    sys.argv = ["isodream-train", *sys.argv[1:]]
+    cli.train()
+    """
+)
+
+
+def test_run_dir_guard_fails_closed_whatever_a_check_raises(tmp_path, said):
+    """fault: a check of isodream-train's run-dir guard raising an unexpected error (was: Hydra turns an exception
+    in a callback into a warning, so the run went past the guard) | refused: one line naming run_dir and the
+    error (exit 2), nothing written; with --debug the traceback, then the same line and exit status"""
+    for debug in ([], ["--debug"]):
+        out = subprocess.run(
+            [sys.executable, "-c", _BROKEN_GUARD, *TINY_TRAIN, "run_dir=run", *debug],
+            cwd=tmp_path,
+            env=command_env(),
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert out.returncode == 2, out.stderr[-3000:]
+        line = out.stderr.strip().splitlines()[-1]
+        assert line == (
+            "isodream-train: checking run_dir run failed (RuntimeError: injected check failure); nothing was "
+            "started: --debug shows the traceback"
+        )
+        assert ("Traceback" in out.stderr) == bool(debug) and "UserWarning" not in out.stderr
+        assert not (tmp_path / "run").exists()
+    said(line)
 
 
 @pytest.mark.parametrize(

@@ -5,9 +5,9 @@ import json
 import pytest
 import torch
 
+from isodream_rl.data import write_tiny_bair
 from isodream_rl.video_prediction.cli import main
 from isodream_rl.video_prediction.trainer import VideoTrainConfig, load_checkpoint
-from tests.conftest import write_tiny_bair
 
 
 @pytest.fixture(autouse=True)

@@ -357,7 +357,8 @@ def test_sigterm_saves_a_checkpoint_and_stops_before_the_summary(tmp_path):
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert proc.returncode == 0 and "SIGTERM received" in stderr, stderr[-3000:]
+    assert proc.returncode == 128 + signal.SIGTERM and "SIGTERM received" in stderr, stderr[-3000:]
     updates = latest_state(tmp_path / "run")["stepper"]["updates"]
-    assert 0 < updates < 100000 and f"{updates} updates" in stdout
+    assert 0 < updates < 100000 and f"stopped at {updates} updates by SIGTERM" in stderr
+    assert "run finished" not in stdout
     assert not (tmp_path / "run" / "summary.json").exists()

@@ -499,9 +499,9 @@ class TorchRLDreamerOptimizationStepper(ZeroStateStepper):
     Per :meth:`step` on a flat ``[B * T]`` replay sample (``"action"``, ``"is_init"``, uint8
     ``("next", "pixels")``, ``("next", "reward")``):
 
-    1. :meth:`prepare` (:class:`~isodream_rl.trainers.stepper.ZeroStateStepper`): pixels to floats in [0, 1]
-       (the example's ``ToTensorImage``), zero ``"state"``/``"belief"`` (the example's primer values), on the
-       training device; reshaped to windows ``[B, T]``;
+    1. :meth:`prepare` (:class:`~isodream_rl.trainers.stepper.ZeroStateStepper`), on the model's device: pixels to
+       floats in [0, 1] (the example's ``ToTensorImage``), zero ``"state"``/``"belief"`` (the example's primer
+       values); reshaped to windows ``[B, T]``;
     2. ``DreamerModelLoss`` -> backward of ``kl + reco + reward`` -> clip -> world-model Adam step;
     3. ``DreamerActorLoss`` on the world-model output flattened to ``[B * T]`` (imagination from the root
        ``state``/``belief`` each step consumed, as the example) -> backward -> clip -> actor Adam step;
@@ -527,7 +527,6 @@ class TorchRLDreamerOptimizationStepper(ZeroStateStepper):
         belief_dim: width of ``"belief"``.
         grad_clip: max gradient norm per optimiser.
         max_nonfinite: non-finite updates in a row that stop the run.
-        device: the training device.
         autocast_dtype: ``torch.bfloat16`` to run the losses under autocast (the example's ``autocast``), or
             ``None``.
     """
@@ -546,7 +545,6 @@ class TorchRLDreamerOptimizationStepper(ZeroStateStepper):
         belief_dim: int,
         grad_clip: float = 100.0,
         max_nonfinite: int = 5,
-        device: str | torch.device = "cpu",
         autocast_dtype: torch.dtype | None = None,
     ) -> None:
         super().__init__(
@@ -561,7 +559,6 @@ class TorchRLDreamerOptimizationStepper(ZeroStateStepper):
             max_nonfinite=max_nonfinite,
             state_dim=state_dim,
             belief_dim=belief_dim,
-            device=device,
         )
         self.autocast_dtype = autocast_dtype
 
@@ -695,7 +692,6 @@ class TorchRLDreamerComponents(BaselineComponents):
             belief_dim=sizes["belief_dim"],
             grad_clip=train.grad_clip,
             max_nonfinite=train.max_nonfinite_updates,
-            device=train.device,
             autocast_dtype=torch.bfloat16 if precision == "bf16" else None,
         )
         self.set_replay_parts(cfg, scratch_dir=scratch_dir)

@@ -2,7 +2,13 @@
 random-action episodes of the sprites scene with their ground truth (:mod:`isodream_rl.data.sprites_episodes`, not
 imported here: it loads TorchRL)."""
 
-from isodream_rl.data.bair import BAIRDataset, decode_bair_example, encode_bair_example, write_bair_tfrecord
+from isodream_rl.data.bair import (
+    BAIRDataset,
+    decode_bair_example,
+    encode_bair_example,
+    write_bair_tfrecord,
+    write_tiny_bair,
+)
 from isodream_rl.data.bouncing_balls import BouncingBalls, ball_trajectories, overlay_balls
 from isodream_rl.data.clips import ArraySequences, VideoClips
 from isodream_rl.data.pusher import default_cache_dir, generate_pusher_sequences, load_pusher_dataset
@@ -24,4 +30,5 @@ __all__ = [
     "read_robonet_hdf5",
     "write_bair_tfrecord",
     "write_robonet_hdf5",
+    "write_tiny_bair",
 ]

@@ -22,7 +22,13 @@ from isodream_rl.data.tfrecord import (
     write_tfrecord,
 )
 
-__all__ = ["decode_bair_example", "encode_bair_example", "write_bair_tfrecord", "BAIRDataset"]
+__all__ = [
+    "decode_bair_example",
+    "encode_bair_example",
+    "write_bair_tfrecord",
+    "write_tiny_bair",
+    "BAIRDataset",
+]
 
 
 def decode_bair_example(
@@ -91,6 +97,22 @@ def write_bair_tfrecord(
 ) -> None:
     """Write sequences (``[N, T, H, W, 3]`` uint8, ``[N, T, 4]``, ``[N, T, 3]``) as a BAIR TFRecord file."""
     write_tfrecord(path, (encode_bair_example(f, a, e) for f, a, e in zip(frames, actions, endeffector_pos)))
+
+
+def write_tiny_bair(root: str | os.PathLike) -> Path:
+    """A BAIR-format set of random clips under ``root``: ``train/`` 3 clips and ``test/`` 2, of 5 frames, in the
+    layout :class:`BAIRDataset` reads (for a check that needs a data set, not its content); ``root``."""
+    root = Path(root)
+    rng = np.random.default_rng(0)
+    for split, clips in (("train", 3), ("test", 2)):
+        (root / split).mkdir(parents=True, exist_ok=True)
+        write_bair_tfrecord(
+            root / split / "traj.tfrecords",
+            rng.integers(0, 256, (clips, 5, 64, 64, 3), dtype=np.uint8),
+            rng.normal(size=(clips, 5, 4)).astype(np.float32),
+            rng.normal(size=(clips, 5, 3)).astype(np.float32),
+        )
+    return root
 
 
 class BAIRDataset(Dataset):

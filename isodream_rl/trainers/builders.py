@@ -14,6 +14,7 @@ from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger, get_logger
 
 from isodream_rl.envs import make_env
+from isodream_rl.envs.finite import FiniteEnvData
 from isodream_rl.modules import (
     IsoDreamActor,
     IsoDreamValue,
@@ -56,6 +57,36 @@ def env_factory(cfg: RunConfig, *, eval_mode: bool = False) -> functools.partial
     if eval_mode and cfg.env.name.startswith("dmc_"):
         kwargs.setdefault("video_split", "eval")
     return functools.partial(make_env, cfg.env.name, **kwargs)
+
+
+def env_label(cfg: RunConfig) -> str:
+    """How the settings name the env of ``cfg``: ``env.factory=...`` when given, else ``env.name=...``."""
+    return f"env.factory={cfg.env.factory}" if cfg.env.factory else f"env.name={cfg.env.name}"
+
+
+def checked_env_factory(
+    cfg: RunConfig, *, eval_mode: bool = False, which: str = "", first_step: int = 0
+) -> functools.partial:
+    """:func:`env_factory` whose envs refuse NaN/inf frames and rewards where they enter the run
+    (:class:`~isodream_rl.envs.finite.FiniteEnvData`, appended last: it checks what the policy and the replay
+    get); keyword arguments of the call go to the env's factory.
+
+    Args:
+        cfg: the run's configuration.
+        eval_mode: as :func:`env_factory`.
+        which: added to the env's name in the error (``" (collector env 1 of 2)"``).
+        first_step: the env steps this env took in the run before it was made (a resumed run's).
+    """
+    return functools.partial(
+        _finite_env,
+        env_factory(cfg, eval_mode=eval_mode),
+        env=env_label(cfg) + which,
+        first_step=first_step,
+    )
+
+
+def _finite_env(make, *, env: str, first_step: int, **kwargs) -> EnvBase:
+    return make(**kwargs).append_transform(FiniteEnvData(env=env, first_step=first_step))
 
 
 def action_dim_of(env: EnvBase) -> int:

@@ -16,7 +16,7 @@ from typing import Any
 
 from torchrl.collectors import BaseCollector, Collector
 
-from isodream_rl.trainers.builders import env_factory
+from isodream_rl.trainers.builders import checked_env_factory
 from isodream_rl.trainers.config import RunConfig
 
 
@@ -78,7 +78,13 @@ def _backend_options(cfg: RunConfig) -> dict[str, Any]:
 
 
 def make_collector(
-    cfg: RunConfig, policy, *, total_frames: int, init_random_frames: int, env_transform=None
+    cfg: RunConfig,
+    policy,
+    *,
+    total_frames: int,
+    init_random_frames: int,
+    env_transform=None,
+    first_step: int = 0,
 ) -> BaseCollector:
     """TorchRL ``Collector``: one env in this process, ``num_envs`` local worker processes, or remote workers.
 
@@ -89,15 +95,15 @@ def make_collector(
         total_frames: agent steps still to collect (the whole run minus what a resumed run already has).
         init_random_frames: random-policy steps still to collect (the prefill).
         env_transform: ``() -> Transform`` appended to each env (the policy's recurrent-state primer).
+        first_step: the env steps the run took before (a resumed run's). An env that returns a NaN/inf frame or
+            reward stops the run naming the env step (:func:`~isodream_rl.trainers.builders.checked_env_factory`):
+            the run's with one env, with several the env's own (its share of ``first_step`` plus its steps since).
 
     Returns:
         The collector; with ``ray``/``distributed`` each of the ``env.num_envs`` workers collects
         ``frames_per_batch / num_envs`` steps per batch (``sync=True``: one batch stacks them all).
     """
     train, num_envs = cfg.train, cfg.env.num_envs
-    make = env_factory(cfg)
-    if env_transform is not None:
-        make = functools.partial(_with_transform, make, env_transform)
     backend = train.collector_backend
     if backend == "sync":
         backend = "direct" if num_envs == 1 else "process"
@@ -113,7 +119,13 @@ def make_collector(
     # construction reseeds an env whose first observation the collector already holds (drawn unseeded), so the
     # first episode of a run would differ between runs of one seed and start from a frame of another episode.
     # (torchrl 0.14's DistributedCollector.set_seed also fails on its workers: it parses the seed as a list.)
-    makes = [functools.partial(_seeded, make, train.seed + i) for i in range(num_envs)]
+    makes = []
+    for i in range(num_envs):
+        which = f" (collector env {i + 1} of {num_envs})" if num_envs > 1 else ""
+        make = checked_env_factory(cfg, which=which, first_step=first_step // num_envs)
+        if env_transform is not None:
+            make = functools.partial(_with_transform, make, env_transform)
+        makes.append(functools.partial(_seeded, make, train.seed + i))
     if backend == "direct":
         makes = makes[0]
     collector = Collector(
@@ -123,6 +135,8 @@ def make_collector(
         frames_per_batch=train.frames_per_batch,
         total_frames=total_frames,
         init_random_frames=init_random_frames,
+        # the policy acts on train.device (the env's outputs are cast there, its actions back); batches are stored
+        # on the CPU, where the replay stays: the stepper moves each update's sample to the model's device
         device=train.device,
         storing_device="cpu",
         **kwargs,

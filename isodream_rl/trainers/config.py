@@ -317,18 +317,19 @@ def _positive(errors: list[str], name: str, value, minimum: int | float = 1) -> 
         errors.append(f"{name}={value} must be >= {minimum}")
 
 
-def _device_error(device: str) -> str | None:
-    """Why ``train.device`` cannot be used on this machine, or ``None``."""
+def device_error(device: str, *, setting: str = "train.device") -> str | None:
+    """Why ``device`` cannot be used on this machine, or ``None``; the message names it as ``setting`` (the
+    config field or command-line flag the user gave it with) and says what to set instead."""
     import torch
 
     try:
         kind = torch.device(device).type
     except (RuntimeError, TypeError) as err:
-        return f"train.device={device!r} is not a torch device ({err})"
+        return f"{setting}={device!r} is not a torch device ({err})"
     if kind == "cuda" and not torch.cuda.is_available():
-        return f"train.device={device!r} but this machine has no usable CUDA GPU: set train.device=cpu"
+        return f"{setting}={device!r} but this machine has no usable CUDA GPU: set {setting}=cpu"
     if kind == "mps" and not torch.backends.mps.is_available():
-        return f"train.device={device!r} but MPS is not available here: set train.device=cpu"
+        return f"{setting}={device!r} but MPS is not available here: set {setting}=cpu"
     return None
 
 
@@ -343,9 +344,9 @@ def validate_config(cfg: RunConfig) -> None:
     """
     errors: list[str] = []
     _choice(errors, "mode", cfg.mode, MODES)
-    device_error = _device_error(cfg.train.device)
-    if device_error:
-        errors.append(device_error)
+    unusable = device_error(cfg.train.device)
+    if unusable:
+        errors.append(unusable)
     for name in ("world_model_lr", "actor_lr", "value_lr"):  # 0 freezes that part (tests use it)
         if not getattr(cfg.train, name) >= 0:
             errors.append(f"train.{name}={getattr(cfg.train, name)} must be >= 0")

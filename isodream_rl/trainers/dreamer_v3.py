@@ -71,8 +71,8 @@ class DreamerV3OptimizationStepper(ZeroStateStepper):
     """One DreamerV3 update (TorchRL's ``DreamerV3OptimizationStepper``'s, eager) as the run's stepper, for any
     ``DreamerV3Loss`` whose parameters form the groups ``world_model``, ``actor``, ``value`` (:data:`GROUPS`).
 
-    Per :meth:`step` on a flat ``[B * T]`` replay sample: :meth:`prepare` (zero root ``"state"``/``"belief"``, as
-    TorchRL's reproduction sets them; on the training device: a
+    Per :meth:`step` on a flat ``[B * T]`` replay sample, moved to the model's device: :meth:`prepare` (zero root
+    ``"state"``/``"belief"``, as TorchRL's reproduction sets them: a
     :class:`~isodream_rl.trainers.stepper.ZeroStateStepper`), windows ``[B, T]``, then ``DreamerV3Loss`` (world
     model, imagination from every posterior, actor, critic, replay critic), one backward of the sum of its
     ``loss_*`` terms, one step of each ``DreamerV3Optimizer`` and of the slow critic's ``SoftUpdate``. During the
@@ -94,7 +94,6 @@ class DreamerV3OptimizationStepper(ZeroStateStepper):
         belief_dim: width of ``"belief"``.
         max_nonfinite: non-finite updates in a row that stop the run.
         world_model_warmup: updates of the world model alone first.
-        device: the training device.
     """
 
     def __init__(
@@ -108,7 +107,6 @@ class DreamerV3OptimizationStepper(ZeroStateStepper):
         belief_dim: int,
         max_nonfinite: int = 5,
         world_model_warmup: int = 0,
-        device: str | torch.device = "cpu",
     ) -> None:
         if set(optimizers) != set(GROUPS):
             raise ValueError(f"optimizers must be keyed {list(GROUPS)}, got {sorted(optimizers)}")
@@ -122,7 +120,6 @@ class DreamerV3OptimizationStepper(ZeroStateStepper):
             world_model_warmup=world_model_warmup,
             state_dim=state_dim,
             belief_dim=belief_dim,
-            device=device,
         )
         self.optimizers = {name: optimizers[name] for name in GROUPS}
         self.loss_module = loss_module
@@ -192,7 +189,7 @@ def make_dreamer_v3_stepper(
 ) -> DreamerV3OptimizationStepper:
     """The run's DreamerV3 update for ``learner``: :func:`make_dreamer_v3_optimizers` at ``train.world_model_lr`` /
     ``actor_lr`` / ``value_lr``, the slow critic's updater, ``train.sequence_length``, ``max_nonfinite_updates``,
-    ``world_model_warmup`` and ``device``; ``state_dim`` / ``belief_dim`` are the widths of the latent the losses
+    ``world_model_warmup``; ``state_dim`` / ``belief_dim`` are the widths of the latent the losses
     read (:class:`~isodream_rl.trainers.stepper.ZeroStateStepper` zeroes them at each window's start)."""
     train = cfg.train
     rates = {"world_model": train.world_model_lr, "actor": train.actor_lr, "value": train.value_lr}
@@ -205,7 +202,6 @@ def make_dreamer_v3_stepper(
         belief_dim=belief_dim,
         max_nonfinite=train.max_nonfinite_updates,
         world_model_warmup=train.world_model_warmup,
-        device=train.device,
     )
 
 

@@ -41,23 +41,25 @@ def open_loop_prediction(
         world_model: the trained world model (an ``IsoDreamV3WorldModel`` predicts with its own
             :meth:`~isodream_rl.modules.world_model_v3.IsoDreamV3WorldModel.open_loop`).
         window: a ``[B, T]`` replay window with ``("next", "pixels")`` uint8 ``[B, T, 3, 64, 64]`` and
-            ``"action"`` ``[B, T, A]``.
+            ``"action"`` ``[B, T, A]``, on any device (a replay sample is on the CPU).
         context: observed steps, ``2 <= context < T`` (the world model filters windows of 2 steps or more).
 
     Returns:
-        ``[B, T]`` tensordict: ``pixels`` (truth, uint8), ``reco_pixels``, ``reco_control`` (and
-        ``reco_free``, ``background`` when the branches exist) in ``[-0.5, 0.5]``, masks ``[B, T, 1, 64, 64]``
-        and ``imagined`` ``[B, T]`` bool (``False`` on context steps).
+        ``[B, T]`` tensordict on the world model's device: ``pixels`` (truth, uint8), ``reco_pixels``,
+        ``reco_control`` (and ``reco_free``, ``background`` when the branches exist) in ``[-0.5, 0.5]``, masks
+        ``[B, T, 1, 64, 64]`` and ``imagined`` ``[B, T]`` bool (``False`` on context steps).
     """
-    if isinstance(world_model, IsoDreamV3WorldModel):
-        return world_model.open_loop(window, context=context)
     batch, time = window.shape
     if not 2 <= context < time:
         raise ValueError(f"context must be in [2, {time - 1}] for a window of {time} steps, got {context}")
+    device = next(world_model.parameters()).device
+    window = window.select("action", ("next", "pixels"), "is_init", strict=False).to(device)
+    if isinstance(world_model, IsoDreamV3WorldModel):
+        return world_model.open_loop(window, context=context)
     cfg = world_model.config
     was_training = world_model.training
     world_model.eval()
-    observed = window[:, :context].select("action", ("next", "pixels"), "is_init", strict=False).clone()
+    observed = window[:, :context].clone()
     filtered = world_model(observed).get("next")
     action = window.get("action").float()
     state = {k: filtered.get(k)[:, -1] for k in ("state", "belief")}
@@ -102,7 +104,7 @@ def open_loop_prediction(
             "pixels": window.get(("next", "pixels")),
             "reco_pixels": composite,
             "reco_control": colors["control"],
-            "imagined": (torch.arange(time) >= context).expand(batch, time),
+            "imagined": (torch.arange(time, device=device) >= context).expand(batch, time),
         },
         [batch, time],
     )

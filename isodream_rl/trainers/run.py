@@ -19,10 +19,16 @@ from torchrl.trainers import ReplayBufferTrainer, Trainer, UpdateWeights
 from isodream_rl.csv_logs import csv_log_sizes
 from isodream_rl.envs.builder import ground_truth_mask_keys
 from isodream_rl.trainers import trainer_state, world_model_run
-from isodream_rl.trainers.builders import close_logger, env_factory, make_logger
+from isodream_rl.trainers.builders import checked_env_factory, close_logger, make_logger
 from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.collectors import make_collector
-from isodream_rl.trainers.config import RunConfig, config_from_dict, validate_config
+from isodream_rl.trainers.config import (
+    ConfigError,
+    RunConfig,
+    config_from_dict,
+    device_error,
+    validate_config,
+)
 from isodream_rl.trainers.disk_space import ReplayReservation
 from isodream_rl.trainers.evaluation import Evaluation, learning_summary, run_episodes, save_episode_gif
 from isodream_rl.trainers.hooks import Throughput
@@ -117,6 +123,7 @@ def _train_rl(cfg: RunConfig) -> RunResult:
         total_frames=train_cfg.total_steps - env_steps,
         init_random_frames=max(0, train_cfg.prefill_steps - env_steps),
         env_transform=policy.make_tensordict_primer,
+        first_step=env_steps,
     )
     log = make_logger(cfg, run_dir=run_dir)
     trainer = Trainer(
@@ -162,7 +169,7 @@ def _train_rl(cfg: RunConfig) -> RunResult:
     )
 
     def eval_env(masks: bool = False):
-        make = env_factory(cfg, eval_mode=True)
+        make = checked_env_factory(cfg, eval_mode=True, which=" (evaluation)")
         env = (functools.partial(make, return_masks=True) if masks else make)()
         env.append_transform(policy.make_tensordict_primer())
         return env
@@ -238,6 +245,7 @@ def _train_rl(cfg: RunConfig) -> RunResult:
         resumed_from=resumed_from,
         metrics=metrics,
         summary=summary,
+        stopped_by_signal=stopped_by_signal,
     )
 
 
@@ -265,13 +273,35 @@ def _is_scalar(value) -> bool:
 
 
 def evaluate_checkpoint(
-    run_dir: str | Path, *, episodes: int = 5, video: str | Path | None = None, seed: int = 0
+    run_dir: str | Path,
+    *,
+    episodes: int = 5,
+    video: str | Path | None = None,
+    seed: int = 0,
+    device: str = "cpu",
 ) -> tuple[float, float, list[float]]:
     """Load the newest readable checkpoint of ``run_dir`` and run ``episodes`` mode-action episodes.
 
+    The checkpoint is read onto the CPU and its models built on ``device``, whichever device trained them: a GPU
+    run evaluates on a CPU-only machine.
+
+    Args:
+        run_dir: the run folder given to ``isodream-train``.
+        episodes: how many episodes.
+        video: write the first episode there as a GIF (``None``: no GIF).
+        seed: env and policy seed.
+        device: where the policy acts (``"cpu"``, ``"cuda"``).
+
     Returns:
-        ``(mean, std, returns)``; with ``video``, the first episode is written there as a GIF.
+        ``(mean, std, returns)``.
+
+    Raises:
+        ConfigError: ``device`` is not usable on this machine.
+        CheckpointError: no readable checkpoint, or one of a ``mode=world_model`` run.
     """
+    unusable = device_error(device, setting="--device")
+    if unusable:
+        raise ConfigError(unusable)
     checkpoints = CheckpointManager(Path(run_dir) / "checkpoints", keep=2)
     if not checkpoints.checkpoints():
         raise CheckpointError(
@@ -283,12 +313,13 @@ def evaluate_checkpoint(
         raise CheckpointError(f"{path} is of a mode=world_model run: it has no policy to evaluate")
     torch.set_num_threads(cfg.train.threads)
     seed_everything(seed)
+    cfg.train.device = device
     components = make_components(
         cfg, action_dim=probe_action_dim(cfg), scratch_dir=Path(run_dir) / "eval_scratch"
     )
     components.load_models(state)
     policy = components.behavior.policy
-    env = env_factory(cfg, eval_mode=True)()
+    env = checked_env_factory(cfg, eval_mode=True)()
     env.append_transform(policy.make_tensordict_primer())
     env.set_seed(seed)
     try:

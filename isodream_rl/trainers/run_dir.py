@@ -10,7 +10,8 @@ writes them (:class:`RunDirGuard`).
 
 While a run uses its folder, :func:`hold_run_dir` keeps it to this process (``run.lock``, see
 :mod:`isodream_rl.run_lock`), removes what a start that failed before ``run_config.json`` made (so the corrected
-command is not refused), and turns a full disk or a read-only folder met on the way into one line.
+command is not refused), and turns a full disk, a read-only folder or an env's NaN/inf data met on the way into
+one line naming the checkpoint to continue from.
 :func:`hold_folder` does the same for another program's run folder (``isodream-video train --out-dir``), named
 by its own :class:`RunFlags`.
 """
@@ -23,6 +24,7 @@ import errno
 import json
 import os
 import shutil
+import traceback
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -32,12 +34,13 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import OmegaConf
 
+from isodream_rl.envs.finite import NonFiniteEnvDataError
 from isodream_rl.modules.config import SIZE_PRESETS
 from isodream_rl.run_lock import RunDirBusyError, RunDirLock
 from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.config import ConfigError, RunConfig, config_from_dict
 from isodream_rl.trainers.disk_space import DiskFullError
-from isodream_rl.user_errors import log_to_stderr, report_user_errors
+from isodream_rl.user_errors import debugging, exit_user_error, log_to_stderr, one_line
 
 #: the files and folders of a run (a folder holding one of them holds a run)
 RUN_FILES = ("run_config.json", "checkpoints", "logs", "pictures", "summary.json", "replay_scratch")
@@ -181,13 +184,15 @@ def hold_run_dir(cfg: RunConfig) -> Iterator[Path]:
     On entering: refuse a path that cannot be a writable folder, take the folder's lock
     (:class:`~isodream_rl.run_lock.RunDirLock`), claim it (:func:`claim_run_dir`), and remove the half-written
     checkpoints a killed or failed process left. If the block fails before ``run_config.json`` exists (a new run
-    that did not start), the run files it made are removed. A full disk and a read-only folder met in the block
-    become one-line errors. The lock is released on leaving, however the block ends.
+    that did not start), the run files it made are removed. A full disk, a read-only folder and an env's NaN/inf
+    data met in the block become one-line errors. The lock is released on leaving, however the block ends.
 
     Raises:
         ConfigError: ``run_dir`` is a file, under a file or not writable; the refusals of :func:`claim_run_dir`.
         RunDirBusyError: another live process holds the folder (the message names its pid).
         DiskFullError: the disk filled up; the message names the last verified checkpoint and says to resume.
+        NonFiniteEnvDataError: the env returned NaN/inf; the message names it, the entry, the env step and the
+            last verified checkpoint, and says to fix the env and resume.
     """
     with hold_folder(Path(cfg.run_dir), claim=lambda: claim_run_dir(cfg)) as run_dir:
         new = not resuming(cfg)
@@ -213,13 +218,14 @@ def hold_folder(
     """Hold the run folder ``run_dir``: refuse a path that cannot be a writable folder, take its lock
     (:class:`~isodream_rl.run_lock.RunDirLock`), claim it (``claim()``, or :func:`claim_folder` with ``resume``,
     ``overwrite``, ``run_files`` and ``flags``), and remove the half-written checkpoints of
-    ``<run_dir>/checkpoints`` a killed or failed process left; a full disk and a read-only folder met in the
-    block become one-line errors; the lock is released on leaving.
+    ``<run_dir>/checkpoints`` a killed or failed process left; a full disk, a read-only folder and an env's
+    NaN/inf data met in the block become one-line errors; the lock is released on leaving.
 
     Raises:
         ConfigError: ``run_dir`` is a file, under a file or not writable; the refusals of :func:`claim_folder`.
         RunDirBusyError: another live process holds the folder (the message names its pid).
         DiskFullError: the disk filled up; the message names the last verified checkpoint and says to resume.
+        NonFiniteEnvDataError: as :func:`hold_run_dir`.
     """
     problem = run_dir_problem(run_dir, flags=flags)
     if problem:
@@ -238,21 +244,25 @@ def hold_folder(
         yield run_dir
     except OSError as err:
         raise _os_error(err, run_dir, flags) from err
+    except NonFiniteEnvDataError as err:
+        raise NonFiniteEnvDataError(f"{err}; {_continue_after(run_dir, flags, fix='fix the env')}") from err
     finally:
         lock.release()
+
+
+def _continue_after(run_dir: Path, flags: RunFlags, *, fix: str) -> str:
+    """How to go on after a fault the user can ``fix``: from the last checkpoint, or from the start."""
+    checkpoints = CheckpointManager(run_dir / "checkpoints").checkpoints()
+    if checkpoints:
+        return f"the last checkpoint, {checkpoints[-1]}, is intact: {fix}, then continue with {flags.resume}"
+    return f"no checkpoint was written yet: {fix}, then start again with {flags.overwrite}"
 
 
 def _os_error(err: OSError, run_dir: Path, flags: RunFlags = TRAIN_FLAGS) -> Exception:
     """The one-line error of an ``OSError`` met while writing ``run_dir`` (``err`` itself when it is not the
     user's to fix)."""
     if err.errno in (errno.ENOSPC, errno.EDQUOT):
-        checkpoints = CheckpointManager(run_dir / "checkpoints").checkpoints()
-        then = (
-            f"the last checkpoint, {checkpoints[-1]}, is intact: free disk space, then continue with "
-            f"{flags.resume}"
-            if checkpoints
-            else f"no checkpoint was written yet: free disk space, then start again with {flags.overwrite}"
-        )
+        then = _continue_after(run_dir, flags, fix="free disk space")
         return DiskFullError(f"the disk of {flags.folder} {run_dir} is full ({err.strerror or err}); {then}")
     if err.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
         return ConfigError(
@@ -325,35 +335,71 @@ class RunDirGuard(Callback):
     :func:`hold_run_dir`, :func:`claim_run_dir` and :func:`check_same_run` before Hydra writes ``.hydra/`` into
     the run folder, so a refused start leaves the folder as it was: a path that cannot be a writable folder, a
     folder another live process holds, a folder holding another run without ``resume``/``overwrite``, and a
-    resume whose settings differ from the run's ``run_config.json``. The refusal is one line on stderr and
-    exit status 2 (the exception with ``--debug`` or ``HYDRA_FULL_ERROR=1``). ``overwrite=true`` clears the
-    folder later, in :func:`claim_run_dir`; the checkpoint's own configuration is checked again when it loads.
+    resume whose settings differ from the run's ``run_config.json`` (or whose ``run_config.json`` cannot be
+    read). The refusal is one line on stderr and exit status 2. ``overwrite=true`` clears the folder later, in
+    :func:`claim_run_dir`; the checkpoint's own configuration is checked again when it loads.
+
+    Hydra turns an exception raised in a callback into a warning and runs the job all the same, so the guard
+    fails closed by itself: whatever a check raises ends the process with exit status 2, in one line (after the
+    traceback with ``--debug`` or ``HYDRA_FULL_ERROR=1``).
     """
 
     def on_run_start(self, config, **kwargs) -> None:
+        run_dir = Path(str(OmegaConf.select(config, "run_dir", default=None)))
+        log_to_stderr()  # a taken-over lock says so
+        try:
+            self._check(config, run_dir)
+        except Exception as err:  # whatever a check raises: Hydra would only warn
+            if debugging():
+                traceback.print_exc()
+            if isinstance(err, (ConfigError, RunDirBusyError)):
+                exit_user_error("isodream-train", one_line(err))
+            exit_user_error(
+                "isodream-train",
+                f"checking run_dir {run_dir} failed ({type(err).__name__}: {one_line(err)}); nothing was started: "
+                "--debug shows the traceback",
+            )
+
+    @staticmethod
+    def _check(config, run_dir: Path) -> None:
         def setting(key: str):
             return OmegaConf.select(config, key, default=None)
 
-        run_dir = Path(str(setting("run_dir")))
-        log_to_stderr()  # a taken-over lock says so
-        with report_user_errors("isodream-train", (ConfigError, RunDirBusyError)):
-            problem = run_dir_problem(run_dir)
-            if problem:
-                raise ConfigError(problem)
-            # held from here to the end of the process: a second process started at the same time is refused
-            # before Hydra writes into the folder (the run holds it again, see hold_run_dir)
-            atexit.register(RunDirLock(run_dir).acquire().release)
-            if setting("overwrite"):
-                return
-            if not (setting("resume") or setting("checkpoint.resume")):
-                found = existing_run_files(run_dir)
-                if found:
-                    raise ConfigError(_another_run(run_dir, found))
-                return
-            saved = run_dir / "run_config.json"
-            if saved.exists():
-                task = OmegaConf.masked_copy(config, [key for key in config if key != "hydra"])
-                check_same_run(
-                    json.loads(saved.read_text()),
-                    config_from_dict(OmegaConf.to_container(task, resolve=True)),
-                )
+        problem = run_dir_problem(run_dir)
+        if problem:
+            raise ConfigError(problem)
+        # held from here to the end of the process: a second process started at the same time is refused
+        # before Hydra writes into the folder (the run holds it again, see hold_run_dir)
+        atexit.register(RunDirLock(run_dir).acquire().release)
+        if setting("overwrite"):
+            return
+        if not (setting("resume") or setting("checkpoint.resume")):
+            found = existing_run_files(run_dir)
+            if found:
+                raise ConfigError(_another_run(run_dir, found))
+            return
+        saved = run_dir / "run_config.json"
+        if saved.exists():
+            task = OmegaConf.masked_copy(config, [key for key in config if key != "hydra"])
+            check_same_run(
+                read_run_config(saved), config_from_dict(OmegaConf.to_container(task, resolve=True))
+            )
+
+
+def read_run_config(path: Path) -> dict:
+    """The configuration a run wrote in ``path`` (its ``run_config.json``, :func:`write_run_config`).
+
+    Raises:
+        ConfigError: the file cannot be read or holds no run configuration (cut short, edited); the message names
+            it and says how to go on.
+    """
+    try:
+        saved = json.loads(path.read_text())
+        _compared(config_from_dict(saved))
+    except (OSError, ValueError, TypeError, KeyError, AttributeError) as err:
+        raise ConfigError(
+            f"{path} holds no readable run configuration ({type(err).__name__}: {one_line(err)}): delete it and "
+            "continue with resume=true (the checkpoints hold the run's settings, and the run writes the file "
+            "again), or start a new run with overwrite=true"
+        ) from err
+    return saved

@@ -49,6 +49,9 @@ class RunResult:
     metrics: dict[str, float] = field(default_factory=dict)
     summary: dict | None = None
     """The final evaluation next to the reference policies (``<run_dir>/summary.json``), if it ran."""
+    stopped_by_signal: int | None = None
+    """The signal (SIGINT, SIGTERM) that stopped the run after its ``checkpoint``, or ``None`` when it ran to its
+    end."""
 
 
 def seed_everything(seed: int) -> None:

@@ -36,7 +36,9 @@ class IsoDreamOptimizationStepper(OptimizationStepper):
 
     Per call of :meth:`step` (one update):
 
-    1. the flat replay sample ``[B * T]`` is reshaped to windows ``[B, T]``;
+    1. the flat replay sample ``[B * T]`` (stored on the CPU) moves to the model's device (:attr:`device`), the
+       one place an update moves it, becomes the loss's input (:meth:`prepare`) and is reshaped to windows
+       ``[B, T]``;
     2. the world-model loss (eq. 5) is backpropagated and its optimiser stepped;
     3. ``actor_loss(model_output)`` imagines from the detached posteriors (eq. 7) and ``value_loss`` regresses
        the value on the returned rollout; both losses are backpropagated (their sum) before the actor and the
@@ -127,6 +129,17 @@ class IsoDreamOptimizationStepper(OptimizationStepper):
     def _params(self, name: str) -> list[torch.Tensor]:
         return [p for group in self.optimizers[name].param_groups for p in group["params"]]
 
+    @property
+    def device(self) -> torch.device:
+        """The model's device (the world-model loss's parameters'), where :meth:`step` moves each replay sample:
+        read at every update, so that a model moved after the stepper was built takes its samples along."""
+        return next(self.model_loss.parameters()).device
+
+    def prepare(self, sample: TensorDictBase) -> TensorDictBase:
+        """The loss's input from a flat ``[N]`` replay sample already on :attr:`device`: the sample itself here; a
+        subclass whose loss reads other keys or dtypes returns them (without moving anything)."""
+        return sample
+
     def _backward(self, loss: torch.Tensor, names: Sequence[str]) -> bool:
         """Zero the grads of optimisers ``names`` and backpropagate ``loss``; ``False`` if it is not finite."""
         for name in names:
@@ -178,14 +191,13 @@ class IsoDreamOptimizationStepper(OptimizationStepper):
                 f"{self.sequence_length}; sample with SliceSampler(slice_len={self.sequence_length}, "
                 "strict_length=True)"
             )
-        batch = sub_batch.reshape(-1, self.sequence_length)
+        # the one place a replay sample changes device: the replay stays on the CPU, the model may not
+        batch = self.prepare(sub_batch.reshape(-1).to(self.device)).reshape(-1, self.sequence_length)
         if not self._metric_keys:
             # on a forked generator: a resumed stepper discovers its keys again, and the updates that follow
             # must draw the same numbers as those of the run it continues
-            device = batch.device
-            with torch.random.fork_rng(
-                devices=[device] if device is not None and device.type == "cuda" else []
-            ):
+            device = self.device
+            with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
                 self._discover_keys(batch[:1, : min(2, self.sequence_length)].clone())
         metrics: dict[str, torch.Tensor] = {}
         finite = self._run(batch, metrics)
@@ -248,38 +260,30 @@ def parameters_of(*modules: nn.Module | None) -> Sequence[nn.Parameter]:
 
 
 class ZeroStateStepper(IsoDreamOptimizationStepper):
-    """An :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` whose :meth:`step` takes a flat
-    ``[B * T]`` replay sample and updates on :meth:`prepare`'s output: the loss's input (:meth:`loss_inputs`) with
-    zero root ``"state"`` ``[N, S]`` / ``"belief"`` ``[N, D]`` (a rollout reads each window's first step, as
-    TorchRL's examples set them), on the training device.
+    """An :class:`IsoDreamOptimizationStepper` whose :meth:`step` updates on :meth:`prepare`'s output: the loss's
+    input (:meth:`loss_inputs`) of the flat ``[B * T]`` replay sample, moved to the model's device first, with zero
+    root ``"state"`` ``[N, S]`` / ``"belief"`` ``[N, D]`` (a rollout reads each window's first step, as TorchRL's
+    examples set them).
 
     Args:
         state_dim: width of ``"state"``.
         belief_dim: width of ``"belief"``.
-        device: the training device.
-        **stepper_kwargs: the arguments of :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper`.
+        **stepper_kwargs: the arguments of :class:`IsoDreamOptimizationStepper`.
     """
 
-    def __init__(
-        self, *, state_dim: int, belief_dim: int, device: str | torch.device = "cpu", **stepper_kwargs
-    ) -> None:
+    def __init__(self, *, state_dim: int, belief_dim: int, **stepper_kwargs) -> None:
         super().__init__(**stepper_kwargs)
         self.state_dim, self.belief_dim = state_dim, belief_dim
-        self.device = torch.device(device)
 
     def loss_inputs(self, sub_batch: TensorDictBase) -> TensorDictBase:
         """The entries of a flat ``[N]`` replay sample the loss reads, as it reads them (a new tensordict)."""
         raise NotImplementedError(f"{type(self).__name__} must define loss_inputs(): what its loss reads")
 
-    def prepare(self, sub_batch: TensorDictBase) -> TensorDictBase:
-        """:meth:`loss_inputs` of a flat ``[N]`` replay sample, zero ``"state"``/``"belief"`` added, on the
-        training device."""
-        n = sub_batch.numel()
-        batch = self.loss_inputs(sub_batch)
-        batch.set("state", torch.zeros(n, self.state_dim))
-        batch.set("belief", torch.zeros(n, self.belief_dim))
-        return batch.to(self.device)
-
-    def step(self, trainer, sub_batch: TensorDictBase) -> TensorDictBase:
-        """One update on a flat ``[B * T]`` replay sample; returns detached scalar metrics (fixed key set)."""
-        return super().step(trainer, self.prepare(sub_batch.reshape(-1)))
+    def prepare(self, sample: TensorDictBase) -> TensorDictBase:
+        """:meth:`loss_inputs` of a flat ``[N]`` replay sample on the model's device, zero ``"state"``/``"belief"``
+        added on the same device."""
+        n = sample.numel()
+        batch = self.loss_inputs(sample)
+        batch.set("state", torch.zeros(n, self.state_dim, device=sample.device))
+        batch.set("belief", torch.zeros(n, self.belief_dim, device=sample.device))
+        return batch

@@ -48,8 +48,8 @@ from isodream_rl.modules import IsoDreamWorldModel
 from isodream_rl.trainers.builders import (
     REPLAY_KEYS,
     action_dim_of,
+    checked_env_factory,
     close_logger,
-    env_factory,
     make_adam,
     make_logger,
     make_world_model_config,
@@ -122,7 +122,7 @@ def collect_episodes(cfg: RunConfig, *, episodes: int, seed: int) -> TensorDict:
             raise ConfigError(f"invalid training configuration:\n  - env.kwargs: {err}") from err
     # the classes decomposition_scores reads (the env's other masks are its own names for them)
     masks = () if cfg.env.factory or not ground_truth_mask_keys(cfg.env.name) else TRUTH_MASKS
-    make = env_factory(cfg)
+    make = checked_env_factory(cfg)
     env = functools.partial(make, return_masks=True)() if masks else make()
     try:
         env.set_seed(seed)
@@ -484,11 +484,11 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
         save_trainer_file=None,
     )
     trainer.collected_frames = env_steps
-    device = train_cfg.device
 
     def sample(batch: TensorDict) -> TensorDict:
-        """``process_optim_batch``: ``batch_size`` windows of the collected episodes."""
-        return buffer.sample().to(device)
+        """``process_optim_batch``: ``batch_size`` windows of the collected episodes, on the CPU (the stepper
+        moves them to the model's device)."""
+        return buffer.sample()
 
     trainer.register_op("process_optim_batch", sample)
     cadence = UpdateCadence(
@@ -557,4 +557,5 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
         resumed_from=resumed_from,
         metrics=cadence.metrics,
         summary=summary,
+        stopped_by_signal=stopped_by_signal,
     )

@@ -25,7 +25,7 @@ from torch.utils.data import DataLoader
 
 from isodream_rl.run_lock import RunDirBusyError
 from isodream_rl.trainers.disk_space import DiskFullError
-from isodream_rl.user_errors import report_user_errors, take_debug_flag
+from isodream_rl.user_errors import exit_stopped, report_user_errors, take_debug_flag
 from isodream_rl.video_prediction.metrics import FrameMetrics
 from isodream_rl.video_prediction.trainer import (
     VideoTrainConfig,
@@ -49,6 +49,7 @@ _EVAL_OVERRIDES = (
     "batch_size",
     "eval_batches",
     "threads",
+    "device",
 )
 
 
@@ -110,6 +111,8 @@ def _parser() -> argparse.ArgumentParser:
 def _train(args: argparse.Namespace) -> dict:
     config = VideoTrainConfig.from_dict(_overrides(args, [f.name for f in fields(VideoTrainConfig)]))
     result = train(config, progress=not args.no_progress, resume=args.resume, overwrite=args.overwrite)
+    if "stopped_by_signal" in result:  # no result to write: the run continues with --resume
+        return result
     result["config"] = {k: v for k, v in vars(config).items()}
     if args.result_json is not None:
         args.result_json.write_text(json.dumps(result, indent=2, default=list))
@@ -121,7 +124,8 @@ def _eval(args: argparse.Namespace) -> dict:
         raise FileNotFoundError(
             f"--checkpoint {args.checkpoint}: no such folder (give the --out-dir of an isodream-video train run)"
         )
-    model, config, _ = load_checkpoint(args.checkpoint)
+    # read onto the CPU, the model built where it evaluates: a GPU run evaluates on a CPU-only machine
+    model, config, _ = load_checkpoint(args.checkpoint, device=args.device or "cpu")
     config = replace(config, **_overrides(args, _EVAL_OVERRIDES))
     config.__post_init__()
     torch.set_num_threads(config.threads)
@@ -153,13 +157,23 @@ def _eval(args: argparse.Namespace) -> dict:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``isodream-video``. A user error (a missing path, an invalid option, a file that is not a
     checkpoint, an --out-dir holding another run or used by another process) is one line on stderr and exit
-    status 2; ``--debug`` shows the traceback."""
+    status 2; ``--debug`` shows the traceback. A training run that SIGINT or SIGTERM stopped writes a checkpoint
+    and says ``stopped at N iterations by SIGINT (checkpoint ...); continue with --resume``, with exit status 130
+    or 143."""
     args = _parser().parse_args(argv)
     take_debug_flag(["--debug"] if args.debug else [])
     with report_user_errors(
         "isodream-video", (FileNotFoundError, KeyError, ValueError, RunDirBusyError, DiskFullError)
     ):
         result = _train(args) if args.command == "train" else _eval(args)
+    if "stopped_by_signal" in result:
+        exit_stopped(
+            "isodream-video",
+            at=f"{result['iterations']} iterations",
+            signum=result["stopped_by_signal"],
+            checkpoint=result["checkpoint"],
+            resume="--resume",
+        )
     print(json.dumps(result["metrics"], indent=2))
     return 0
 

@@ -38,19 +38,21 @@ def showcase_rows(
 
     Args:
         model: the predictor.
-        frames: ``[T, C, H, W]`` in ``[0, 1]``.
-        actions: ``[T, A]``.
+        frames: ``[T, C, H, W]`` in ``[0, 1]``, on any device (a data set's clip is on the CPU).
+        actions: ``[T, A]``, on any device.
         context: observed frames.
         every: stride over the predicted frames.
 
     Returns:
         ``[(label, uint8 [K, H, W, 3])]`` for the rows the variant has (masks shown in grey).
     """
+    device = next(model.parameters()).device
+    frames, actions = frames.to(device), actions.to(device)
     was_training = model.training
     model.eval()
     out = model(frames[None], actions[None], context=context, return_components=True)
     model.train(was_training)
-    index = torch.arange(context - 1, frames.shape[0] - 1, every)
+    index = torch.arange(context - 1, frames.shape[0] - 1, every, device=device)
     out["truth"] = frames[None, 1:]
     rows = []
     for label, key in _ROWS:

@@ -29,6 +29,8 @@ from isodream_rl.data import (
     load_pusher_dataset,
 )
 from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
+from isodream_rl.trainers.config import device_error
+from isodream_rl.trainers.hooks import StopOnSignal
 from isodream_rl.trainers.run_dir import RunFlags, hold_folder, refuse_another_run
 from isodream_rl.video_prediction.config import PredictorConfig, variant_config
 from isodream_rl.video_prediction.metrics import FrameMetrics
@@ -150,6 +152,9 @@ class VideoTrainConfig:
             raise ValueError(
                 f"horizons {self.horizons} exceed the {self.test_frames - self.context} predicted test frames"
             )
+        unusable = device_error(self.device, setting="device")
+        if unusable:
+            raise ValueError(unusable)
 
     def predictor_config(self, action_dim: int) -> PredictorConfig:
         return variant_config(
@@ -301,8 +306,8 @@ def read_checkpoint(path: str | os.PathLike, *, device: str = "cpu") -> dict:
 def load_checkpoint(
     path: str | os.PathLike, *, device: str = "cpu"
 ) -> tuple[ThreeBranchPredictor, VideoTrainConfig, dict]:
-    """Rebuild the model of a checkpoint written by :func:`train` (``path`` as in :func:`read_checkpoint`);
-    returns ``(model, config, state)``.
+    """Rebuild the model of a checkpoint written by :func:`train` (``path`` as in :func:`read_checkpoint`) on
+    ``device``, whichever device trained it; returns ``(model, config, state)`` (``config.device`` is ``device``).
 
     Raises:
         ValueError: no readable checkpoint there (:func:`read_checkpoint`).
@@ -415,7 +420,9 @@ def train(
     states of the balls, the history); every ``eval_every`` iterations and at the end the whole test split is
     evaluated. A resumed run (``resume=True`` with a checkpoint in ``out_dir``) continues to ``iterations``
     and gives the same weights as an uninterrupted run; Adam's learning rate is constant, so ``iterations``
-    may be raised on resume to train longer.
+    may be raised on resume to train longer. The first SIGINT or SIGTERM ends the iteration under way, writes a
+    checkpoint and returns without the final evaluation (a second one stops at once, as isodream-train's
+    :class:`~isodream_rl.trainers.hooks.StopOnSignal`).
 
     Writes ``<out_dir>/checkpoints/`` and TorchRL logger files under ``<out_dir>/logs``. An ``out_dir``
     holding another run is refused unless ``resume`` (continue it) or ``overwrite`` (delete it first), and it
@@ -425,7 +432,8 @@ def train(
 
     Returns:
         ``{"iterations", "train_seconds", "metrics": {"psnr_10": .., ...}, "curves": {"psnr": [...], ..},
-        "history": [{"iteration", "mse", "psnr_28", ...}], "checkpoint": path}``.
+        "history": [{"iteration", "mse", "psnr_28", ...}], "checkpoint": path}``; a run a signal stopped returns
+        ``{"iterations", "stopped_by_signal": signum, "checkpoint": path}``.
 
     Raises:
         ValueError: ``resume=True`` and the checkpoint was written with settings outside :data:`RESUMABLE`
@@ -530,37 +538,41 @@ def _train(config: VideoTrainConfig, train_set, test_set, *, progress: bool, res
         validate(0)
     bar = tqdm(total=config.iterations, initial=step, disable=not progress, desc=config.variant)
     model.train()
-    while step < config.iterations and time.monotonic() < deadline:
-        batch = default_collate([train_set[i] for i in sampler.next_batch()])
-        td = TensorDict(
-            {"frames": batch["frames"].to(config.device), "actions": batch["actions"].to(config.device)},
-            batch_size=[config.batch_size],
-        )
-        losses = loss_fn(td)
-        total = sum(losses.values())
-        optimizer.zero_grad(set_to_none=True)
-        total.backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
-        optimizer.step()
-        step += 1
-        bar.update(1)
-        if step % config.log_every == 0 or step == 1:
-            bar.set_postfix(loss=f"{float(total.detach()):.4f}")
-            if logger is not None:
-                for key, value in losses.items():
-                    logger.log_scalar(f"train/{key}", float(value.detach()), step=step)
-                logger.log_scalar("train/grad_norm", float(grad_norm), step=step)
-                seconds = previous_seconds + time.monotonic() - start
-                logger.log_scalar("train/seconds", seconds, step=step)
-        if config.val_every and step % config.val_every == 0:
-            validate(step)
-        if step % config.eval_every == 0 and step < config.iterations:
-            metrics = FrameMetrics.summarize(
-                run_eval(step, max_batches=config.eval_batches, prefix="eval"), config.horizons
+    with StopOnSignal() as signals:
+        while step < config.iterations and time.monotonic() < deadline and signals.received is None:
+            batch = default_collate([train_set[i] for i in sampler.next_batch()])
+            td = TensorDict(
+                {"frames": batch["frames"].to(config.device), "actions": batch["actions"].to(config.device)},
+                batch_size=[config.batch_size],
             )
-        if step % config.checkpoint_every == 0:
-            save(step)
+            losses = loss_fn(td)
+            total = sum(losses.values())
+            optimizer.zero_grad(set_to_none=True)
+            total.backward()
+            grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+            optimizer.step()
+            step += 1
+            bar.update(1)
+            if step % config.log_every == 0 or step == 1:
+                bar.set_postfix(loss=f"{float(total.detach()):.4f}")
+                if logger is not None:
+                    for key, value in losses.items():
+                        logger.log_scalar(f"train/{key}", float(value.detach()), step=step)
+                    logger.log_scalar("train/grad_norm", float(grad_norm), step=step)
+                    seconds = previous_seconds + time.monotonic() - start
+                    logger.log_scalar("train/seconds", seconds, step=step)
+            if config.val_every and step % config.val_every == 0:
+                validate(step)
+            if step % config.eval_every == 0 and step < config.iterations:
+                metrics = FrameMetrics.summarize(
+                    run_eval(step, max_batches=config.eval_batches, prefix="eval"), config.horizons
+                )
+            if step % config.checkpoint_every == 0:
+                save(step)
     bar.close()
+    if signals.received is not None:  # a checkpoint where it stopped, and no final evaluation
+        save(step)
+        return {"iterations": step, "stopped_by_signal": signals.received, "checkpoint": str(checkpoint)}
     train_seconds = previous_seconds + time.monotonic() - start
     if config.val_every and (not history or history[-1]["iteration"] != step):
         validate(step)
