@@ -12,6 +12,12 @@ the library's learning rates) on :class:`~isodream_rl.evaluation.ExactSpritesMod
   (the young world model's systematic mistake; the aim is a 200-step return of at least half the scripted
   controller's by update 750).
 
+The variants change ``algo`` fields of the library's defaults (:data:`VARIANTS`); ``isodream_v3`` is DreamerV3's
+learner of ``algo=isodream_v3`` instead (:mod:`isodream_rl.evaluation.exact_sprites_v3`: its actor and two-hot
+critic on ``[s, h]``, ``DreamerV3ActorLoss`` (REINFORCE, percentile return normalisation, entropy 3e-4) and
+``DreamerV3ValueLoss`` (slow critic), the exact continuation ``1 - 1/333``, ``DreamerV3Optimizer`` at the run's
+learning rates with its 1000-update warm-up); it reads neither ``algo.gamma`` nor the loc penalty.
+
 Every ``--eval-every`` updates the deterministic policy plays 16 episodes of 200 steps on the exact model. Writes
 ``--json`` (default ``docs/results/exact_model.json``): per variant, case and seed the curve (``updates``,
 ``returns``, ``reaches``, ``cosine`` of the action with the direction to the target, ``entropy``,
@@ -25,6 +31,7 @@ with advantages normalised the same way, entropy 3e-4), both without the loc pen
 
     python bench/exact_model.py                                  # the committed results
     python bench/exact_model.py --variants default --cases recover --seeds 0 --json /tmp/e.json
+    python bench/exact_model.py --variants isodream_v3 --cases learn,recover --seeds 0 --json /tmp/v3.json
 """
 
 from __future__ import annotations
@@ -52,6 +59,7 @@ VARIANTS: dict[str, dict] = {
     "loc_penalty_0.3": {"actor_loc_penalty": 0.3},
     "gamma_0.95": {"gamma": 0.95},
     "gamma_0.9": {"gamma": 0.9},
+    "isodream_v3": {"name": "isodream_v3"},
 }
 #: name -> (reward error, updates with the error, extra ExactSpritesModel arguments)
 CASES = {

@@ -1,29 +1,47 @@
 """Trains the behavior learner of a run on :class:`~isodream_rl.evaluation.ExactSpritesModel` (no model error).
 
-:func:`train_behavior_on_exact_model` builds the behavior of a :class:`~isodream_rl.trainers.RunConfig` with
-:func:`~isodream_rl.trainers.builders.make_behavior` (the actor, value, losses and their settings, as a real run
-has them) on the exact model of sprites ``reach`` and trains it the way
-:class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` does after its world-model step, optionally
-with an early fixed-direction reward error. It returns the curve of the deterministic policy's 200-step return
-beside the scripted controller and the best constant action. ``bench/exact_model.py`` compares learner settings
-with it; ``tests/test_exact_model.py`` holds the library's defaults to it.
+:func:`train_behavior_on_exact_model` builds the behavior of a :class:`~isodream_rl.trainers.RunConfig` on the
+exact model of sprites ``reach`` and trains it as a real run does, optionally with an early fixed-direction
+reward error:
+
+- the DreamerV2-style learner (every ``algo`` but ``isodream_v3``): :func:`~isodream_rl.trainers.builders.make_behavior`
+  (the actor, value, losses and their settings, as a real run has them), trained the way
+  :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` does after its world-model step;
+- ``algo=isodream_v3``, DreamerV3's learner: :func:`~isodream_rl.evaluation.exact_sprites_v3.make_exact_model_v3_behavior`
+  (the actor and two-hot critic of ``make_actor_v3`` / ``make_value_v3``, ``DreamerV3ActorLoss`` (REINFORCE)
+  and ``DreamerV3ValueLoss`` with DreamerV3's settings, the exact continuation ``1 - 1/333``), a
+  ``DreamerV3Optimizer`` per group (:func:`~isodream_rl.trainers.dreamer_v3.make_dreamer_v3_optimizers`) and
+  the slow critic's ``SoftUpdate``, the way :class:`~isodream_rl.trainers.dreamer_v3.DreamerV3OptimizationStepper`
+  does after its world-model step.
+
+It returns the curve of the deterministic policy's 200-step return beside the scripted controller and the best
+constant action. ``bench/exact_model.py`` compares learner settings with it; ``tests/test_exact_model.py`` holds
+the library's defaults to it.
 """
 
 from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import torch
 from tensordict import TensorDict
 from torch import nn
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from isodream_rl.evaluation.exact_sprites import ExactSpritesModel, reference_returns
+from isodream_rl.evaluation.exact_sprites_v3 import make_exact_model_v3_behavior
+from isodream_rl.modules.dreamer_v3 import DreamerV3Settings
 from isodream_rl.trainers.builders import make_adam, make_behavior
 from isodream_rl.trainers.config import RunConfig
+from isodream_rl.trainers.dreamer_v3 import make_dreamer_v3_optimizers
 from isodream_rl.trainers.stepper import loss_sum
+
+#: The algo whose behavior is DreamerV3's learner; every other algo's is the DreamerV2-style one.
+DREAMER_V3_ALGO = "isodream_v3"
 
 
 @dataclass
@@ -62,20 +80,26 @@ def train_behavior_on_exact_model(
     seed: int = 0,
     model_kwargs: dict[str, Any] | None = None,
     progress: bool = False,
+    settings: DreamerV3Settings | None = None,
 ) -> ExactModelResult:
     """Trains the behavior of ``cfg`` (a :class:`~isodream_rl.trainers.RunConfig`) on :class:`ExactSpritesModel`.
 
     Each update imagines ``cfg.algo.horizon`` steps from ``batch`` random starts (the replay posteriors of a
     real run: ``B * T = 512`` at ``size=bench``) and steps the actor and the value (+ policy input) optimisers on
-    the sum of their losses, clipped at ``cfg.train.grad_clip``, then the slow value target, as
-    :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` does after its world-model step. For the
-    first ``error_updates`` updates the model's reward carries ``reward_error`` along ``error_direction``.
-    Every ``eval_every`` updates (and after the last) the deterministic policy (the actor's mode) plays
-    ``eval_episodes`` episodes of 200 steps on the exact model.
+    the sum of their losses, then the slow value target, as the run's stepper does after its world-model step:
+    Adam clipped at ``cfg.train.grad_clip`` and the hard copy every ``algo.slow_target_every`` updates
+    (:class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper`), or with ``cfg.algo.name ==
+    "isodream_v3"`` DreamerV3's optimisers (adaptive clipping, learning-rate warm-up) and the slow critic's
+    ``SoftUpdate`` (:class:`~isodream_rl.trainers.dreamer_v3.DreamerV3OptimizationStepper`; module docstring).
+    For the first ``error_updates`` updates the model's reward carries ``reward_error`` along
+    ``error_direction``. Every ``eval_every`` updates (and after the last) the deterministic policy (the actor's
+    mode; DreamerV3's actor: its mean) plays ``eval_episodes`` episodes of 200 steps on the exact model.
 
     Args:
         cfg: the run's settings; ``cfg.algo.policy_input`` must be ``"controllable"`` (the model has no
-            noncontrollable branch). Its behavior settings, widths and learning rates are used as they are.
+            noncontrollable branch). Its behavior settings, widths and learning rates are used as they are
+            (``algo=isodream_v3``: ``model.actor_units`` / ``value_units``, ``algo.horizon``,
+            ``train.actor_lr`` / ``value_lr``; DreamerV3's ``settings`` replace the rest).
         updates: behavior updates.
         batch: start states per update.
         reward_error, error_updates, error_direction: the early model error.
@@ -83,6 +107,8 @@ def train_behavior_on_exact_model(
         seed: seeds torch (the networks and the imagined actions) and the model's starts.
         model_kwargs: extra :class:`ExactSpritesModel` arguments (``sprite_size`` ...).
         progress: print one line per evaluation.
+        settings: DreamerV3's settings of ``algo=isodream_v3`` (``None``: the library's,
+            :class:`~isodream_rl.modules.dreamer_v3.DreamerV3Settings`); the other algos do not read them.
     """
     if cfg.algo.policy_input != "controllable":
         raise ValueError(
@@ -93,22 +119,17 @@ def train_behavior_on_exact_model(
     model = ExactSpritesModel(
         reward_error=reward_error, error_direction=error_direction, seed=seed, **(model_kwargs or {})
     )
-    behavior = make_behavior(cfg, model)
-    actor_loss, value_loss = behavior.actor_loss, behavior.value_loss
-    actor = actor_loss.actor
-    train = cfg.train
-    optimizers = {
-        "actor": make_adam(actor_loss.parameters(), lr=train.actor_lr, eps=train.adam_eps),
-        "value": make_adam(value_loss.parameters(), lr=train.value_lr, eps=train.adam_eps),
-    }
+    learner = (
+        _dreamer_v3_learner(cfg, model, settings or DreamerV3Settings())
+        if cfg.algo.name == DREAMER_V3_ALGO
+        else _dreamer_v2_learner(cfg, model)
+    )
+    actor_loss, value_loss, optimizers = learner.actor_loss, learner.value_loss, learner.optimizers
     result = ExactModelResult()
     result.scripted_return, result.constant_return = reference_returns(model, episodes=eval_episodes)
 
-    def policy(state, belief):
-        return actor.mode(torch.cat([state, belief], dim=-1))
-
     def evaluate(step: int, metrics: TensorDict | None) -> None:
-        scores = model.episode_returns(policy, episodes=eval_episodes)
+        scores = model.episode_returns(learner.policy, episodes=eval_episodes)
         result.updates.append(step)
         result.returns.append(scores["return"])
         result.reaches.append(scores["reaches"])
@@ -129,7 +150,7 @@ def train_behavior_on_exact_model(
     for step in range(1, updates + 1):
         model.reward_error = reward_error if step <= error_updates else 0.0
         state, belief = model.initial_state(batch)
-        start = TensorDict({("next", "state"): state, ("next", "belief"): belief}, [batch])
+        start = TensorDict(dict(zip(learner.start_keys, (state, belief))), [batch])
         actor_losses, imagined = actor_loss(start)
         value_losses, _ = value_loss(imagined)
         loss = loss_sum(actor_losses) + loss_sum(value_losses)
@@ -138,13 +159,13 @@ def train_behavior_on_exact_model(
         loss.backward()
         norms = {
             name: nn.utils.clip_grad_norm_(
-                [p for g in opt.param_groups for p in g["params"]], train.grad_clip
+                [p for g in opt.param_groups for p in g["params"]], learner.grad_clip
             )
             for name, opt in optimizers.items()
         }
         for opt in optimizers.values():
             opt.step()
-        behavior.target_updater.step()
+        learner.target_updater.step()
         if step % eval_every == 0 or step == updates:
             metrics = actor_losses.detach().clone()
             metrics["grad_norm_actor"] = norms["actor"].detach()
@@ -152,3 +173,72 @@ def train_behavior_on_exact_model(
             evaluate(step, metrics)
     result.wall_s = time.perf_counter() - start_time
     return result
+
+
+@dataclass
+class _Learner:
+    """What the loop of :func:`train_behavior_on_exact_model` steps: the losses, an optimiser per group (its
+    gradients clipped at ``grad_clip`` first), the slow value's updater and the deterministic policy
+    ``policy(state, belief) -> action``."""
+
+    actor_loss: nn.Module
+    value_loss: nn.Module
+    optimizers: dict[str, torch.optim.Optimizer]
+    grad_clip: float
+    target_updater: Any
+    policy: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+    start_keys: tuple = (("next", "state"), ("next", "belief"))
+    """Where the actor loss reads the start states (the DreamerV2-style loss: the posteriors' ``next`` keys)."""
+
+
+def _dreamer_v2_learner(cfg: RunConfig, model: ExactSpritesModel) -> _Learner:
+    """The run's DreamerV2-style behavior (``make_behavior``), Adam per group clipped at ``train.grad_clip``, the
+    actor's mode as the policy."""
+    behavior = make_behavior(cfg, model)
+    actor_loss, value_loss = behavior.actor_loss, behavior.value_loss
+    actor = actor_loss.actor
+    train = cfg.train
+    return _Learner(
+        actor_loss=actor_loss,
+        value_loss=value_loss,
+        optimizers={
+            "actor": make_adam(actor_loss.parameters(), lr=train.actor_lr, eps=train.adam_eps),
+            "value": make_adam(value_loss.parameters(), lr=train.value_lr, eps=train.adam_eps),
+        },
+        grad_clip=train.grad_clip,
+        target_updater=behavior.target_updater,
+        policy=lambda state, belief: actor.mode(torch.cat([state, belief], dim=-1)),
+    )
+
+
+def _dreamer_v3_learner(cfg: RunConfig, model: ExactSpritesModel, settings: DreamerV3Settings) -> _Learner:
+    """``algo=isodream_v3``'s behavior on the exact model, a ``DreamerV3Optimizer`` per group (its own adaptive
+    clipping: the loop only measures the norms, as ``DreamerV3OptimizationStepper``), the actor's mean
+    (``tanh(loc)``) as the policy."""
+    behavior = make_exact_model_v3_behavior(
+        model,
+        actor_units=cfg.model.actor_units,
+        value_units=cfg.model.value_units,
+        horizon=cfg.algo.horizon,
+        settings=settings,
+    )
+    actor = behavior.actor
+
+    def policy(state: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            return actor(TensorDict({"state": state, "belief": belief}, state.shape[:-1]))["action"]
+
+    train = cfg.train
+    return _Learner(
+        actor_loss=behavior.losses.actor_loss,
+        value_loss=behavior.losses.value_loss,
+        optimizers=make_dreamer_v3_optimizers(
+            behavior.parameter_groups(),
+            rates={"actor": train.actor_lr, "value": train.value_lr},
+            settings=settings,
+        ),
+        grad_clip=math.inf,
+        target_updater=behavior.losses.target_updater,
+        policy=policy,
+        start_keys=("state", "belief"),
+    )

@@ -1,0 +1,82 @@
+"""DreamerV3's behaviour losses on any imagination env: TorchRL's ``DreamerV3ActorLoss`` and ``DreamerV3ValueLoss``
+with DreamerV3's settings, and the slow critic's ``SoftUpdate``.
+
+:func:`make_dreamer_v3_behavior` composes them as :func:`~isodream_rl.objectives.isodream_v3.make_isodream_v3`
+(``algo=isodream_v3``) and :func:`~isodream_rl.baselines.torchrl_dreamer_v3.make_torchrl_dreamer_v3`
+(``algo=torchrl_dreamer_v3``) do: REINFORCE with the 5th-95th percentile return normalisation, the entropy bonus
+on normalised returns, TD(lambda) with ``gamma = 1`` (the continuation model's probabilities discount), a two-hot
+critic with the slow-critic regulariser. It takes the actor, the critic, the imagination ``DreamerEnv`` and the
+continuation model as arguments, so that the same learner trains on a world model's imagination or on
+:class:`~isodream_rl.evaluation.ExactSpritesModel` (:mod:`isodream_rl.evaluation.exact_sprites_v3`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModuleBase, TensorDictSequential
+from torchrl.envs.model_based.dreamer import DreamerEnv
+from torchrl.objectives import DreamerV3ActorLoss, DreamerV3ValueLoss
+from torchrl.objectives.utils import SoftUpdate, ValueEstimators
+
+from isodream_rl.modules.dreamer_v3 import DreamerV3Settings
+
+
+@dataclass
+class DreamerV3Behavior:
+    """DreamerV3's behaviour learner: the actor and critic losses and the slow critic's updater."""
+
+    actor_loss: DreamerV3ActorLoss
+    value_loss: DreamerV3ValueLoss
+    target_updater: SoftUpdate
+
+
+def make_dreamer_v3_behavior(
+    actor: ProbabilisticTensorDictSequential,
+    value: TensorDictSequential,
+    model_based_env: DreamerEnv,
+    *,
+    continuation: TensorDictModuleBase,
+    horizon: int = 15,
+    settings: DreamerV3Settings = DreamerV3Settings(),
+) -> DreamerV3Behavior:
+    """``DreamerV3ActorLoss`` + ``DreamerV3ValueLoss`` + ``SoftUpdate`` with DreamerV3's settings (module docstring).
+
+    Args:
+        actor: the actor (writes ``"action"`` and ``"action_log_prob"``).
+        value: the two-hot critic (writes ``"state_value_logits"`` and ``"state_value"``).
+        model_based_env: the imagination env (``DreamerEnv``: reset on ``"state"`` / ``"belief"``, writes the
+            reward).
+        continuation: writes ``"continuation"``, the probability that an imagined state continues (the discount
+            of the lambda-returns: DreamerV3's continuation head learns ``1 - 1 / settings.continuation_horizon``
+            on non-terminal steps).
+        horizon: L, the imagination horizon.
+        settings: DreamerV3's settings (:class:`~isodream_rl.modules.dreamer_v3.DreamerV3Settings`).
+    """
+    actor_loss = DreamerV3ActorLoss(
+        actor,
+        value,
+        model_based_env,
+        continuation_model=continuation,
+        imagination_horizon=horizon,
+        entropy_bonus=settings.entropy_bonus,
+        use_reinforce=True,
+        return_normalization_rate=settings.return_normalization_rate,
+        return_normalization_min_scale=settings.return_normalization_min_scale,
+    )
+    actor_loss.make_value_estimator(ValueEstimators.TDLambda, gamma=1.0, lmbda=settings.lmbda)
+    value_loss = DreamerV3ValueLoss(
+        value,
+        value_loss="two_hot",
+        num_value_bins=settings.num_bins,
+        actor_loss=actor_loss,
+        slow_critic_regularization=settings.slow_critic_regularization,
+    )
+    return DreamerV3Behavior(
+        actor_loss=actor_loss,
+        value_loss=value_loss,
+        target_updater=SoftUpdate(value_loss, tau=settings.slow_critic_tau),
+    )
+
+
+__all__ = ["DreamerV3Behavior", "make_dreamer_v3_behavior"]
