@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModuleBase, TensorDictSequential
 from torchrl.envs.model_based.dreamer import DreamerEnv
-from torchrl.objectives import DreamerV3ActorLoss, DreamerV3ValueLoss
+from torchrl.objectives import DreamerV3ActorLoss, DreamerV3Loss, DreamerV3ModelLoss, DreamerV3ValueLoss
 from torchrl.objectives.utils import SoftUpdate, ValueEstimators
 
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings
@@ -80,3 +80,22 @@ def make_dreamer_v3_behavior(
 
 
 __all__ = ["DreamerV3Behavior", "make_dreamer_v3_behavior"]
+
+
+def make_dreamer_v3_loss(
+    model_loss: DreamerV3ModelLoss,
+    behavior: DreamerV3Behavior,
+    *,
+    settings: DreamerV3Settings = DreamerV3Settings(),
+) -> DreamerV3Loss:
+    """``DreamerV3Loss`` over a world-model loss and :func:`make_dreamer_v3_behavior`'s losses: the world model,
+    imagination from every posterior, actor, critic, and the critic on the replayed posteriors (weight
+    ``settings.replay_value_loss_weight``, returns discounted by ``1 - 1 / settings.continuation_horizon``)."""
+    return DreamerV3Loss(
+        model_loss,
+        behavior.actor_loss,
+        behavior.value_loss,
+        replay_value_loss_weight=settings.replay_value_loss_weight,
+        continuation_horizon=settings.continuation_horizon,
+        lmbda=settings.lmbda,
+    )

@@ -26,11 +26,12 @@ from torchrl.data import Bounded
 from torchrl.envs.model_based.dreamer import DreamerEnv
 from torchrl.modules import WorldModelWrapper
 from torchrl.objectives import DreamerV3ActorLoss, DreamerV3Loss, DreamerV3ModelLoss, DreamerV3ValueLoss
-from torchrl.objectives.utils import SoftUpdate, ValueEstimators
+from torchrl.objectives.utils import SoftUpdate
 
 from isodream_rl.modules.behavior_v3 import IsoDreamV3Policy, make_actor_v3, make_value_v3
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings
 from isodream_rl.modules.world_model_v3 import IsoDreamV3Config, IsoDreamV3WorldModel
+from isodream_rl.objectives.dreamer_v3_behavior import make_dreamer_v3_behavior, make_dreamer_v3_loss
 from isodream_rl.objectives.imagination_env import latent_dreamer_env
 from isodream_rl.objectives.inverse_dynamics import InverseDynamicsLoss
 from isodream_rl.objectives.world_model import LOSS_WEIGHTS
@@ -236,43 +237,20 @@ def make_isodream_v3(
         ),
         TensorDictModule(torch.sigmoid, in_keys=["continue_logits"], out_keys=["continuation"]),
     )
-    actor_loss = DreamerV3ActorLoss(
-        actor,
-        value,
-        model_based_env,
-        continuation_model=continuation,
-        imagination_horizon=horizon,
-        entropy_bonus=settings.entropy_bonus,
-        use_reinforce=True,
-        return_normalization_rate=settings.return_normalization_rate,
-        return_normalization_min_scale=settings.return_normalization_min_scale,
+    behavior = make_dreamer_v3_behavior(
+        actor, value, model_based_env, continuation=continuation, horizon=horizon, settings=settings
     )
-    actor_loss.make_value_estimator(ValueEstimators.TDLambda, gamma=1.0, lmbda=settings.lmbda)
-    value_loss = DreamerV3ValueLoss(
-        value,
-        value_loss="two_hot",
-        num_value_bins=settings.num_bins,
-        actor_loss=actor_loss,
-        slow_critic_regularization=settings.slow_critic_regularization,
-    )
-    loss_module = DreamerV3Loss(
-        model_loss,
-        actor_loss,
-        value_loss,
-        replay_value_loss_weight=settings.replay_value_loss_weight,
-        continuation_horizon=settings.continuation_horizon,
-        lmbda=settings.lmbda,
-    )
+    loss_module = make_dreamer_v3_loss(model_loss, behavior, settings=settings)
     return IsoDreamV3Learner(
         world_model=world_model,
         actor=actor,
         value=value,
         model_based_env=model_based_env,
         model_loss=model_loss,
-        actor_loss=actor_loss,
-        value_loss=value_loss,
+        actor_loss=behavior.actor_loss,
+        value_loss=behavior.value_loss,
         loss_module=loss_module,
-        target_updater=SoftUpdate(value_loss, tau=settings.slow_critic_tau),
+        target_updater=behavior.target_updater,
         policy=IsoDreamV3Policy(world_model, actor),
     )
 
