@@ -3,8 +3,9 @@
 The model is the env itself written in torch, so these tests separate what the behavior learner can do from
 what a young world model lets it do: it must learn the task, and it must recover once an early, systematic
 reward error of the model is gone (the lock-in that real runs show when their world model is still young).
-DreamerV3's learner (``algo=isodream_v3``, ``isodream_rl.evaluation.exact_sprites_v3``) is held to the same bar
-for learning the task.
+DreamerV3's learner (``algo=isodream_v3``, ``isodream_rl.evaluation.exact_sprites_v3``) is checked to be the one a
+run builds; how it learns and recovers is ``bench/exact_model.py --variants isodream_v3``'s (its learning test joins
+this file when it becomes the default learner, in place of the DreamerV2-style one, within the suite's time budget).
 """
 
 from pathlib import Path
@@ -23,14 +24,8 @@ from isodream_rl.objectives.isodream_v3 import make_isodream_v3
 from isodream_rl.trainers import RunConfig
 from isodream_rl.trainers.exact_model import train_behavior_on_exact_model
 
-#: start states per update: a quarter of the bench's B * T = 512, so that the file takes about two minutes (and
-#: about one more for DreamerV3's learner, whose update costs 1.35 times the default learner's)
+#: start states per update: a quarter of the bench's B * T = 512, so that the file takes about two minutes
 BATCH = 128
-#: updates of DreamerV3's learner (``algo=isodream_v3``) in its learning test: its ``DreamerV3Optimizer`` warms
-#: the learning rate up over 1000 updates, so it heads for the target by update 150 but its return grows slowly:
-#: 0.55 of the scripted controller's at the default learner's 400 updates, 0.81 at 500 and 0.87 at 550 (seeds 0
-#: and 1 alike), the smallest budget that clears the 0.8 bar with a margin
-V3_UPDATES = 550
 SPRITES_GROUP = Path(__file__).resolve().parents[1] / "isodream_rl" / "configs" / "domain" / "sprites.yaml"
 
 
@@ -155,13 +150,15 @@ def test_the_exact_model_trains_the_learner_of_algo_isodream_v3():
     assert float(losses["continuation_mean"]) == pytest.approx(run.model_loss.continue_target_scale)
 
 
-def test_the_dreamer_v3_learner_learns_the_task_on_the_exact_model():
-    """DreamerV3's learner (``algo=isodream_v3``) held to the default learner's bar, at :data:`V3_UPDATES`."""
+def test_the_dreamer_v3_learner_trains_and_is_evaluated_on_the_exact_model():
+    """``train_behavior_on_exact_model`` runs DreamerV3's learner for ``algo=isodream_v3`` (a few updates: the
+    path, not the learning, which the bench measures)."""
     result = train_behavior_on_exact_model(
-        dreamer_v3_config(), updates=V3_UPDATES, batch=BATCH, eval_every=V3_UPDATES // 2
+        dreamer_v3_config(), updates=20, batch=16, eval_every=10, eval_episodes=2
     )
-    assert result.cosine[-1] > 0.8, result.as_dict()
-    assert result.returns[-1] >= 0.8 * result.scripted_return, result.as_dict()
+    assert result.updates == [0, 10, 20]
+    assert all(np.isfinite(result.returns)) and all(np.isfinite(result.entropy))
+    assert result.scripted_return > result.constant_return
 
 
 def recovery(cfg: RunConfig, updates: int = 750):
