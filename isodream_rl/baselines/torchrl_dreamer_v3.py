@@ -126,7 +126,11 @@ from isodream_rl.modules.dreamer_v3 import (
     two_hot_value,
 )
 from isodream_rl.modules.world_model_v3 import BranchWidths, make_rssm
-from isodream_rl.objectives.dreamer_v3_behavior import make_dreamer_v3_behavior, make_dreamer_v3_loss
+from isodream_rl.objectives.dreamer_v3_behavior import (
+    dreamer_v3_model_loss_settings,
+    make_dreamer_v3_behavior,
+    make_dreamer_v3_loss,
+)
 from isodream_rl.objectives.imagination_env import latent_dreamer_env
 from isodream_rl.trainers.config import ConfigError, RunConfig
 from isodream_rl.trainers.dreamer_v3 import dreamer_v3_checkpoint_modules, make_dreamer_v3_stepper
@@ -352,19 +356,7 @@ def dreamer_v3_model_loss(
     """``DreamerV3ModelLoss`` as TorchRL's reproduction configures it for pixels: separate dynamics and
     representation KL, squared error on ``pixels / 255`` (no symlog), two-hot reward, continuation trained to
     ``1 - 1 / continuation_horizon``; the output keeps its graph for the replay-value term."""
-    return DreamerV3ModelLoss(
-        world_model,
-        kl_mode="separate",
-        lambda_dynamic=settings.lambda_dynamic,
-        lambda_representation=settings.lambda_representation,
-        unimix=settings.unimix,
-        free_bits=settings.free_bits,
-        lambda_continue=1.0,
-        continue_target_scale=1.0 - 1.0 / settings.continuation_horizon,
-        reco_symlog=False,
-        num_reward_bins=settings.num_bins,
-        detach_output=False,
-    )
+    return DreamerV3ModelLoss(world_model, **dreamer_v3_model_loss_settings(settings))
 
 
 def make_torchrl_dreamer_v3(

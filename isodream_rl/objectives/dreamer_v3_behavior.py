@@ -99,3 +99,21 @@ def make_dreamer_v3_loss(
         continuation_horizon=settings.continuation_horizon,
         lmbda=settings.lmbda,
     )
+
+
+def dreamer_v3_model_loss_settings(settings: DreamerV3Settings = DreamerV3Settings()) -> dict:
+    """``DreamerV3ModelLoss``'s keyword arguments as TorchRL's reproduction configures it for pixels: separate
+    dynamics and representation KL, squared error on ``pixels / 255`` (no symlog), two-hot reward, continuation
+    trained to ``1 - 1 / continuation_horizon``; the output keeps its graph for the replay-value term."""
+    return {
+        "kl_mode": "separate",
+        "lambda_dynamic": settings.lambda_dynamic,
+        "lambda_representation": settings.lambda_representation,
+        "unimix": settings.unimix,
+        "free_bits": settings.free_bits,
+        "lambda_continue": 1.0,
+        "continue_target_scale": 1.0 - 1.0 / settings.continuation_horizon,
+        "reco_symlog": False,
+        "num_reward_bins": settings.num_bins,
+        "detach_output": False,
+    }

@@ -31,7 +31,11 @@ from torchrl.objectives.utils import SoftUpdate
 from isodream_rl.modules.behavior_v3 import IsoDreamV3Policy, make_actor_v3, make_value_v3
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings
 from isodream_rl.modules.world_model_v3 import IsoDreamV3Config, IsoDreamV3WorldModel
-from isodream_rl.objectives.dreamer_v3_behavior import make_dreamer_v3_behavior, make_dreamer_v3_loss
+from isodream_rl.objectives.dreamer_v3_behavior import (
+    dreamer_v3_model_loss_settings,
+    make_dreamer_v3_behavior,
+    make_dreamer_v3_loss,
+)
 from isodream_rl.objectives.imagination_env import latent_dreamer_env
 from isodream_rl.objectives.inverse_dynamics import InverseDynamicsLoss
 from isodream_rl.objectives.world_model import LOSS_WEIGHTS
@@ -65,19 +69,7 @@ class IsoDreamV3ModelLoss(DreamerV3ModelLoss):
         lambda_inverse: float = LOSS_WEIGHTS["lambda_inverse"],
         settings: DreamerV3Settings = DreamerV3Settings(),
     ) -> None:
-        super().__init__(
-            world_model,
-            kl_mode="separate",
-            lambda_dynamic=settings.lambda_dynamic,
-            lambda_representation=settings.lambda_representation,
-            unimix=settings.unimix,
-            free_bits=settings.free_bits,
-            lambda_continue=1.0,
-            continue_target_scale=1.0 - 1.0 / settings.continuation_horizon,
-            reco_symlog=False,
-            num_reward_bins=settings.num_bins,
-            detach_output=False,
-        )
+        super().__init__(world_model, **dreamer_v3_model_loss_settings(settings))
         self.inverse_loss = (
             InverseDynamicsLoss(lambda_inverse=lambda_inverse)
             if world_model.config.inverse_dynamics
