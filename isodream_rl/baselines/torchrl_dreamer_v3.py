@@ -123,9 +123,10 @@ from isodream_rl.modules.dreamer_v3 import (
     SequenceActingPolicy,
     WindowInputCheck,
     bounded_normal_actor,
+    continuation_probability,
     two_hot_value,
 )
-from isodream_rl.modules.world_model_v3 import BranchWidths, make_rssm
+from isodream_rl.modules.world_model_v3 import BranchWidths, dreamer_v3_classes, make_rssm
 from isodream_rl.objectives.dreamer_v3_behavior import (
     dreamer_v3_model_loss_settings,
     make_dreamer_v3_behavior,
@@ -160,8 +161,8 @@ class DreamerV3Widths:
 
     @property
     def classes(self) -> int:
-        """Classes of each categorical, also the image encoder's base depth."""
-        return max(1, (self.hidden + 8) // 16)
+        """Classes of each categorical, also the image encoder's base depth (:func:`dreamer_v3_classes`)."""
+        return dreamer_v3_classes(self.hidden)
 
     def state_dim(self, settings: DreamerV3Settings) -> int:
         """Width of the one-hot ``state``: categoricals x classes."""
@@ -397,10 +398,7 @@ def make_torchrl_dreamer_v3(
     )
     value = _value(latent=latent, units=widths.value_units, num_bins=settings.num_bins, device=device)
     model_loss = dreamer_v3_model_loss(world_model, settings=settings)
-    continuation = TensorDictSequential(
-        TensorDictModule(parts.continuation, in_keys=["belief", "state"], out_keys=["continue_logits"]),
-        TensorDictModule(nn.Sigmoid(), in_keys=["continue_logits"], out_keys=["continuation"]),
-    )
+    continuation = continuation_probability(parts.continuation, in_keys=["belief", "state"])
     behavior = make_dreamer_v3_behavior(
         actor, value, model_based_env, continuation=continuation, horizon=horizon, settings=settings
     )

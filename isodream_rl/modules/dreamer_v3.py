@@ -15,6 +15,7 @@ learner use them.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -195,6 +196,15 @@ def bounded_normal_actor(net: TensorDictModule) -> ProbabilisticTensorDictSequen
             return_log_prob=True,
             log_prob_key="action_log_prob",
         ),
+    )
+
+
+def continuation_probability(logit: Callable, *, in_keys: list) -> TensorDictSequential:
+    """The continuation model of ``DreamerV3ActorLoss`` around ``logit`` (the continuation head's logit from
+    ``in_keys``): ``"continue_logits"``, then their sigmoid, ``"continuation"``."""
+    return TensorDictSequential(
+        TensorDictModule(logit, in_keys=in_keys, out_keys=["continue_logits"]),
+        TensorDictModule(torch.sigmoid, in_keys=["continue_logits"], out_keys=["continuation"]),
     )
 
 

@@ -29,7 +29,7 @@ from torchrl.objectives import DreamerV3ActorLoss, DreamerV3Loss, DreamerV3Model
 from torchrl.objectives.utils import SoftUpdate
 
 from isodream_rl.modules.behavior_v3 import IsoDreamV3Policy, make_actor_v3, make_value_v3
-from isodream_rl.modules.dreamer_v3 import DreamerV3Settings
+from isodream_rl.modules.dreamer_v3 import DreamerV3Settings, continuation_probability
 from isodream_rl.modules.world_model_v3 import IsoDreamV3Config, IsoDreamV3WorldModel
 from isodream_rl.objectives.dreamer_v3_behavior import (
     dreamer_v3_model_loss_settings,
@@ -223,12 +223,7 @@ def make_isodream_v3(
     value = make_value_v3(config, units=value_units, **heads)
     model_based_env = isodream_imagination_env(world_model, device=device)
     model_loss = IsoDreamV3ModelLoss(world_model, lambda_inverse=lambda_inverse, settings=settings)
-    continuation = TensorDictSequential(
-        TensorDictModule(
-            world_model.continuation_logit, in_keys=["state", "belief"], out_keys=["continue_logits"]
-        ),
-        TensorDictModule(torch.sigmoid, in_keys=["continue_logits"], out_keys=["continuation"]),
-    )
+    continuation = continuation_probability(world_model.continuation_logit, in_keys=["state", "belief"])
     behavior = make_dreamer_v3_behavior(
         actor, value, model_based_env, continuation=continuation, horizon=horizon, settings=settings
     )
