@@ -30,7 +30,8 @@ from isodream_rl.trainers import RunConfig
 from isodream_rl.trainers.exact_model import exact_model_learner, train_behavior_on_exact_model
 from isodream_rl.trainers.world_model_config import DREAMER_V3_ISODREAM
 
-#: start states per update: a quarter of the bench's B * T = 512, so that the file takes about two minutes
+#: start states per update: a quarter of the bench's B * T = 512, so that the two learning tests take about 2.5
+#: minutes of one core (DreamerV3's learner: about 0.14 s per update)
 BATCH = 128
 SPRITES_GROUP = Path(__file__).resolve().parents[1] / "isodream_rl" / "configs" / "domain" / "sprites.yaml"
 
@@ -184,8 +185,9 @@ def test_the_dreamerv2_style_learner_trains_and_is_evaluated_on_the_exact_model(
 
 def test_the_learner_recovers_from_an_early_fixed_direction_reward_error():
     result = train_behavior_on_exact_model(
-        bench_behavior_config(), updates=750, batch=BATCH, reward_error=0.3, error_updates=250, eval_every=250
+        bench_behavior_config(), updates=500, batch=BATCH, reward_error=0.3, error_updates=250, eval_every=250
     )
-    # while the error lasts the policy follows it into the wall; 500 exact updates later it has the task back
+    # while the error lasts the policy follows it into the wall; 250 exact updates later it has the task back
+    # (the bench's aim allows 500: bench/exact_model.py)
     assert result.returns[1] < 0.1 * result.scripted_return, result.as_dict()
     assert result.returns[-1] >= 0.5 * result.scripted_return, result.as_dict()
