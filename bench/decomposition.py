@@ -25,8 +25,12 @@ JSON (the final ground truth, composite, each branch and its mask over a held-ou
 Iso-Dream seed), and a table (the JSON's path with ``.md``).
 
     python bench/decomposition.py                                  # 4 scenes x 2 algos x 2 seeds x 30 min
-    python bench/decomposition.py --scenes sprites --algos isodream --seeds 0 --minutes 5 --runs /tmp/dec \\
+    python bench/decomposition.py --scenes sprites --algos isodream_v2 --seeds 0 --minutes 5 --runs /tmp/dec \\
         --json /tmp/dec/decomposition.json
+
+The Iso-Dream world model is the DreamerV2-style learner's (``algo=isodream_v2``; ``mode=world_model`` trains no
+other): the committed results and the run folders made before ``algo=isodream`` became DreamerV3's learner name it
+``isodream`` (``<scene>-isodream-s<seed>``).
 """
 
 from __future__ import annotations
@@ -53,7 +57,7 @@ SCENES = {
     "dmc_cheetah_run": ["env=dmc_cheetah_run"],
     "highway": ["env=highway", "++env.kwargs.view=top_down"],
 }
-ALGOS = ("isodream", "dreamerv2")
+ALGOS = ("isodream_v2", "dreamerv2")
 #: the recipe at a tiny size, a check in seconds (each an ``--override``): 2 updates of 2 windows x 8 steps on two
 #: 16-step training episodes and one held-out
 TINY = [
@@ -168,7 +172,7 @@ def copy_pictures(scenes: dict, folder: Path) -> dict[str, str]:
     each scene (of the first algorithm with a run if Iso-Dream has none)."""
     written = {}
     for scene, algos in scenes.items():
-        runs = algos.get("isodream") or next((r for r in algos.values() if r), [])
+        runs = algos.get("isodream_v2") or next((r for r in algos.values() if r), [])
         if runs and Path(runs[0]["picture"]).exists():
             target = folder / f"decomposition_{scene}.png"
             target.parent.mkdir(parents=True, exist_ok=True)

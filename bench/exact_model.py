@@ -12,11 +12,12 @@ the library's learning rates) on :class:`~isodream_rl.evaluation.ExactSpritesMod
   (the young world model's systematic mistake; the aim is a 200-step return of at least half the scripted
   controller's by update 750).
 
-The variants change ``algo`` fields of the library's defaults (:data:`VARIANTS`); ``isodream_v3`` is DreamerV3's
-learner of ``algo=isodream_v3`` instead (:mod:`isodream_rl.evaluation.exact_sprites_v3`: its actor and two-hot
-critic on ``[s, h]``, ``DreamerV3ActorLoss`` (REINFORCE, percentile return normalisation, entropy 3e-4) and
-``DreamerV3ValueLoss`` (slow critic), the exact continuation ``1 - 1/333``, ``DreamerV3Optimizer`` at the run's
-learning rates with its 1000-update warm-up); it reads neither ``algo.gamma`` nor the loc penalty.
+The variants set ``algo`` fields of the library's defaults (:data:`VARIANTS`): ``isodream`` is the default's
+learner, DreamerV3's (:mod:`isodream_rl.evaluation.exact_sprites_v3`: its actor and two-hot critic on ``[s, h]``,
+``DreamerV3ActorLoss`` (REINFORCE, percentile return normalisation, entropy 3e-4) and ``DreamerV3ValueLoss``
+(slow critic), the exact continuation ``1 - 1/333``, ``DreamerV3Optimizer`` at the run's learning rates with its
+1000-update warm-up; it reads neither ``algo.gamma`` nor the loc penalty); ``isodream_v2`` and the others are the
+DreamerV2-style learner (``algo=isodream_v2``) with some of its settings changed.
 
 Every ``--eval-every`` updates the deterministic policy plays 16 episodes of 200 steps on the exact model. Writes
 ``--json`` (default ``docs/results/exact_model.json``): per variant, case and seed the curve (``updates``,
@@ -24,14 +25,16 @@ Every ``--eval-every`` updates the deterministic policy plays 16 episodes of 200
 ``grad_norm_actor``, ``mean_abs_action``), the scripted and best-constant returns, the normalised final score;
 plus a picture (``--png``, the JSON's path with ``.png``). Runs one variant at a time on one torch thread.
 
-The committed JSON (made at d35c722) also holds two variants whose code was removed after they did not help:
+The committed JSONs name the variants as they were named when measured: ``exact_model.json`` (made at d35c722)
+calls ``isodream_v2`` ``default`` (it was ``algo=isodream`` then), ``exact_model_v3.json`` calls ``isodream``
+``isodream_v3``. ``exact_model.json`` also holds two variants whose code was removed after they did not help:
 ``return_norm`` (the lambda-returns divided by DreamerV3's 5th-95th percentile span, TorchRL's
 ``PercentileValueNorm``, entropy 3e-3) and ``reinforce_return_norm`` (``IsoDreamActorLoss(gradient="reinforce")``
 with advantages normalised the same way, entropy 3e-4), both without the loc penalty.
 
     python bench/exact_model.py                                  # the committed results
-    python bench/exact_model.py --variants default --cases recover --seeds 0 --json /tmp/e.json
-    python bench/exact_model.py --variants isodream_v3 --cases learn,recover --seeds 0 --json /tmp/v3.json
+    python bench/exact_model.py --variants isodream_v2 --cases recover --seeds 0 --json /tmp/e.json
+    python bench/exact_model.py --variants isodream --cases learn,recover --seeds 0 --json /tmp/v3.json
 """
 
 from __future__ import annotations
@@ -51,15 +54,17 @@ from isodream_rl.trainers.exact_model import train_behavior_on_exact_model
 
 ROOT = Path(__file__).resolve().parents[1]
 
-#: name -> ``algo`` fields changed from the library's defaults.
+#: the DreamerV2-style learner, whose settings the variants below it change
+_V2 = {"name": "isodream_v2"}
+#: name -> ``algo`` fields set on the library's defaults.
 VARIANTS: dict[str, dict] = {
-    "default": {},
-    "paper": {"actor_loc_penalty": 0.0},
-    "loc_penalty_0.03": {"actor_loc_penalty": 0.03},
-    "loc_penalty_0.3": {"actor_loc_penalty": 0.3},
-    "gamma_0.95": {"gamma": 0.95},
-    "gamma_0.9": {"gamma": 0.9},
-    "isodream_v3": {"name": "isodream_v3"},
+    "isodream": {"name": "isodream"},
+    "isodream_v2": _V2,
+    "paper": {**_V2, "actor_loc_penalty": 0.0},
+    "loc_penalty_0.03": {**_V2, "actor_loc_penalty": 0.03},
+    "loc_penalty_0.3": {**_V2, "actor_loc_penalty": 0.3},
+    "gamma_0.95": {**_V2, "gamma": 0.95},
+    "gamma_0.9": {**_V2, "gamma": 0.9},
 }
 #: name -> (reward error, updates with the error, extra ExactSpritesModel arguments)
 CASES = {

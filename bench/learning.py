@@ -1,4 +1,5 @@
-"""Learning curves of Iso-Dream, the DreamerV2 baseline and TorchRL's DreamerV3 at equal env steps.
+"""Learning curves of Iso-Dream (on DreamerV3's learner), the DreamerV2 baseline and TorchRL's DreamerV3 at equal
+env steps.
 
 Every (algorithm, seed) is one ``isodream-train`` run in its own folder under ``--runs`` (default
 ``~/isodream-runs/bench_learning``, outside the work tree); ``--parallel`` runs share the machine at one torch
@@ -34,6 +35,11 @@ seed's curve, the reference returns as lines) and a table (``--md``: finished se
     python bench/learning.py                       # seeds 0,1 at 51000 env steps (10000 updates per run)
     python bench/learning.py --algos dreamerv2 --seeds 0 --env-steps 2000 --runs /tmp/lb --json /tmp/lb.json
     python bench/learning.py --algos isodream,dreamerv2,torchrl_dreamer   # TorchRL's older Dreamer (not a default)
+    python bench/learning.py --algos isodream_v2 --seeds 0    # Iso-Dream on the DreamerV2-style learner
+
+A run folder is ``<algo>_s<seed>``: one made before ``algo=isodream`` became DreamerV3's learner holds, under
+``isodream_s<seed>``, the DreamerV2-style learner (now ``isodream_v2``), and under ``isodream_v3_s<seed>``
+today's ``isodream``; a finished one is read back as it is, so move those folders first.
 """
 
 from __future__ import annotations
@@ -53,12 +59,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import provenance, read_scalar  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-#: The default bench: Iso-Dream, its single-branch DreamerV2 baseline and TorchRL's DreamerV3 (the world-model
-#: agent a TorchRL user would pick instead).
+#: The default bench: Iso-Dream (on DreamerV3's learner), the single-branch DreamerV2 baseline and TorchRL's
+#: DreamerV3 (the world-model agent a TorchRL user would pick instead).
 ALGOS = ("isodream", "dreamerv2", "torchrl_dreamer_v3")
-#: Accepted by ``--algos`` but not run by default: Iso-Dream on DreamerV3's learner, TorchRL's older
+#: Accepted by ``--algos`` but not run by default: Iso-Dream on the DreamerV2-style learner, TorchRL's older
 #: (DreamerV1-style) Dreamer pieces.
-MORE_ALGOS = ("isodream_v3", "torchrl_dreamer")
+MORE_ALGOS = ("isodream_v2", "torchrl_dreamer")
 #: The task's success count reported beside the return, per env.
 SUCCESS_KEY = {"sprites": "reaches", "highway": "distance"}
 #: Seconds between polls of the running runs.
@@ -217,6 +223,7 @@ def plot(results: dict, path: Path) -> None:
     fig, ax = plt.subplots(figsize=(7, 4.2), dpi=120)
     colours = {
         "isodream": "tab:blue",
+        "isodream_v2": "tab:purple",
         "dreamerv2": "tab:orange",
         "torchrl_dreamer": "tab:green",
         "torchrl_dreamer_v3": "tab:red",

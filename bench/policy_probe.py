@@ -40,14 +40,14 @@ Loads the newest readable checkpoint of an ``isodream-train`` run, plays ``--epi
 
 Two learners, by the run's ``algo.name`` (:func:`probe_learner`):
 
-- DreamerV2-style Iso-Dream components (``algo=isodream``, ``dreamerv2`` and the other Iso-Dream variants):
+- DreamerV2-style Iso-Dream components (``algo=isodream_v2``, ``isodream_paper``, ``dreamerv2``): the
   :class:`DreamerV2Learner`, everything above.
-- TorchRL's DreamerV3 learner (:data:`DREAMER_V3_ALGOS`: ``algo=isodream_v3``, Iso-Dream's decomposition on it,
-  and ``algo=torchrl_dreamer_v3``, TorchRL's DreamerV3): :class:`DreamerV3Learner`. The same episodes, context
+- TorchRL's DreamerV3 learner (:data:`DREAMER_V3_ALGOS`: ``algo=isodream`` and its ablations, Iso-Dream's
+  decomposition on it, and ``algo=torchrl_dreamer_v3``, TorchRL's DreamerV3): :class:`DreamerV3Learner`. The same episodes, context
   windows, replays and reach counts; the world model filters from zero root ``state``/``belief`` (as the
   training stepper gives them), its filtered reward prediction is the decoded two-hot ``("next", "reward")``,
   and imagination is ``DreamerV3ActorLoss``'s (its ``DreamerEnv`` reset on the posteriors, which for
-  ``isodream_v3`` also rolls the action-free window, then the actor's rollout; ``lambda_target`` its
+  ``isodream`` also rolls the action-free window, then the actor's rollout; ``lambda_target`` its
   continuation-weighted lambda-returns). ``value_vs_potential`` fits the critic that bootstraps those returns
   (``DreamerV3ActorLoss.value_model``, the two-hot value; the fit keeps the ``v_slow_*`` names) on the start
   states. ``gradient_check`` is ``null``, with its reason under ``gradient_check_skipped``: the actor learns by
@@ -80,12 +80,13 @@ from isodream_rl.objectives.imagination import policy_features
 from isodream_rl.trainers.checkpoint import CheckpointManager
 from isodream_rl.trainers.config import config_from_dict
 from isodream_rl.trainers.registry import make_components
+from isodream_rl.trainers.world_model_config import DREAMER_V3_ISODREAM
 
 #: an imagined step whose predicted reward exceeds this counts as a reach: a real reach step earns 1 plus its
 #: progress, the progress term alone at most about 0.71 (a full-speed diagonal step), so 0.7 would count those
 REACH_THRESHOLD = 0.85
 #: the algorithms that learn on TorchRL's DreamerV3 learner (:class:`DreamerV3Learner`)
-DREAMER_V3_ALGOS = ("isodream_v3", "torchrl_dreamer_v3")
+DREAMER_V3_ALGOS = (*DREAMER_V3_ISODREAM, "torchrl_dreamer_v3")
 
 
 class DreamerV2Learner:
@@ -140,7 +141,7 @@ class DreamerV2Learner:
 
 
 class DreamerV3Learner(DreamerV2Learner):
-    """What the probe runs of a TorchRL DreamerV3 learner (``algo=isodream_v3``, ``torchrl_dreamer_v3``): the
+    """What the probe runs of a TorchRL DreamerV3 learner (``algo=isodream``, ``torchrl_dreamer_v3``): the
     world model filters from zero root ``state``/``belief``, its decoded two-hot ``("next", "reward")`` is the
     reward prediction, ``DreamerV3ActorLoss`` imagines from flat ``state``/``belief`` starts, the critic it
     bootstraps from gives the start value, and there is no pathwise ``gradient_check`` (REINFORCE).
@@ -178,7 +179,7 @@ class DreamerV3Learner(DreamerV2Learner):
 
     def start_value(self, imagined: TensorDictBase) -> float:
         """The critic's value of the imagined trajectories' start state (the reset ``DreamerEnv``'s root, with
-        the action-free window for ``isodream_v3``), averaged over the samples."""
+        the action-free window for ``isodream``), averaged over the samples."""
         loss = self.components.behavior.actor_loss
         start = imagined[:, 0].select(*loss.value_model.in_keys)
         return float(loss.value_model(start).get(loss.tensor_keys.value).float().mean())

@@ -87,7 +87,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument(
         "--algos",
         type=lambda s: s.split(","),
-        default=["isodream", "dreamerv2", "torchrl_dreamer", "torchrl_dreamer_v3"],
+        default=["isodream", "isodream_v2", "dreamerv2", "torchrl_dreamer", "torchrl_dreamer_v3"],
     )
     parser.add_argument("--sizes", type=lambda s: s.split(","), default=["bench", "small"])
     parser.add_argument("--updates", type=int, default=400)

@@ -1,5 +1,5 @@
-"""One full update (world model + behaviour) of TorchRL's DreamerV3 against Iso-Dream and DreamerV2, on one core
-or on a GPU (``--device cuda``).
+"""One full update (world model + behaviour) of TorchRL's DreamerV3 against Iso-Dream (on DreamerV3's learner and on
+the DreamerV2-style one) and DreamerV2, on one core or on a GPU (``--device cuda``).
 
 Each algorithm is built as an ``isodream-train`` run builds it (``env=sprites size=<size> algo=<algo>
 train.device=<device>``, the run's ``make_components``) and an update is its stepper's ``step`` on one fixed replay
@@ -10,7 +10,7 @@ is timed from a ``torch.cuda.synchronize`` to the next (kernels run asynchronous
 beyond what was held before it is recorded (``update_memory_gb``). The algorithms take turns, one update each per
 round, so that load from other processes hits all of them alike; ``--warmup`` rounds are not timed, then the
 median over ``--rounds`` rounds is reported: wall seconds per update, process CPU seconds per update, updates per
-second, and the ratio of each algorithm's wall time to Iso-Dream's and to DreamerV2's. The JSON also records each
+second, and the ratio of each algorithm's wall time to Iso-Dream's (``algo=isodream``) and to DreamerV2's. The JSON also records each
 algorithm's trained parameters per group, the CPU (and the GPU), the commit, the torch threads and the load average
 before and after. ``bench/gpu_check.py`` times its updates with :func:`measure`.
 
@@ -47,7 +47,7 @@ from isodream_rl.trainers.run_lifecycle import probe_action_dim  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "isodream_rl" / "configs"
-ALGOS = ("isodream", "isodream_v3", "dreamerv2", "torchrl_dreamer_v3")
+ALGOS = ("isodream", "isodream_v2", "dreamerv2", "torchrl_dreamer_v3")
 
 
 def run_config(algo: str, size: str, *, device: str = "cpu"):
@@ -78,9 +78,11 @@ def replay_sample(batch_size: int, length: int, action_dim: int) -> TensorDict:
 
 def parameter_counts(components) -> dict[str, int]:
     """Trained parameters per group (a slow value copy is not counted)."""
-    if hasattr(components, "learner"):  # TorchRL's DreamerV3
+    if hasattr(components, "learner"):  # a DreamerV3 learner: Iso-Dream's and TorchRL's
         groups = components.learner.parameter_groups()
-    elif hasattr(components.behavior.actor_loss, "parameter_groups"):  # Iso-Dream and its variants
+    elif hasattr(
+        components.behavior.actor_loss, "parameter_groups"
+    ):  # the DreamerV2-style Iso-Dream, DreamerV2
         groups = components.behavior.actor_loss.parameter_groups()
     else:  # TorchRL's Dreamer
         groups = {name: list(module.parameters()) for name, module in components.modules().items()}

@@ -5,7 +5,9 @@
 
 The CARLA settings of the paper: KL on both branches, reward head on (s, z), and a policy that reads the
 future-state attention over tau = 5 noncontrollable states rolled out by the action-free branch.
-``isodream-train env=highway`` runs the same recipe from the Hydra configs, with checkpoints and evaluation.
+``isodream-train env=highway algo=isodream_v2`` runs the same recipe (the DreamerV2-style learner; the default,
+``algo=isodream``, is the same decomposition on DreamerV3's learner) from the Hydra configs, with checkpoints
+and evaluation.
 """
 
 from __future__ import annotations

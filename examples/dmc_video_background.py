@@ -5,8 +5,9 @@
 
 The DMC settings of the paper: the noncontrollable branch (the video background) learns from
 reconstruction only (no KL term), the reward head and the policy read the controllable branch [s, h] only.
-``isodream-train env=dmc_walker_walk`` runs the same recipe from the Hydra configs, with checkpoints and
-evaluation.
+``isodream-train env=dmc_walker_walk algo=isodream_v2`` runs the same recipe (the DreamerV2-style learner; the
+default, ``algo=isodream``, is the same decomposition on DreamerV3's learner) from the Hydra configs, with
+checkpoints and evaluation.
 """
 
 from __future__ import annotations

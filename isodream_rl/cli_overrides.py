@@ -7,7 +7,8 @@ word: the run trains with the default and ignores the key. :func:`check_override
 
 - a key under the schema (:class:`~isodream_rl.trainers.config.RunConfig`) that is no setting, with or without
   ``+``/``++``, naming the closest setting and the valid ones;
-- a group option that does not exist, naming the closest and the valid ones;
+- a group option that does not exist, naming the closest and the valid ones (a former ``algo`` name, its new one:
+  :data:`~isodream_rl.trainers.config.RENAMED_ALGOS`);
 - whatever else composing the configuration as Hydra will refuses (a value of the wrong type), in one line;
 - a flag that is none of Hydra's (``--steps 300``: Hydra prints its usage block), naming the flag and the closest
   setting.
@@ -30,7 +31,7 @@ from hydra.core.override_parser.types import OverrideType
 from hydra.errors import HydraException, MissingConfigException
 from omegaconf.errors import OmegaConfBaseException
 
-from isodream_rl.trainers.config import ConfigError, RunConfig
+from isodream_rl.trainers.config import ConfigError, RunConfig, renamed_algo_error
 from isodream_rl.user_errors import DEBUG_FLAG
 
 CONFIGS = Path(__file__).parent / "configs"
@@ -86,6 +87,9 @@ def unknown_setting(key: str) -> str | None:
 
 def _group_error(err: MissingConfigException, line: str, value: str) -> str:
     group = (err.missing_cfg_file or "").split("/")[0]
+    renamed = renamed_algo_error(value) if group == "algo" else None
+    if renamed:
+        return renamed
     options = list(err.options or [])
     close = get_close_matches(value, options, 1)
     return (

@@ -40,12 +40,14 @@ def cli_process(args, cwd):
 
 
 def tiny_run_config(run_dir, **changes):
-    """A sprites ``RunConfig`` at test sizes: tiny world model, 16-unit actor and value, windows of 2 x 6, 10 prefill
-    steps, one batch every 10 steps, 20 steps in all, horizon 3. ``changes`` override fields by
-    ``section__name`` (``train__total_steps=30``; a plain name sets a top-level field)."""
+    """A sprites ``RunConfig`` of Iso-Dream on the DreamerV2-style learner (``algo=isodream_v2``; the DreamerV3
+    learner's tiny runs are ``tests/test_isodream_v3.py``'s) at test sizes: tiny world model, 16-unit actor and
+    value, windows of 2 x 6, 10 prefill steps, one batch every 10 steps, 20 steps in all, horizon 3. ``changes``
+    override fields by ``section__name`` (``train__total_steps=30``; a plain name sets a top-level field)."""
     from isodream_rl.trainers import RunConfig
 
     cfg = RunConfig(run_dir=str(run_dir), size_name="tiny")
+    cfg.algo.name = "isodream_v2"
     cfg.model.size, cfg.model.actor_units, cfg.model.value_units, cfg.model.attention_dim = "tiny", 16, 16, 8
     cfg.train.batch_size, cfg.train.sequence_length, cfg.train.buffer_size = 2, 6, 100
     cfg.train.prefill_steps, cfg.train.frames_per_batch, cfg.train.total_steps = 10, 10, 20

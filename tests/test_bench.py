@@ -103,7 +103,7 @@ def test_update_speed_times_one_full_update_of_each_algorithm_on_one_sample(tmp_
     args = ["--size", "tiny", "--rounds", "2", "--warmup", "1", "--json", str(path)]
     out = module.main(args)
     assert json.loads(path.read_text()) == out
-    assert set(out["algos"]) == {"isodream", "isodream_v3", "dreamerv2", "torchrl_dreamer_v3"}
+    assert set(out["algos"]) == {"isodream", "isodream_v2", "dreamerv2", "torchrl_dreamer_v3"}
     assert out["cpu"] and out["torch_threads"] == 1 and out["size"] == "tiny"
     for algo, entry in out["algos"].items():
         assert len(entry["wall_s"]) == len(entry["cpu_s"]) == 2, algo

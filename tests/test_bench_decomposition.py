@@ -17,7 +17,7 @@ def test_decomposition_bench_writes_the_schema(tmp_path):
     assert saved == json.loads(json.dumps(results))
     assert {"scenes", "commit", "cpu", "command", "minutes"} <= set(saved)
     assert set(saved["scenes"]) == {"sprites"} and set(saved["scenes"]["sprites"]) == {
-        "isodream",
+        "isodream_v2",
         "dreamerv2",
     }
     for algo, runs in saved["scenes"]["sprites"].items():
@@ -27,10 +27,10 @@ def test_decomposition_bench_writes_the_schema(tmp_path):
         assert run["wall_minutes"] >= 0 and "train_iou_control_vs_agent" in run, algo
     assert saved["scenes"]["sprites"]["dreamerv2"][0]["background_share_control"] == 1.0
     assert (out.parent / "decomposition_sprites.png").stat().st_size > 0
-    assert "| sprites | isodream | 1 |" in out.with_suffix(".md").read_text()
+    assert "| sprites | isodream_v2 | 1 |" in out.with_suffix(".md").read_text()
 
     # a second call finds the finished runs and only collects them
-    summary = tmp_path / "runs" / "sprites-isodream-s0" / "summary.json"
+    summary = tmp_path / "runs" / "sprites-isodream_v2-s0" / "summary.json"
     stamp = summary.stat().st_mtime
     assert bench.main([*args, "--collect-only"])["scenes"] == results["scenes"]
     bench.main(args)

@@ -15,7 +15,7 @@ from omegaconf import OmegaConf
 import isodream_rl.cli  # noqa: F401  (registers the config schema)
 from isodream_rl.trainers import ConfigError, RunConfig, validate_config
 from isodream_rl.trainers.config import ALGO_NAMES
-from isodream_rl.trainers.world_model_config import TORCHRL_BASELINES
+from isodream_rl.trainers.world_model_config import TORCHRL_BASELINES, WORLD_MODEL_ALGOS
 
 CONFIGS = Path(isodream_rl.cli.__file__).parent / "configs"
 ENVS = sorted(p.stem for p in (CONFIGS / "env").glob("*.yaml"))
@@ -67,6 +67,7 @@ RESULTS = CONFIGS.parents[1] / "docs" / "results"
 def test_every_exp_composes_to_a_valid_config_and_its_results_page_names_the_recorded_runs(exp):
     cfg = composed(f"exp={exp}")
     validate_config(cfg)
+    assert cfg.algo.name in WORLD_MODEL_ALGOS  # the exp names its algo: the default's world model is another
     header = (CONFIGS / "exp" / f"{exp}.yaml").read_text()
     # settings only: no run names or scores in the file, at most a pointer to the results page
     assert not re.search(r"\bruns? [A-Z]+[0-9]+\b|Recorded|R²", header), header
@@ -93,7 +94,7 @@ def test_every_exp_composes_to_a_valid_config_and_its_results_page_names_the_rec
         ["env=highway", "++env.kwargs.view=top_down"],
     ],
 )
-@pytest.mark.parametrize("algo", ["isodream", "dreamerv2"])
+@pytest.mark.parametrize("algo", ["isodream_v2", "dreamerv2"])
 def test_the_decomposition_recipe_is_the_same_on_every_scene(scene, algo):
     cfg = composed("exp=decomposition", *scene, f"algo={algo}")
     validate_config(cfg)
@@ -133,12 +134,14 @@ def test_domain_presets_follow_the_paper():
 
 
 def test_sprites_trains_with_the_library_defaults_and_the_paper_preset_with_the_papers_settings():
+    """The DreamerV2-style learner: ``algo=isodream_v2`` at the library's settings, ``isodream_paper`` at the
+    paper's."""
     from isodream_rl.modules import WorldModelConfig
     from isodream_rl.modules.config import PAPER_EXACT
     from isodream_rl.objectives.world_model import PAPER_WEIGHTS
     from isodream_rl.trainers.builders import make_world_model_loss
 
-    defaults = make_world_model_loss(composed("env=sprites", "size=tiny"), action_dim=2)
+    defaults = make_world_model_loss(composed("env=sprites", "size=tiny", "algo=isodream_v2"), action_dim=2)
     library = WorldModelConfig(action_dim=2)
     for name in PAPER_EXACT:
         assert getattr(defaults.world_model.config, name) == getattr(library, name)
@@ -167,6 +170,36 @@ def test_impossible_combination_says_what_to_change():
     cfg = composed("algo=dreamerv2", "algo.policy_input=attention")
     with pytest.raises(ConfigError, match="set algo.policy_input=controllable or algo.free_branch=true"):
         validate_config(cfg)
+
+
+def test_the_former_name_of_the_default_is_refused_naming_the_new_one():
+    from isodream_rl.cli_overrides import check_overrides
+
+    message = r"algo=isodream_v3 is now algo=isodream \(.*the DreamerV2-style learner is algo=isodream_v2\)"
+    with pytest.raises(ConfigError, match=message):
+        check_overrides(["algo=isodream_v3", "size=tiny"])
+    cfg = composed("algo.name=isodream_v3")  # the field itself: validate_config refuses it
+    with pytest.raises(ConfigError, match=message):
+        validate_config(cfg)
+
+
+def test_a_config_saved_before_the_default_became_dreamer_v3s_learner_reads_back_under_todays_names():
+    import dataclasses
+
+    from isodream_rl.trainers.config import config_from_dict
+
+    saved = dataclasses.asdict(composed("algo=isodream"))
+    saved["algo"]["name"] = "isodream_v3"  # Iso-Dream on DreamerV3's learner, as it was named
+    assert config_from_dict(saved).algo.name == "isodream"
+    world_model = dataclasses.asdict(composed("exp=world_model"))
+    world_model["algo"]["name"] = (
+        "isodream"  # mode=world_model trained the DreamerV2-style model under that name
+    )
+    assert config_from_dict(world_model).algo.name == "isodream_v2"
+    assert (
+        config_from_dict(dataclasses.asdict(composed("exp=world_model_dreamerv2"))).algo.name == "dreamerv2"
+    )
+    assert config_from_dict(dataclasses.asdict(composed())).algo.name == "isodream"  # mode=rl: as saved
 
 
 def test_unknown_group_option_fails_listing_the_valid_options():

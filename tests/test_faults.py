@@ -377,7 +377,7 @@ def test_resume_with_another_algorithm_is_refused_before_writing(finished_run, t
     )
     cfg.algo.policy_input = "controllable"
     with pytest.raises(
-        ConfigError, match=r"algo.free_branch: True -> False.*algo.name: 'isodream' -> 'dreamerv2'"
+        ConfigError, match=r"algo.free_branch: True -> False.*algo.name: 'isodream_v2' -> 'dreamerv2'"
     ) as error:
         train(cfg)
     said(error.value)
@@ -977,6 +977,10 @@ CLI_ERRORS = {
         ["size=huge"],
         "size group has no config 'huge'; valid: bench, paper, quickstart, small, tiny",
     ),
+    "algo=isodream_v3": (
+        ["algo=isodream_v3"],
+        r"algo=isodream_v3 is now algo=isodream \(.*the DreamerV2-style learner is algo=isodream_v2\)",
+    ),
     "env.factory with float pixels in [0, 255]": (
         ["env.factory=tests.test_faults:float_pixel_sprites"],
         r"env.factory=.*float 'pixels' must be in \[0, 1\].*got values in \[0, 255\]: divide .* by 255",
@@ -1078,7 +1082,7 @@ def test_train_cli_refuses_a_used_run_dir_before_hydra_writes(finished_run, tmp_
     assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr[-2000:]
     line = out.stderr.strip().splitlines()[-1]
     assert line.startswith("isodream-train: resume=true continues the run in run")
-    assert "algo.name: 'isodream' -> 'dreamerv2'" in line
+    assert "algo.name: 'isodream_v2' -> 'dreamerv2'" in line
     assert snapshot(run_dir) == before
     debug = run_command("isodream_rl.cli", ["size=tiny", "run_dir=run", "--debug"], tmp_path)
     assert debug.returncode != 0 and "Traceback" in debug.stderr

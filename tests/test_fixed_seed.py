@@ -2,8 +2,9 @@
 computes fails here.
 
 Three tiny runs composed through the CLI's config (``size=tiny`` and a few cadence overrides, nothing that names a
-model field, so moving a setting to another home keeps the run the same): ``mode=rl`` with Iso-Dream and with the
-DreamerV2 baseline (60 env steps: 2 updates after the prefill), and ``mode=world_model`` (3 updates). Recorded in
+model field, so moving a setting to another home keeps the run the same): ``mode=rl`` with Iso-Dream on the
+DreamerV2-style learner (``algo=isodream_v2``, recorded when it was ``algo=isodream``) and with the DreamerV2
+baseline (60 env steps: 2 updates after the prefill), and ``mode=world_model`` (3 updates). Recorded in
 ``tests/data/fixed_seed.json`` by::
 
     python tests/test_fixed_seed.py --write
@@ -40,7 +41,7 @@ RL = [
     "logging.progress_bar=false",
 ]
 RUNS = {
-    "rl_isodream": ["algo=isodream", *RL],
+    "rl_isodream_v2": ["algo=isodream_v2", *RL],
     "rl_dreamerv2": ["algo=dreamerv2", *RL],
     "world_model": [
         "exp=world_model",

@@ -1,8 +1,9 @@
-"""``algo=isodream_v3``: Iso-Dream's decomposition on TorchRL's DreamerV3 learner.
+"""``algo=isodream`` (the default): Iso-Dream's decomposition on TorchRL's DreamerV3 learner.
 
 The decomposition's properties (masks, an action-free branch, inverse dynamics that reach the controllable branch
 only, the sliding window that is the paper's ``L + tau`` chain), the TorchRL composition (losses, optimisers, keys),
-the acting policy, and a run that trains, evaluates and resumes exactly."""
+the acting policy, a run that trains, evaluates and resumes exactly, and the ablations (``isodream_no_inverse``,
+``isodream_no_static``, ``isodream_no_attention``): the same learner without their part."""
 
 import json
 import math
@@ -22,11 +23,11 @@ from isodream_rl.modules.world_model_v3 import IsoDreamV3Config
 from isodream_rl.trainers import ConfigError, train, validate_config
 from isodream_rl.trainers.isodream_v3 import IsoDreamV3Components, isodream_v3_config
 from isodream_rl.trainers.openloop import open_loop_prediction
-from isodream_rl.trainers.registry import components_builder
+from isodream_rl.trainers.registry import components_builder, make_components
 from tests.test_torchrl_dreamer import A, B, T, env_batch, replay_batch, tiny_config
-from tests.test_torchrl_dreamer_v3 import assert_resume_is_exact
+from tests.test_torchrl_dreamer_v3 import assert_resume_is_exact, composed
 
-ALGO = "isodream_v3"
+ALGO = "isodream"
 
 
 def v3_config(tmp_path, **train_changes):
@@ -195,8 +196,38 @@ class TestComposition:
             isodream_v3_config(cfg, action_dim=A)
         cfg = v3_config(tmp_path)
         cfg.mode = "world_model"
-        with pytest.raises(ConfigError, match="not algo=isodream_v3's"):
+        with pytest.raises(ConfigError, match="not algo=isodream's: pick algo=isodream_v2"):
             validate_config(cfg)
+
+
+@pytest.mark.parametrize(
+    "algo, removed",
+    [
+        ("isodream", None),
+        ("isodream_no_inverse", "inverse_dynamics"),
+        ("isodream_no_static", "static_branch"),
+        ("isodream_no_attention", "attention"),
+    ],
+)
+def test_each_ablation_is_the_default_without_its_part_and_updates(tmp_path, algo, removed):
+    """``isodream-train algo=<ablation> size=tiny`` builds DreamerV3's learner without the ablated part, and one
+    update of it gives finite losses."""
+    window = [f"train.sequence_length={T}", f"train.batch_size={B}", f"logging.video_length={T}"]
+    cfg = composed(f"algo={algo}", "size=tiny", *window)
+    validate_config(cfg)
+    parts = make_components(cfg, action_dim=A, scratch_dir=tmp_path)
+    assert isinstance(parts, IsoDreamV3Components) and parts.algo == algo
+    config = parts.world_model.config
+    switches = ("free_branch", "static_branch", "inverse_dynamics")
+    assert {name: getattr(config, name) for name in switches} == {name: name != removed for name in switches}
+    modes = {m.mode for m in parts.learner.actor.modules() if isinstance(m, PolicyFeaturesV3)}
+    assert modes == {"controllable" if removed == "attention" else "attention"}
+    assert ("background" in parts.world_model(model_batch(parts)).keys()) == (removed != "static_branch")
+    metrics = parts.stepper.step(None, replay_batch())
+    assert ("loss_model_inverse" in metrics.keys()) == (removed != "inverse_dynamics")
+    losses = [key for key in metrics.keys() if key.startswith("loss_")]
+    assert "loss_actor" in losses and all(math.isfinite(float(metrics[key])) for key in losses)
+    assert metrics["nonfinite_skipped"] == 0
 
 
 class TestPolicy:

@@ -77,8 +77,9 @@ def test_the_cli_probes_a_world_model_run_on_its_scene_and_writes_json(tmp_path)
 
 
 def test_the_cli_probes_the_world_model_of_a_reinforcement_learning_run(tmp_path):
-    overrides = ["size=tiny", "train.threads=1", "train.total_steps=20", "train.prefill_steps=10"]
-    overrides += ["logging.progress_bar=false"]
+    # the DreamerV2-style learner: the probe reads its world model (the default's is DreamerV3's)
+    overrides = ["algo=isodream_v2", "size=tiny", "train.threads=1", "train.total_steps=20"]
+    overrides += ["train.prefill_steps=10", "logging.progress_bar=false"]
     overrides += ["train.frames_per_batch=10", "logging.final_eval_episodes=0", f"run_dir={tmp_path}"]
     train(composed(*overrides))
     scores = probe_run([str(tmp_path), "--episodes", "2"])  # windows of train.sequence_length (10) steps

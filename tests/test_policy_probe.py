@@ -1,6 +1,6 @@
 """``bench/policy_probe.py`` on a tiny sprites reach run: the imagined against the real reaches and the slow
 value against the true potential come out with values in range, for the DreamerV2-style Iso-Dream components and
-for the two DreamerV3-learner algorithms (``algo=isodream_v3``, ``torchrl_dreamer_v3``)."""
+for the DreamerV3-learner algorithms (``algo=isodream``, ``torchrl_dreamer_v3``)."""
 
 import json
 import math
@@ -44,7 +44,7 @@ def test_reach_rates_count_steps_above_the_threshold_against_real_reaches():
     assert probe.reach_rates(dreamt, np.zeros(6, dtype=bool))["reach_recall"] is None
 
 
-@pytest.mark.parametrize("algo", ["isodream", "dreamerv2"])
+@pytest.mark.parametrize("algo", ["isodream_v2", "dreamerv2"])
 def test_probe_reports_reaches_and_value_against_potential(tmp_path, algo):
     changes = DREAMERV2 if algo == "dreamerv2" else {}
     cfg = tiny_run_config(tmp_path / "run", train__total_steps=30, **changes)
@@ -101,20 +101,21 @@ def in_range_or_nan(x, low=-1.0, high=1.0) -> bool:
 
 
 def test_the_learner_follows_the_algo():
-    for algo in ("isodream", "dreamerv2", "isodream_paper"):
+    for algo in ("isodream_v2", "dreamerv2", "isodream_paper"):
         assert type(probe.probe_learner(None, algo)) is probe.DreamerV2Learner
-    for algo in ("isodream_v3", "torchrl_dreamer_v3"):
+    for algo in ("isodream", "isodream_no_inverse", "isodream_no_attention", "isodream_no_static"):
         assert type(probe.probe_learner(None, algo)) is probe.DreamerV3Learner
+    assert type(probe.probe_learner(None, "torchrl_dreamer_v3")) is probe.DreamerV3Learner
 
 
-@pytest.mark.parametrize("algo", probe.DREAMER_V3_ALGOS)
+@pytest.mark.parametrize("algo", ["isodream", "torchrl_dreamer_v3"])
 def test_probe_reports_imagined_and_real_reaches_of_a_dreamer_v3_learner(tmp_path, algo):
     from tests.test_isodream_v3 import v3_config
     from tests.test_torchrl_dreamer import tiny_config
 
     steps = {"prefill_steps": 10, "frames_per_batch": 10, "total_steps": 30}
     run = tmp_path / "run"
-    cfg = v3_config(run, **steps) if algo == "isodream_v3" else tiny_config(run, algo, **steps)
+    cfg = v3_config(run, **steps) if algo == "isodream" else tiny_config(run, algo, **steps)
     cfg.logging.final_eval_episodes = 0
     assert train(cfg).updates >= 1
 

@@ -9,8 +9,10 @@ from pathlib import Path
 import pytest
 
 from isodream_rl.trainers.components import RunComponents
-from isodream_rl.trainers.config import ALGO_NAMES
+from isodream_rl.trainers.config import ALGO_NAMES, ConfigError
+from isodream_rl.trainers.isodream_v3 import IsoDreamV3Components
 from isodream_rl.trainers.registry import ALGORITHMS, components_builder, register_algorithm
+from isodream_rl.trainers.world_model_config import DREAMER_V3_ISODREAM
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -21,8 +23,26 @@ def test_the_baselines_register_themselves_when_imported():
     assert components_builder("torchrl_dreamer") is TorchRLDreamerComponents
     assert components_builder("torchrl_dreamer_v3") is TorchRLDreamerV3Components
     assert set(ALGO_NAMES) <= set(ALGORITHMS)
-    # Iso-Dream's variants, and a name of the user's own (informational: the algo fields set the variant)
+    # the DreamerV2-style variants, and a name of the user's own (informational: the algo fields set the variant)
     assert components_builder("dreamerv2") is components_builder("my_variant") is RunComponents
+
+
+def test_the_default_and_its_ablations_are_dreamer_v3s_learner_and_isodream_v2_the_dreamerv2_style_one():
+    assert DREAMER_V3_ISODREAM == (
+        "isodream",
+        "isodream_no_inverse",
+        "isodream_no_attention",
+        "isodream_no_static",
+    )
+    for name in DREAMER_V3_ISODREAM:
+        assert components_builder(name) is IsoDreamV3Components, name
+    for name in ("isodream_v2", "isodream_paper", "dreamerv2"):
+        assert components_builder(name) is RunComponents, name
+
+
+def test_the_former_name_of_the_default_is_refused_naming_the_new_one():
+    with pytest.raises(ConfigError, match=r"algo=isodream_v3 is now algo=isodream \(.*algo=isodream_v2\)"):
+        components_builder("isodream_v3")
 
 
 def test_a_name_is_registered_once():

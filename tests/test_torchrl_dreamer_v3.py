@@ -81,8 +81,9 @@ class TestComposition:
 
     @pytest.mark.parametrize("size", ["bench", "small"])
     def test_world_model_has_isodreams_parameter_count(self, size):
-        """Matched to Iso-Dream's three-branch world model: 1.84 M vs 1.87 M at bench, 7.15 M vs 6.74 M at small."""
-        ours = composed(f"size={size}", "algo=isodream")
+        """Matched to the DreamerV2-style learner's three-branch world model: 1.84 M vs 1.87 M at bench, 7.15 M vs
+        6.74 M at small."""
+        ours = composed(f"size={size}", "algo=isodream_v2")
         ours_count = sum(
             p.numel() for p in make_world_model_loss(ours, action_dim=A).world_model.parameters()
         )

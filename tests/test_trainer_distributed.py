@@ -19,6 +19,7 @@ from isodream_rl.trainers.config import world_model_overrides
 
 CONFIGS = Path(isodream_rl.cli.__file__).parent / "configs"
 TINY = [
+    "algo=isodream_v2",  # the learner these collectors were checked with
     "size=tiny",
     "train.threads=1",
     "logging.progress_bar=false",

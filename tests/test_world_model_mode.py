@@ -24,6 +24,7 @@ from isodream_rl.trainers import (
     CheckpointManager,
     ConfigError,
     IsoDreamOptimizationStepper,
+    validate_config,
     world_model_run,
 )
 from isodream_rl.trainers import run as run_module
@@ -109,7 +110,7 @@ def test_the_world_model_exp_holds_the_demos_defaults():
         cfg = OmegaConf.to_object(compose(config_name="config", overrides=["exp=world_model"]))
     assert cfg.mode == "world_model" and cfg.run_dir == "runs/world_model"
     assert (cfg.train.batch_size, cfg.train.sequence_length, cfg.train.world_model_lr) == (8, 16, 1e-3)
-    assert (cfg.model.size, cfg.algo.name, cfg.model.world_model_fields()) == ("small", "isodream", {})
+    assert (cfg.model.size, cfg.algo.name, cfg.model.world_model_fields()) == ("small", "isodream_v2", {})
     wm = cfg.world_model
     assert (wm.updates, wm.episodes, wm.episode_length, wm.held_out_episodes) == (3000, 60, 96, 4)
     assert (wm.action_hold, wm.probe_episodes) == (8, 32)
@@ -117,6 +118,17 @@ def test_the_world_model_exp_holds_the_demos_defaults():
     assert (cfg.logging.log_every, cfg.logging.eval_every) == (20, 200)
     # the demo's loss: reward head on [s, h] at weight 1 (the sprites RL preset's are (s, z) and 2)
     assert (cfg.algo.reward_uses_free, cfg.algo.lambda_reward, cfg.algo.lambda_inverse) == (False, 1.0, 30.0)
+
+
+def test_without_an_exp_mode_world_model_needs_an_algo_whose_world_model_it_trains():
+    """The default algo is Iso-Dream on DreamerV3's learner, whose world model this mode does not train: the
+    error names the algos to give (the exp files give one)."""
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        cfg = OmegaConf.to_object(compose(config_name="config", overrides=["mode=world_model"]))
+    with pytest.raises(
+        ConfigError, match="not algo=isodream's: pick algo=isodream_v2, algo=isodream_paper, algo=dreamerv2"
+    ):
+        validate_config(cfg)
 
 
 def test_held_random_actions_make_the_agent_travel():
@@ -223,6 +235,7 @@ def test_how_often_it_evaluates_does_not_change_the_training(tmp_path):
 def test_any_env_of_the_env_group_trains_and_is_scored_where_it_has_ground_truth(tmp_path, env):
     overrides = [
         "mode=world_model",
+        "algo=isodream_v2",
         *env,
         "size=tiny",
         "train.threads=1",

@@ -22,14 +22,16 @@ Widths. DreamerV3 scales with one knob, as its presets ``size1m`` ... ``size400m
 layers, reward and continuation heads), ``deter = 8 hidden`` (GRU state), 32 categoricals of ``hidden / 16``
 classes, image depth ``hidden / 16``. Here ``hidden = 1.875 x`` our preset's ``hidden_dim`` (rounded to a
 multiple of 8), fitted so that the DreamerV3 world model has as many parameters as Iso-Dream's three-branch
-world model (``algo=isodream``, sprites, 2 actions), at ``size=bench`` and ``size=small``: -1.5 % and +6.0 %.
+world model of the DreamerV2-style learner (``algo=isodream_v2``, sprites, 2 actions; ``isodream`` in the
+update-speed JSONs measured before ``algo=isodream`` became DreamerV3's learner), at ``size=bench`` and
+``size=small``: -1.5 % and +6.0 %.
 Actor and value are ``model.actor_units`` / ``model.value_units`` wide, 3 hidden layers each, on
 ``[belief, state]`` (1216 features at bench, where DreamerV2's read 96): wider first layers than ours. Trained
 parameters (world model / actor / value; the slow critic is not counted, Iso-Dream's value includes the
 attention):
 
 =========  ======  ==============================  =================================  ========================
-size       hidden  torchrl_dreamer_v3              isodream                           dreamerv2 world model
+size       hidden  torchrl_dreamer_v3              isodream_v2                        dreamerv2 world model
 =========  ======  ==============================  =================================  ========================
 ``bench``  120     1.840 M / 0.190 M / 0.222 M     1.869 M / 0.062 M / 0.070 M        0.443 M
 ``small``  240     7.147 M / 0.748 M / 0.813 M     6.745 M / 0.240 M / 0.338 M        1.472 M

@@ -1,6 +1,6 @@
-"""DreamerV3's behaviour learner (``algo=isodream_v3``) on :class:`~isodream_rl.evaluation.ExactSpritesModel`.
+"""DreamerV3's behaviour learner (``algo=isodream``) on :class:`~isodream_rl.evaluation.ExactSpritesModel`.
 
-:func:`make_exact_model_v3_behavior` puts the learner of ``algo=isodream_v3`` on the exact model of sprites
+:func:`make_exact_model_v3_behavior` puts the learner of ``algo=isodream`` on the exact model of sprites
 ``reach``: the actor and the two-hot critic of :func:`~isodream_rl.modules.behavior_v3.make_actor_v3` /
 :func:`~isodream_rl.modules.behavior_v3.make_value_v3` on the model's ``[s, h]`` (policy input
 ``"controllable"``: the model has no noncontrollable branch), and the losses of
@@ -150,7 +150,7 @@ def make_exact_model_v3_behavior(
     horizon: int = 15,
     settings: DreamerV3Settings = DreamerV3Settings(),
 ) -> ExactModelV3Behavior:
-    """``algo=isodream_v3``'s actor, critic and losses on the exact model (module docstring).
+    """``algo=isodream``'s actor, critic and losses on the exact model (module docstring).
 
     Args:
         model: the exact model (its ``reward_error`` is read at every step).

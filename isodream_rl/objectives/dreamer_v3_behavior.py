@@ -2,7 +2,7 @@
 with DreamerV3's settings, and the slow critic's ``SoftUpdate``.
 
 :func:`make_dreamer_v3_behavior` composes them as :func:`~isodream_rl.objectives.isodream_v3.make_isodream_v3`
-(``algo=isodream_v3``) and :func:`~isodream_rl.baselines.torchrl_dreamer_v3.make_torchrl_dreamer_v3`
+(``algo=isodream``) and :func:`~isodream_rl.baselines.torchrl_dreamer_v3.make_torchrl_dreamer_v3`
 (``algo=torchrl_dreamer_v3``) do: REINFORCE with the 5th-95th percentile return normalisation, the entropy bonus
 on normalised returns, TD(lambda) with ``gamma = 1`` (the continuation model's probabilities discount), a two-hot
 critic with the slow-critic regulariser. It takes the actor, the critic, the imagination ``DreamerEnv`` and the

@@ -14,7 +14,12 @@ from typing import Any
 
 from isodream_rl.modules.config import DREAMERV2, PAPER_EXACT, SIZE_PRESETS, WorldModelConfig
 from isodream_rl.objectives.world_model import FREE_BRANCH_MODES, LOSS_WEIGHTS, PAPER_WEIGHTS
-from isodream_rl.trainers.world_model_config import MODES, WorldModelModeConfig, world_model_mode_errors
+from isodream_rl.trainers.world_model_config import (
+    DREAMER_V3_ISODREAM,
+    MODES,
+    WorldModelModeConfig,
+    world_model_mode_errors,
+)
 
 POLICY_INPUTS = ("controllable", "attention", "concat")
 COLLECTOR_BACKENDS = ("sync", "multiprocess", "ray", "distributed")
@@ -26,10 +31,11 @@ _ALL_BRANCHES = {"free_branch": True, "static_branch": True, "inverse_dynamics":
 #: The branch switches of each ``algo=<name>`` preset: their one home (the algo YAML files set the other
 #: fields). ``AlgoConfig``'s switches left ``None`` take these (:func:`resolve_algo`); a name not here takes
 #: ``isodream``'s. The single-branch ones are DreamerV2's (:data:`~isodream_rl.modules.config.DREAMERV2`).
+#: Which learner each name builds: :data:`~isodream_rl.trainers.world_model_config.DREAMER_V3_ISODREAM`.
 ALGO_BRANCHES: dict[str, dict[str, bool]] = {
     "isodream": _ALL_BRANCHES,
+    "isodream_v2": _ALL_BRANCHES,
     "isodream_paper": _ALL_BRANCHES,
-    "isodream_v3": _ALL_BRANCHES,
     "dreamerv2": DREAMERV2,
     "isodream_no_inverse": {**_ALL_BRANCHES, "inverse_dynamics": False},
     "isodream_no_attention": _ALL_BRANCHES,
@@ -38,6 +44,15 @@ ALGO_BRANCHES: dict[str, dict[str, bool]] = {
     "torchrl_dreamer_v3": DREAMERV2,
 }
 ALGO_NAMES = tuple(ALGO_BRANCHES)
+#: ``old name -> (new name, why)`` of the ``algo`` presets that were renamed: ``algo=<old>`` is refused with a
+#: message naming the new one (:func:`renamed_algo_error`), and a configuration saved under the old name (a
+#: checkpoint, ``run_config.json``) is read under the new one (:func:`config_from_dict`).
+RENAMED_ALGOS: dict[str, tuple[str, str]] = {
+    "isodream_v3": (
+        "isodream",
+        "Iso-Dream on DreamerV3's learner became the default; the DreamerV2-style learner is algo=isodream_v2",
+    ),
+}
 
 
 class ConfigError(ValueError):
@@ -111,7 +126,10 @@ class AlgoConfig:
     """The algorithm variant: which branches exist, how they learn and what the policy reads."""
 
     name: str = "isodream"
-    """Preset name, one of ``ALGO_NAMES`` (informational once the fields are set)."""
+    """Preset name, one of ``ALGO_NAMES``; it picks the learner (:mod:`isodream_rl.trainers.registry`):
+    Iso-Dream on DreamerV3's learner for ``isodream`` and its ablations
+    (:data:`~isodream_rl.trainers.world_model_config.DREAMER_V3_ISODREAM`), the DreamerV2-style one for
+    ``isodream_v2``, ``isodream_paper``, ``dreamerv2`` and a name of your own; the other fields set the variant."""
     free_branch: bool | None = None
     """The action-free (noncontrollable) branch (``None``: the preset's, :data:`ALGO_BRANCHES`)."""
     static_branch: bool | None = None
@@ -307,6 +325,15 @@ def resolve_algo(algo: AlgoConfig) -> AlgoConfig:
     return algo
 
 
+def renamed_algo_error(name: str) -> str | None:
+    """Why ``algo=name`` is refused when ``name`` is a former preset name (:data:`RENAMED_ALGOS`), with the name to
+    give instead; ``None`` for any other name."""
+    if name not in RENAMED_ALGOS:
+        return None
+    new_name, why = RENAMED_ALGOS[name]
+    return f"algo={name} is now algo={new_name} ({why})"
+
+
 def _choice(errors: list[str], name: str, value, valid) -> None:
     if value not in valid:
         errors.append(f"{name}={value!r} is not one of {list(valid)}")
@@ -344,6 +371,9 @@ def validate_config(cfg: RunConfig) -> None:
     """
     errors: list[str] = []
     _choice(errors, "mode", cfg.mode, MODES)
+    renamed = renamed_algo_error(cfg.algo.name)
+    if renamed:
+        errors.append(renamed)
     unusable = device_error(cfg.train.device)
     if unusable:
         errors.append(unusable)
@@ -504,11 +534,21 @@ def validate_config(cfg: RunConfig) -> None:
 FORMER_BEHAVIOUR = {("algo", "actor_loc_penalty"): 0.0}
 
 
+def _saved_algo_name(name: str, *, mode: str) -> str:
+    """The name today of the ``algo.name`` of a configuration saved with ``mode``: a renamed preset's new name
+    (:data:`RENAMED_ALGOS`); in ``mode=world_model``, which trains the DreamerV2-style world model whatever the
+    name, ``isodream_v2`` for a name that is now Iso-Dream on DreamerV3's learner (a run saved before
+    ``algo=isodream`` became it; its branch switches were saved with it)."""
+    name = RENAMED_ALGOS.get(name, (name,))[0]
+    return "isodream_v2" if mode == "world_model" and name in DREAMER_V3_ISODREAM else name
+
+
 def config_from_dict(data: dict) -> RunConfig:
     """Rebuild a :class:`RunConfig` from ``dataclasses.asdict`` output (as stored in checkpoints and
     ``run_config.json``); fields added since it was written take their defaults, except those of
     :data:`FORMER_BEHAVIOUR`, which take the value the run was trained with; a ``model.overrides`` dict (written
-    before the ``model`` section had the world model's fields) sets those fields."""
+    before the ``model`` section had the world model's fields) sets those fields; an ``algo.name`` saved before a
+    rename is read as its name today (:func:`_saved_algo_name`)."""
     import dataclasses
 
     sections = {f.name: f.type for f in dataclasses.fields(RunConfig)}
@@ -522,6 +562,8 @@ def config_from_dict(data: dict) -> RunConfig:
             value = {**former, **value}
         if name == "model" and isinstance(value, dict) and "overrides" in value:  # before model.<field>
             value = {**value["overrides"], **{key: v for key, v in value.items() if key != "overrides"}}
+        if name == "algo" and isinstance(value, dict) and "name" in value:
+            value = {**value, "name": _saved_algo_name(value["name"], mode=data.get("mode", "rl"))}
         kwargs[name] = section_type(**value) if isinstance(value, dict) and section_type else value
     return RunConfig(**kwargs)
 

@@ -4,10 +4,12 @@
 exact model of sprites ``reach`` and trains it as a real run does, optionally with an early fixed-direction
 reward error:
 
-- the DreamerV2-style learner (every ``algo`` but ``isodream_v3``): :func:`~isodream_rl.trainers.builders.make_behavior`
-  (the actor, value, losses and their settings, as a real run has them), trained the way
+- the DreamerV2-style learner (``algo=isodream_v2``, ``isodream_paper``, ``dreamerv2``: every ``algo`` not in
+  :data:`~isodream_rl.trainers.world_model_config.DREAMER_V3_ISODREAM`):
+  :func:`~isodream_rl.trainers.builders.make_behavior` (the actor, value, losses and their settings, as a real run has them), trained the way
   :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` does after its world-model step;
-- ``algo=isodream_v3``, DreamerV3's learner: :func:`~isodream_rl.evaluation.exact_sprites_v3.make_exact_model_v3_behavior`
+- ``algo=isodream`` (the default) and its ablations, DreamerV3's learner:
+  :func:`~isodream_rl.evaluation.exact_sprites_v3.make_exact_model_v3_behavior`
   (the actor and two-hot critic of ``make_actor_v3`` / ``make_value_v3``, ``DreamerV3ActorLoss`` (REINFORCE)
   and ``DreamerV3ValueLoss`` with DreamerV3's settings, the exact continuation ``1 - 1/333``), a
   ``DreamerV3Optimizer`` per group (:func:`~isodream_rl.trainers.dreamer_v3.make_dreamer_v3_optimizers`) and
@@ -39,9 +41,7 @@ from isodream_rl.trainers.builders import make_adam, make_behavior
 from isodream_rl.trainers.config import RunConfig
 from isodream_rl.trainers.dreamer_v3 import make_dreamer_v3_optimizers
 from isodream_rl.trainers.stepper import loss_sum
-
-#: The algo whose behavior is DreamerV3's learner; every other algo's is the DreamerV2-style one.
-DREAMER_V3_ALGO = "isodream_v3"
+from isodream_rl.trainers.world_model_config import DREAMER_V3_ISODREAM
 
 
 @dataclass
@@ -88,8 +88,9 @@ def train_behavior_on_exact_model(
     real run: ``B * T = 512`` at ``size=bench``) and steps the actor and the value (+ policy input) optimisers on
     the sum of their losses, then the slow value target, as the run's stepper does after its world-model step:
     Adam clipped at ``cfg.train.grad_clip`` and the hard copy every ``algo.slow_target_every`` updates
-    (:class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper`), or with ``cfg.algo.name ==
-    "isodream_v3"`` DreamerV3's optimisers (adaptive clipping, learning-rate warm-up) and the slow critic's
+    (:class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper`), or with ``cfg.algo.name`` in
+    :data:`~isodream_rl.trainers.world_model_config.DREAMER_V3_ISODREAM` (``algo=isodream``, the default, and its
+    ablations) DreamerV3's optimisers (adaptive clipping, learning-rate warm-up) and the slow critic's
     ``SoftUpdate`` (:class:`~isodream_rl.trainers.dreamer_v3.DreamerV3OptimizationStepper`; module docstring).
     For the first ``error_updates`` updates the model's reward carries ``reward_error`` along
     ``error_direction``. Every ``eval_every`` updates (and after the last) the deterministic policy (the actor's
@@ -98,7 +99,7 @@ def train_behavior_on_exact_model(
     Args:
         cfg: the run's settings; ``cfg.algo.policy_input`` must be ``"controllable"`` (the model has no
             noncontrollable branch). Its behavior settings, widths and learning rates are used as they are
-            (``algo=isodream_v3``: ``model.actor_units`` / ``value_units``, ``algo.horizon``,
+            (DreamerV3's learner: ``model.actor_units`` / ``value_units``, ``algo.horizon``,
             ``train.actor_lr`` / ``value_lr``; DreamerV3's ``settings`` replace the rest).
         updates: behavior updates.
         batch: start states per update.
@@ -107,8 +108,9 @@ def train_behavior_on_exact_model(
         seed: seeds torch (the networks and the imagined actions) and the model's starts.
         model_kwargs: extra :class:`ExactSpritesModel` arguments (``sprite_size`` ...).
         progress: print one line per evaluation.
-        settings: DreamerV3's settings of ``algo=isodream_v3`` (``None``: the library's,
-            :class:`~isodream_rl.modules.dreamer_v3.DreamerV3Settings`); the other algos do not read them.
+        settings: DreamerV3's settings (``None``: the library's,
+            :class:`~isodream_rl.modules.dreamer_v3.DreamerV3Settings`); the DreamerV2-style learner does not read
+            them.
     """
     if cfg.algo.policy_input != "controllable":
         raise ValueError(
@@ -119,11 +121,7 @@ def train_behavior_on_exact_model(
     model = ExactSpritesModel(
         reward_error=reward_error, error_direction=error_direction, seed=seed, **(model_kwargs or {})
     )
-    learner = (
-        _dreamer_v3_learner(cfg, model, settings or DreamerV3Settings())
-        if cfg.algo.name == DREAMER_V3_ALGO
-        else _dreamer_v2_learner(cfg, model)
-    )
+    learner = exact_model_learner(cfg, model, settings=settings)
     actor_loss, value_loss, optimizers = learner.actor_loss, learner.value_loss, learner.optimizers
     result = ExactModelResult()
     result.scripted_return, result.constant_return = reference_returns(model, episodes=eval_episodes)
@@ -176,7 +174,7 @@ def train_behavior_on_exact_model(
 
 
 @dataclass
-class _Learner:
+class ExactModelLearner:
     """What the loop of :func:`train_behavior_on_exact_model` steps: the losses, an optimiser per group (its
     gradients clipped at ``grad_clip`` first), the slow value's updater and the deterministic policy
     ``policy(state, belief) -> action``."""
@@ -191,14 +189,25 @@ class _Learner:
     """Where the actor loss reads the start states (the DreamerV2-style loss: the posteriors' ``next`` keys)."""
 
 
-def _dreamer_v2_learner(cfg: RunConfig, model: ExactSpritesModel) -> _Learner:
+def exact_model_learner(
+    cfg: RunConfig, model: ExactSpritesModel, *, settings: DreamerV3Settings | None = None
+) -> ExactModelLearner:
+    """The behavior learner of ``cfg.algo.name`` on ``model`` (module docstring): DreamerV3's for ``algo=isodream``
+    and its ablations (:data:`~isodream_rl.trainers.world_model_config.DREAMER_V3_ISODREAM`; ``settings``:
+    DreamerV3's, ``None`` for the library's), the DreamerV2-style one for every other name."""
+    if cfg.algo.name in DREAMER_V3_ISODREAM:
+        return _dreamer_v3_learner(cfg, model, settings or DreamerV3Settings())
+    return _dreamer_v2_learner(cfg, model)
+
+
+def _dreamer_v2_learner(cfg: RunConfig, model: ExactSpritesModel) -> ExactModelLearner:
     """The run's DreamerV2-style behavior (``make_behavior``), Adam per group clipped at ``train.grad_clip``, the
     actor's mode as the policy."""
     behavior = make_behavior(cfg, model)
     actor_loss, value_loss = behavior.actor_loss, behavior.value_loss
     actor = actor_loss.actor
     train = cfg.train
-    return _Learner(
+    return ExactModelLearner(
         actor_loss=actor_loss,
         value_loss=value_loss,
         optimizers={
@@ -211,10 +220,12 @@ def _dreamer_v2_learner(cfg: RunConfig, model: ExactSpritesModel) -> _Learner:
     )
 
 
-def _dreamer_v3_learner(cfg: RunConfig, model: ExactSpritesModel, settings: DreamerV3Settings) -> _Learner:
-    """``algo=isodream_v3``'s behavior on the exact model, a ``DreamerV3Optimizer`` per group (its own adaptive
-    clipping: the loop only measures the norms, as ``DreamerV3OptimizationStepper``), the actor's mean
-    (``tanh(loc)``) as the policy."""
+def _dreamer_v3_learner(
+    cfg: RunConfig, model: ExactSpritesModel, settings: DreamerV3Settings
+) -> ExactModelLearner:
+    """``algo=isodream``'s behavior (DreamerV3's learner) on the exact model, a ``DreamerV3Optimizer`` per group
+    (its own adaptive clipping: the loop only measures the norms, as ``DreamerV3OptimizationStepper``), the
+    actor's mean (``tanh(loc)``) as the policy."""
     behavior = make_exact_model_v3_behavior(
         model,
         actor_units=cfg.model.actor_units,
@@ -229,7 +240,7 @@ def _dreamer_v3_learner(cfg: RunConfig, model: ExactSpritesModel, settings: Drea
             return actor(TensorDict({"state": state, "belief": belief}, state.shape[:-1]))["action"]
 
     train = cfg.train
-    return _Learner(
+    return ExactModelLearner(
         actor_loss=behavior.losses.actor_loss,
         value_loss=behavior.losses.value_loss,
         optimizers=make_dreamer_v3_optimizers(

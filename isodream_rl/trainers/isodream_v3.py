@@ -1,4 +1,5 @@
-"""The parts of an ``algo=isodream_v3`` run: Iso-Dream's decomposition on DreamerV3's learner.
+"""The parts of an ``algo=isodream`` run (the default, and its ablations ``isodream_no_inverse``,
+``isodream_no_attention``, ``isodream_no_static``): Iso-Dream's decomposition on DreamerV3's learner.
 
 The world model, actor and critic of :func:`~isodream_rl.objectives.isodream_v3.make_isodream_v3`, one
 ``DreamerV3Optimizer`` per parameter group (:func:`~isodream_rl.trainers.dreamer_v3.make_dreamer_v3_optimizers`)
@@ -79,7 +80,8 @@ def isodream_v3_config(
 
 
 class IsoDreamV3Components(RunComponents):
-    """Models, losses, optimisers, stepper and replay buffer of an ``algo=isodream_v3`` run (module docstring).
+    """Models, losses, optimisers, stepper and replay buffer of an ``algo=isodream`` run or one of its ablations
+    (module docstring).
 
     The interface of :class:`~isodream_rl.trainers.components.RunComponents`.
 
@@ -94,8 +96,6 @@ class IsoDreamV3Components(RunComponents):
         behavior (``policy``, ``actor_loss``, ``value_loss``), stepper, replay_buffer, preparation, returns.
     """
 
-    algo = "isodream_v3"
-
     def __init__(
         self,
         cfg: RunConfig,
@@ -105,6 +105,7 @@ class IsoDreamV3Components(RunComponents):
         settings: DreamerV3Settings = DreamerV3Settings(),
     ) -> None:
         train, model = cfg.train, cfg.model
+        self.algo = cfg.algo.name
         config = isodream_v3_config(cfg, action_dim=action_dim, settings=settings)
         self.learner: IsoDreamV3Learner = make_isodream_v3(
             config,

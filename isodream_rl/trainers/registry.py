@@ -1,8 +1,11 @@
 """The algorithms ``isodream-train`` can build, by ``algo.name``: a registry ``name -> components builder``.
 
-Iso-Dream, its ablations and the DreamerV2 baseline are :class:`~isodream_rl.trainers.components.RunComponents`,
-registered here; so is any other name (``algo.name`` is informational for them: the ``algo`` fields set the
-variant). An algorithm defined elsewhere registers its builder where it is defined, with
+Iso-Dream (the default) and its ablations are Iso-Dream on DreamerV3's learner,
+:class:`~isodream_rl.trainers.isodream_v3.IsoDreamV3Components`
+(:data:`~isodream_rl.trainers.world_model_config.DREAMER_V3_ISODREAM`); the DreamerV2-style learner
+(``isodream_v2``, ``isodream_paper``) and the DreamerV2 baseline are
+:class:`~isodream_rl.trainers.components.RunComponents`, registered here; so is any other name (``algo.name``
+is informational for them: the ``algo`` fields set the variant). An algorithm defined elsewhere registers its builder where it is defined, with
 :func:`register_algorithm` (in the spirit of SheepRL's ``@register_algorithm``); the TorchRL baselines of
 :mod:`isodream_rl.baselines` do so when they are imported, which ``isodream-train`` does::
 
@@ -19,9 +22,9 @@ from pathlib import Path
 from typing import Protocol, TypeVar
 
 from isodream_rl.trainers.components import RunComponents
-from isodream_rl.trainers.config import ALGO_NAMES, ConfigError, RunConfig
+from isodream_rl.trainers.config import ALGO_NAMES, ConfigError, RunConfig, renamed_algo_error
 from isodream_rl.trainers.isodream_v3 import IsoDreamV3Components
-from isodream_rl.trainers.world_model_config import TORCHRL_BASELINES
+from isodream_rl.trainers.world_model_config import DREAMER_V3_ISODREAM, TORCHRL_BASELINES
 
 
 class ComponentsBuilder(Protocol):
@@ -34,10 +37,10 @@ class ComponentsBuilder(Protocol):
 Builder = TypeVar("Builder", bound=ComponentsBuilder)
 
 #: ``algo.name -> builder`` of every algorithm registered so far
-ALGORITHMS: dict[str, ComponentsBuilder] = dict.fromkeys(
-    (name for name in ALGO_NAMES if name not in TORCHRL_BASELINES), RunComponents
-)
-ALGORITHMS["isodream_v3"] = IsoDreamV3Components
+ALGORITHMS: dict[str, ComponentsBuilder] = {
+    **dict.fromkeys((name for name in ALGO_NAMES if name not in TORCHRL_BASELINES), RunComponents),
+    **dict.fromkeys(DREAMER_V3_ISODREAM, IsoDreamV3Components),
+}
 
 #: the module that registers each algorithm defined outside the trainers, named when it is not registered yet
 DEFINED_IN = dict.fromkeys(TORCHRL_BASELINES, "isodream_rl.baselines")
@@ -66,10 +69,14 @@ def components_builder(name: str) -> ComponentsBuilder:
 
     Raises:
         ConfigError: ``name`` is an algorithm defined outside the trainers (:data:`DEFINED_IN`) whose module has
-            not been imported yet (the message names it).
+            not been imported yet (the message names it), or a former name
+            (:data:`~isodream_rl.trainers.config.RENAMED_ALGOS`; the message names the new one).
     """
     if name in ALGORITHMS:
         return ALGORITHMS[name]
+    renamed = renamed_algo_error(name)
+    if renamed:
+        raise ConfigError(f"invalid training configuration: {renamed}")
     if name in DEFINED_IN:
         raise ConfigError(
             f"invalid training configuration: algo.name={name!r} is not registered yet: it is registered when "

@@ -172,8 +172,9 @@ def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDream
         device: where the model goes.
 
     Raises:
-        CheckpointError: no readable checkpoint there, or one of a TorchRL baseline (``algo=torchrl_dreamer``,
-            ``torchrl_dreamer_v3``: another world model).
+        CheckpointError: no readable checkpoint there, or one of another world model
+            (:data:`~isodream_rl.trainers.world_model_config.OTHER_WORLD_MODELS`: TorchRL's baselines, Iso-Dream on
+            DreamerV3's learner).
     """
     path = Path(path)
     if path.is_file():
