@@ -16,7 +16,7 @@ from torchrl.envs.utils import ExplorationType, exploration_type
 
 from isodream_rl.modules.actor import IsoDreamActor
 from isodream_rl.modules.attention import PolicyInput
-from isodream_rl.modules.encoder import IMAGE_SHAPE, check_pixels
+from isodream_rl.modules.encoder import IMAGE_SHAPE, check_pixel_values, check_pixels
 from isodream_rl.modules.rssm import filter_step
 from isodream_rl.modules.world_model import IsoDreamWorldModel
 
@@ -69,7 +69,8 @@ def read_acting_inputs(
 class CarriedStatePolicy(TensorDictModuleBase):
     """An acting policy around a TorchRL acting sequence ``module`` that carries its recurrent state.
 
-    At each env step it reads uint8 ``pixels_key`` ``[*B, 3, 64, 64]``, ``"is_init"`` and the carried keys
+    At each env step it reads ``pixels_key`` ``[*B, 3, 64, 64]`` (uint8, or floats in [0, 1] that it turns into
+    uint8), ``"is_init"`` and the carried keys
     (``widths``' keys, ``[*B, width]``), flattens them over the env batch, lets :meth:`act` run ``module``, and
     writes only ``action_key`` and ``("next", key)`` for each carried key, following TorchRL's recurrent
     convention; prime the env with :meth:`make_tensordict_primer`. Runs without gradients, on the device of
@@ -133,7 +134,9 @@ class CarriedStatePolicy(TensorDictModuleBase):
             device=device,
         )
         if pixels.dtype != torch.uint8:
-            raise ValueError(f"{self.pixels_key!r} must be uint8 [*B, 3, 64, 64], got {pixels.dtype}")
+            # Float frames in [0, 1] (checked: one min/max) become the uint8 frames the acting sequences read.
+            check_pixel_values(pixels, name=repr(self.pixels_key))
+            pixels = pixels.mul(255.0).round_().to(torch.uint8)
         out_device = tensordict.device if tensordict.device is not None else pixels.device
         outputs = self.act(pixels.to(device), carried, reset)
         tensordict.set(self.action_key, outputs[self.action_key].to(out_device).reshape(*batch, -1))
