@@ -78,8 +78,8 @@ from isodream_rl.envs import make_env
 from isodream_rl.objectives import lambda_returns
 from isodream_rl.objectives.imagination import policy_features
 from isodream_rl.trainers.checkpoint import CheckpointManager
-from isodream_rl.trainers.config import config_from_dict
 from isodream_rl.trainers.registry import make_components
+from isodream_rl.trainers.saved_models import saved_run_config
 from isodream_rl.trainers.world_model_config import DREAMER_V3_ISODREAM
 
 #: an imagined step whose predicted reward exceeds this counts as a reach: a real reach step earns 1 plus its
@@ -212,11 +212,12 @@ def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(1)
     torch.manual_seed(args.seed)
     state, path = CheckpointManager(args.run_dir / "checkpoints", keep=2).load_latest()
-    cfg = config_from_dict(state["config"])
+    # a run of algo=isodream when it was the DreamerV2-style learner is read as algo=isodream_v2
+    cfg = saved_run_config(state)
     components = make_components(
         cfg, action_dim=2, scratch_dir=Path("/tmp") / f"policy_probe_{args.run_dir.name}"
     )
-    components.load_models(state)
+    components.load_models(state, checkpoint=path)
     learner = probe_learner(components, cfg.algo.name)
     batch = play_episodes(
         components.behavior.policy, cfg, episodes=args.episodes, steps=args.steps, seed=args.seed

@@ -345,6 +345,25 @@ def test_a_config_saved_with_model_overrides_reads_back_into_the_typed_model_fie
     }
 
 
+@pytest.mark.parametrize("env", ["sprites", "dmc_walker_walk"])
+def test_a_run_saved_by_an_algo_that_changed_learner_resumes_as_isodream_v2(env):
+    import dataclasses
+
+    from isodream_rl.trainers.config import FORMER_DREAMER_V2_ALGOS
+    from isodream_rl.trainers.run_dir import differing_settings
+    from isodream_rl.trainers.world_model_config import DREAMER_V3_ISODREAM
+
+    assert set(FORMER_DREAMER_V2_ALGOS) == set(DREAMER_V3_ISODREAM)
+    for name, settings in FORMER_DREAMER_V2_ALGOS.items():
+        # saved by algo=<name> (its algo fields are the same before and after it changed learner), continued by
+        # algo=isodream_v2 with the settings that build the same variant; the weights tell which it was
+        saved = dataclasses.asdict(composed(f"env={env}", f"algo={name}"))
+        assert differing_settings(saved, composed(f"env={env}", "algo=isodream_v2", *settings)) == {}, name
+    # not the other way round: a run saved as algo=isodream_v2 is the DreamerV2-style learner's
+    saved = dataclasses.asdict(composed(f"env={env}", "algo=isodream_v2"))
+    assert differing_settings(saved, composed(f"env={env}")) == {"algo.name": ("isodream_v2", "isodream")}
+
+
 def test_the_model_section_holds_every_world_model_field_but_the_envs():
     from isodream_rl.modules.config import WorldModelConfig
     from isodream_rl.trainers.config import ModelConfig

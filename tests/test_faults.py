@@ -5,10 +5,12 @@ a checkpoint without its manifest, a corrupted byte, a resume with another algor
 while a checkpoint is written, a corrupted CSV log, an env raising mid-episode in a parallel collector, NaN
 losses; and, from the command line with real processes and real disks: two runs in one run folder, a resume
 while the run trains, SIGKILL then resume (one lock, one timeline of logs), Ctrl-C then resume (exit 130), NaN
-or inf frames and rewards mid-run, a corrupt ``run_config.json`` and a run-dir check that raises, a tmpfs that
-fills up, a start that fails, ``isodream-video train`` twice into one folder and stopped by a signal. Bad inputs (``refused``): pixels in the wrong range or NaN,
-NaN actions, no ``is_init``, 1-step windows, image sizes, argument types, and the CLIs' user errors (unknown
-settings and group options, run folders that cannot be written, damaged files). Where a checkpoint survives, it
+or inf frames and rewards mid-run, a corrupt ``run_config.json`` and a run-dir check that raises, a checkpoint of
+``algo=isodream`` from when it was the DreamerV2-style learner and weights of other widths, a tmpfs that fills up,
+a start that fails, ``isodream-video train`` twice into one folder and stopped by a signal. Bad inputs
+(``refused``): pixels in the wrong range or NaN, NaN actions, no ``is_init``, 1-step windows, image sizes, argument
+types, and the CLIs' user errors (unknown settings and group options, run folders that cannot be written, damaged
+files). Where a checkpoint survives, it
 is the last verified one and continuing from it gives the very losses the run gave after it (``continued``).
 ``bench/reliability_table.py`` runs this file and writes ``docs/results/reliability.md`` from its report; each
 test's docstring is its row.
@@ -19,6 +21,7 @@ import dataclasses
 import errno
 import json
 import logging
+import math
 import os
 import re
 import shutil
@@ -47,12 +50,15 @@ from isodream_rl.trainers import (
     NonFiniteLossError,
     RunComponents,
     RunConfig,
+    evaluate_checkpoint,
     train,
 )
 from isodream_rl.trainers import checkpoint as checkpoint_module
 from isodream_rl.trainers.checkpoint import set_rng_state, write_manifest
+from isodream_rl.trainers.config import config_from_dict
 from isodream_rl.trainers.hooks import ReplayPreparation
 from isodream_rl.trainers.run_dir import existing_run_files
+from isodream_rl.trainers.saved_models import CheckpointMismatchError
 from tests.conftest import tiny_run_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -1114,6 +1120,82 @@ def test_train_cli_refuses_a_corrupt_run_config_naming_it(tmp_path, said):
     assert out.returncode == 0, out.stderr[-3000:]
     assert "resumed from" in out.stdout and "run finished: 60 env steps" in out.stdout
     assert json.loads(saved.read_text())["train"]["total_steps"] == 60
+
+
+def saved_as(run_dir: Path, algo: str) -> None:
+    """Rewrite the ``algo.name`` a run saved (``run_config.json``, every checkpoint's config, its manifest made
+    again), as a run of another version of the library would have it."""
+    path = run_dir / "run_config.json"
+    config = json.loads(path.read_text())
+    config["algo"]["name"] = algo
+    path.write_text(json.dumps(config, indent=2))
+    for folder in CheckpointManager(run_dir / "checkpoints").checkpoints():
+        state = torch.load(folder / "state.pt", weights_only=False)
+        state["config"]["algo"]["name"] = algo
+        torch.save(state, folder / "state.pt")
+        write_manifest(folder)
+
+
+def test_a_checkpoint_of_algo_isodream_before_its_rename_names_algo_isodream_v2(tmp_path, said):
+    """fault: resume=true of a run saved by algo=isodream when it was the DreamerV2-style learner (its config
+    cannot tell it from one of Iso-Dream on DreamerV3's learner, today's algo=isodream; was: a traceback) |
+    refused: one line naming the checkpoint, the rename and algo=isodream_v2 (exit 2), the checkpoints, logs and
+    run_config.json untouched; isodream-eval reads it as algo=isodream_v2, and resume=true algo=isodream_v2
+    continues it"""
+    args = [
+        *TINY_TRAIN,
+        "run_dir=run",
+        "train.prefill_steps=20",
+        "train.frames_per_batch=20",
+        "env.kwargs.max_steps=20",
+    ]
+    out = run_command("isodream_rl.cli", [*args, "algo=isodream_v2", "train.total_steps=40"], tmp_path)
+    assert out.returncode == 0, out.stderr[-3000:]
+    run_dir = tmp_path / "run"
+    saved_as(run_dir, "isodream")
+    newest = CheckpointManager(run_dir / "checkpoints").checkpoints()[-1].name
+    kept = {name: snapshot(run_dir / name) for name in ("checkpoints", "logs")}
+    config = (run_dir / "run_config.json").read_bytes()
+    out = run_command("isodream_rl.cli", [*args, "train.total_steps=60", "resume=true"], tmp_path)
+    assert out.returncode == 2, out.stderr[-3000:]
+    line = user_error(out)
+    assert line == (
+        f"isodream-train: run/checkpoints/{newest} was saved by algo=isodream before it became Iso-Dream on "
+        "DreamerV3's learner: its weights are the DreamerV2-style learner's, now algo=isodream_v2; resume it with "
+        "algo=isodream_v2"
+    )
+    said(line)
+    assert {name: snapshot(run_dir / name) for name in kept} == kept
+    assert (run_dir / "run_config.json").read_bytes() == config
+    mean, _, returns = evaluate_checkpoint(run_dir, episodes=1)
+    assert len(returns) == 1 and math.isfinite(mean)
+    cfg = config_from_dict(json.loads(config))
+    cfg.algo.name, cfg.resume, cfg.train.total_steps, cfg.run_dir = "isodream_v2", True, 60, str(run_dir)
+    result = train(cfg)
+    assert result.resumed_from is not None and result.resumed_from.name == newest and result.env_steps == 60
+    assert json.loads((run_dir / "run_config.json").read_text())["algo"]["name"] == "isodream_v2"
+
+
+def test_weights_of_other_widths_are_named_in_one_line(tmp_path, said):
+    """fault: a checkpoint loaded into models of other widths (model.actor_units; was: a traceback of
+    load_state_dict's size mismatches) | refused: one line naming the checkpoint, the model, a few keys with both
+    shapes, and that the run's algo and model settings must be the saved ones"""
+    cfg = tiny_run(tmp_path / "a")
+    state = RunComponents(cfg, action_dim=A, scratch_dir=tmp_path / "scratch_a").state(
+        cfg, env_steps=0, trainer=None
+    )
+    narrow = RunComponents(
+        tiny_run(tmp_path / "b", model__actor_units=8), action_dim=A, scratch_dir=tmp_path / "b"
+    )
+    with pytest.raises(CheckpointMismatchError) as error:
+        narrow.load_models(state, checkpoint="run/checkpoints/step_00000004")
+    assert str(error.value) == (
+        "run/checkpoints/step_00000004 does not fit the models of algo=isodream_v2 (actor_loss: 9 keys of another "
+        "shape (saved -> here: actor.net.0.weight 16x24 -> 8x24, actor.net.0.bias 16 -> 8, actor.net.2.weight "
+        "16x16 -> 8x8, ...)): the run's algo and model settings (size, widths, branches) must be the ones it was "
+        "saved with, on a version of isodream_rl whose models have these weights"
+    )
+    said(error.value)
 
 
 _BROKEN_GUARD = textwrap.dedent(

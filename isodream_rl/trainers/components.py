@@ -19,6 +19,7 @@ from isodream_rl.trainers.builders import make_adam, make_behavior, make_replay_
 from isodream_rl.trainers.config import RunConfig
 from isodream_rl.trainers.hooks import EpisodeReturns, ReplayPreparation
 from isodream_rl.trainers.run_lifecycle import run_state
+from isodream_rl.trainers.saved_models import load_saved_models
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
 
 
@@ -110,17 +111,17 @@ class RunComponents:
             },
         )
 
-    def load_models(self, state: dict) -> None:
+    def load_models(self, state: dict, *, checkpoint: str | Path = "the checkpoint") -> None:
         """Load the weights saved by :meth:`state` (checkpoint key ``"models"``).
 
+        Args:
+            state: the checkpoint's state.
+            checkpoint: the checkpoint's folder (or words naming it), named by the error.
+
         Raises:
-            KeyError: the checkpoint lacks one of :meth:`modules`' weights (another algorithm's).
+            CheckpointMismatchError: the weights do not fit :meth:`modules` (another algorithm's, other widths, a
+                run saved by ``algo=isodream`` when it was the DreamerV2-style learner): one line naming
+                ``checkpoint``, the models and what to change
+                (:func:`~isodream_rl.trainers.saved_models.check_saved_models`).
         """
-        missing = set(self.modules()) - set(state["models"])
-        if missing:
-            raise KeyError(
-                f"the checkpoint has no {sorted(missing)} weights: it was not written by an "
-                f"algo={self.algo} run"
-            )
-        for name, module in self.modules().items():
-            module.load_state_dict(state["models"][name])
+        load_saved_models(self.modules(), state, algo=self.algo, checkpoint=checkpoint)

@@ -53,6 +53,19 @@ RENAMED_ALGOS: dict[str, tuple[str, str]] = {
         "Iso-Dream on DreamerV3's learner became the default; the DreamerV2-style learner is algo=isodream_v2",
     ),
 }
+#: ``name -> settings``: the ``algo`` names that were Iso-Dream on the DreamerV2-style learner until they became
+#: Iso-Dream on DreamerV3's learner (:data:`~isodream_rl.trainers.world_model_config.DREAMER_V3_ISODREAM`), with the
+#: settings beside ``algo=isodream_v2`` that build the variant each was then (its branch switch or policy input;
+#: the ``algo`` fields of a configuration saved then hold the same values). A saved configuration does not tell
+#: such a run from a later one; its checkpoint's weights do (:mod:`isodream_rl.trainers.saved_models`), and
+#: ``algo=isodream_v2`` with these settings may resume it
+#: (:func:`~isodream_rl.trainers.run_dir.differing_settings`).
+FORMER_DREAMER_V2_ALGOS: dict[str, tuple[str, ...]] = {
+    "isodream": (),
+    "isodream_no_inverse": ("algo.inverse_dynamics=false",),
+    "isodream_no_attention": ("algo.policy_input=controllable",),
+    "isodream_no_static": ("algo.static_branch=false",),
+}
 
 
 class ConfigError(ValueError):

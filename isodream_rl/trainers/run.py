@@ -25,7 +25,6 @@ from isodream_rl.trainers.collectors import make_collector
 from isodream_rl.trainers.config import (
     ConfigError,
     RunConfig,
-    config_from_dict,
     device_error,
     validate_config,
 )
@@ -45,6 +44,7 @@ from isodream_rl.trainers.run_lifecycle import (
     train_with_checkpoints,
     write_summary,
 )
+from isodream_rl.trainers.saved_models import saved_run_config
 from isodream_rl.trainers.world_model_config import TORCHRL_BASELINES
 from isodream_rl.trainers.world_model_run import LatentProbe
 
@@ -103,7 +103,13 @@ def _train_rl(cfg: RunConfig) -> RunResult:
     stepper, policy = components.stepper, components.behavior.policy
     if state is not None:
         checkpoints.load_replay(resumed_from, components.replay_buffer)
-        restore_run_state(state, load_models=components.load_models, stepper=stepper, logs=logs)
+        restore_run_state(
+            state,
+            checkpoint=resumed_from,
+            load_models=functools.partial(components.load_models, checkpoint=resumed_from),
+            stepper=stepper,
+            logs=logs,
+        )
         components.preparation.load_state_dict(state["hooks"]["preparation"])
         components.returns.load_state_dict(state["hooks"]["returns"])
         logger.info("resumed from %s (%d env steps)", resumed_from, state["counters"]["env_steps"])
@@ -283,7 +289,9 @@ def evaluate_checkpoint(
     """Load the newest readable checkpoint of ``run_dir`` and run ``episodes`` mode-action episodes.
 
     The checkpoint is read onto the CPU and its models built on ``device``, whichever device trained them: a GPU
-    run evaluates on a CPU-only machine.
+    run evaluates on a CPU-only machine. The models are those of its saved configuration, an ``algo=isodream`` run
+    of the DreamerV2-style learner (saved before that name became Iso-Dream on DreamerV3's learner) read as
+    ``algo=isodream_v2`` (:func:`~isodream_rl.trainers.saved_models.saved_run_config`).
 
     Args:
         run_dir: the run folder given to ``isodream-train``.
@@ -297,7 +305,8 @@ def evaluate_checkpoint(
 
     Raises:
         ConfigError: ``device`` is not usable on this machine.
-        CheckpointError: no readable checkpoint, or one of a ``mode=world_model`` run.
+        CheckpointError: no readable checkpoint, or one of a ``mode=world_model`` run, or one whose weights do not
+            fit the models of its configuration (:class:`~isodream_rl.trainers.saved_models.CheckpointMismatchError`).
     """
     unusable = device_error(device, setting="--device")
     if unusable:
@@ -308,7 +317,7 @@ def evaluate_checkpoint(
             f"no checkpoint in {checkpoints.directory}: give the run_dir that isodream-train wrote"
         )
     state, path = checkpoints.load_latest(required_keys=("config", "models"))
-    cfg = config_from_dict(state["config"])
+    cfg = saved_run_config(state)
     if cfg.mode == "world_model":
         raise CheckpointError(f"{path} is of a mode=world_model run: it has no policy to evaluate")
     torch.set_num_threads(cfg.train.threads)
@@ -317,7 +326,7 @@ def evaluate_checkpoint(
     components = make_components(
         cfg, action_dim=probe_action_dim(cfg), scratch_dir=Path(run_dir) / "eval_scratch"
     )
-    components.load_models(state)
+    components.load_models(state, checkpoint=path)
     policy = components.behavior.policy
     env = checked_env_factory(cfg, eval_mode=True)()
     env.append_transform(policy.make_tensordict_primer())

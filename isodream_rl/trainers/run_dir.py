@@ -38,7 +38,7 @@ from isodream_rl.envs.finite import NonFiniteEnvDataError
 from isodream_rl.modules.config import SIZE_PRESETS
 from isodream_rl.run_lock import RunDirBusyError, RunDirLock
 from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
-from isodream_rl.trainers.config import ConfigError, RunConfig, config_from_dict
+from isodream_rl.trainers.config import FORMER_DREAMER_V2_ALGOS, ConfigError, RunConfig, config_from_dict
 from isodream_rl.trainers.disk_space import DiskFullError
 from isodream_rl.user_errors import debugging, exit_user_error, log_to_stderr, one_line
 
@@ -305,9 +305,22 @@ def _compared(cfg: RunConfig) -> dict[str, Any]:
 
 def differing_settings(saved: dict, cfg: RunConfig) -> dict[str, tuple[Any, Any]]:
     """``{field: (saved, now)}`` for the settings outside :data:`RESUMABLE` where ``cfg`` differs from the
-    configuration ``saved`` in a checkpoint (``dataclasses.asdict`` of a :class:`RunConfig`)."""
+    configuration ``saved`` in a checkpoint (``dataclasses.asdict`` of a :class:`RunConfig`).
+
+    ``algo=isodream_v2`` continues a ``mode=rl`` run saved under a name of
+    :data:`~isodream_rl.trainers.config.FORMER_DREAMER_V2_ALGOS`: such a run may be one of the DreamerV2-style
+    learner, trained before that name became Iso-Dream on DreamerV3's learner, which only its weights tell; they are
+    checked when they load (:func:`~isodream_rl.trainers.saved_models.check_saved_models`), and the ``algo`` fields
+    that set the variant are compared as any other.
+    """
     before = _compared(config_from_dict(saved))
     now = _compared(cfg)
+    if (
+        before["mode"] == "rl"
+        and before["algo.name"] in FORMER_DREAMER_V2_ALGOS
+        and now["algo.name"] == "isodream_v2"
+    ):
+        before["algo.name"] = now["algo.name"]
     return {
         key: (before.get(key), now.get(key))
         for key in sorted(before.keys() | now.keys())

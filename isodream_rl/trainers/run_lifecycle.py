@@ -29,7 +29,9 @@ from isodream_rl.trainers.checkpoint import CheckpointManager, rng_state, set_rn
 from isodream_rl.trainers.config import ConfigError, RunConfig
 from isodream_rl.trainers.hooks import PeriodicCheckpoint, StopOnSignal
 from isodream_rl.trainers.run_dir import check_same_run
+from isodream_rl.trainers.saved_models import CheckpointMismatchError
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
+from isodream_rl.user_errors import one_line
 
 #: what ``state.pt`` of a checkpoint of either mode holds (:func:`run_state`)
 STATE_KEYS = ("config", "models", "stepper", "counters", "hooks", "rng")
@@ -159,15 +161,34 @@ def run_state(
 def restore_run_state(
     state: dict,
     *,
+    checkpoint: Path,
     load_models: Callable[[dict], None],
     stepper: IsoDreamOptimizationStepper,
     logs: Path,
 ) -> None:
     """Continue from a checkpoint's :func:`run_state`: the models (``load_models(state)``), the stepper, the
     RNG states, and the CSV logs cut back to what they held then (rows written after it are of a timeline that
-    ended)."""
+    ended).
+
+    Args:
+        state: the state of the checkpoint ``checkpoint`` (its folder, named by the errors).
+        load_models: loads ``state["models"]`` into the run's models (raising
+            :class:`~isodream_rl.trainers.saved_models.CheckpointMismatchError` where they do not fit, as
+            :func:`~isodream_rl.trainers.saved_models.load_saved_models` does).
+        stepper: the run's stepper.
+        logs: the run's CSV logs folder.
+
+    Raises:
+        CheckpointMismatchError: the weights (``load_models``) or the optimiser state do not fit the run's.
+    """
     load_models(state)
-    stepper.load_state_dict(state["stepper"])
+    try:
+        stepper.load_state_dict(state["stepper"])
+    except (KeyError, ValueError) as err:  # torch's optimiser loading: another parameter layout
+        raise CheckpointMismatchError(
+            f"{checkpoint}'s optimiser state does not fit the run's optimisers ({type(err).__name__}: "
+            f"{one_line(err)}): the run's algo and model settings must be the ones it was saved with"
+        ) from err
     set_rng_state(state["rng"])
     if "log_sizes" in state["counters"]:
         cut_csv_logs(logs, state["counters"]["log_sizes"])

@@ -56,7 +56,7 @@ from isodream_rl.trainers.builders import (
     make_world_model_loss,
 )
 from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
-from isodream_rl.trainers.config import ConfigError, RunConfig, config_from_dict
+from isodream_rl.trainers.config import ConfigError, RunConfig
 from isodream_rl.trainers.run_dir import resuming, write_run_config
 from isodream_rl.trainers.run_lifecycle import (
     RunResult,
@@ -68,6 +68,7 @@ from isodream_rl.trainers.run_lifecycle import (
     train_with_checkpoints,
     write_summary,
 )
+from isodream_rl.trainers.saved_models import load_saved_models, saved_run_config
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
 from isodream_rl.trainers.world_model_config import OTHER_WORLD_MODELS
 
@@ -174,7 +175,10 @@ def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDream
     Raises:
         CheckpointError: no readable checkpoint there, or one of another world model
             (:data:`~isodream_rl.trainers.world_model_config.OTHER_WORLD_MODELS`: TorchRL's baselines, Iso-Dream on
-            DreamerV3's learner).
+            DreamerV3's learner), or weights that do not fit the world model of its configuration
+            (:class:`~isodream_rl.trainers.saved_models.CheckpointMismatchError`). An ``algo=isodream`` run saved
+            when that name was the DreamerV2-style learner is read as ``algo=isodream_v2``
+            (:func:`~isodream_rl.trainers.saved_models.saved_run_config`).
     """
     path = Path(path)
     if path.is_file():
@@ -192,14 +196,14 @@ def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDream
             raise CheckpointError(f"checkpoint {path} is unreadable: {err}") from err
     else:
         state, path = manager.load_latest(required_keys=("config", "models"))
-    cfg = config_from_dict(state["config"])
+    cfg = saved_run_config(state)
     if cfg.algo.name in OTHER_WORLD_MODELS:
         raise CheckpointError(
             f"{path} holds the world model of algo={cfg.algo.name}, not the DreamerV2-style Iso-Dream's"
         )
     cfg.model.precision = "fp32"
     model = IsoDreamWorldModel(make_world_model_config(cfg, action_dim=probe_action_dim(cfg)), device=device)
-    model.load_state_dict(state["models"]["world_model"])
+    load_saved_models({"world_model": model}, state, algo=cfg.algo.name, checkpoint=path)
     return model, cfg
 
 
@@ -438,7 +442,10 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
     if state is not None:
         restore_run_state(
             state,
-            load_models=lambda saved: world_model.load_state_dict(saved["models"]["world_model"]),
+            checkpoint=resumed_from,
+            load_models=functools.partial(
+                load_saved_models, models, algo=cfg.algo.name, checkpoint=resumed_from
+            ),
             stepper=stepper,
             logs=logs,
         )
