@@ -1,11 +1,15 @@
 """A fixed-seed run gives the same losses and weights as the recorded ones: a refactor that changes what a run
 computes fails here.
 
-Three tiny runs composed through the CLI's config (``size=tiny`` and a few cadence overrides, nothing that names a
-model field, so moving a setting to another home keeps the run the same): ``mode=rl`` with Iso-Dream on the
-DreamerV2-style learner (``algo=isodream_v2``, recorded when it was ``algo=isodream``) and with the DreamerV2
-baseline (60 env steps: 2 updates after the prefill), and ``mode=world_model`` (3 updates). Recorded in
-``tests/data/fixed_seed.json`` by::
+Five tiny runs composed through the CLI's config (``size=tiny`` and a few cadence overrides, nothing that names a
+model field, so moving a setting to another home keeps the run the same): ``mode=rl`` (60 env steps: 4 updates
+after the prefill) with the default, Iso-Dream on DreamerV3's learner (``algo=isodream``), with TorchRL's DreamerV3
+(``algo=torchrl_dreamer_v3``, which shares that learner's pieces), with Iso-Dream on the DreamerV2-style learner
+(``algo=isodream_v2``, recorded when it was ``algo=isodream``) and with the DreamerV2 baseline, and
+``mode=world_model`` (3 updates). Each records the last update's ``loss_*`` terms and gradient norms
+(``grad_norm_*``, taken before any clipping: DreamerV3's learning rate warms up from 0, so its weights barely move
+in 4 updates and the gradients are what shows a change of the backward pass) and the sum of |w| per model.
+Recorded in ``tests/data/fixed_seed.json`` by::
 
     python tests/test_fixed_seed.py --write
 
@@ -41,6 +45,8 @@ RL = [
     "logging.progress_bar=false",
 ]
 RUNS = {
+    "rl_isodream": ["algo=isodream", *RL],
+    "rl_torchrl_dreamer_v3": ["algo=torchrl_dreamer_v3", *RL],
     "rl_isodream_v2": ["algo=isodream_v2", *RL],
     "rl_dreamerv2": ["algo=dreamerv2", *RL],
     "world_model": [
@@ -59,7 +65,8 @@ RUNS = {
 
 
 def run(name: str, run_dir: Path) -> dict:
-    """The run's last logged losses and, per model, the sum of |w| over its weights after training."""
+    """The run's last logged losses and gradient norms and, per model, the sum of |w| over its weights after
+    training."""
     torch.manual_seed(0)
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         cfg = OmegaConf.to_object(
@@ -72,7 +79,9 @@ def run(name: str, run_dir: Path) -> dict:
         for model, tensors in state["models"].items()
         if isinstance(tensors, dict)
     }
-    losses = {key: value for key, value in result.metrics.items() if key.startswith("loss_")}
+    losses = {
+        key: value for key, value in result.metrics.items() if key.startswith(("loss_", "grad_norm_"))
+    }
     return {"updates": result.updates, "losses": losses, "weights": weights}
 
 
