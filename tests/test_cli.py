@@ -5,6 +5,7 @@ import os
 import re
 import subprocess
 import sys
+import tempfile
 from dataclasses import fields as dataclasses_fields
 from pathlib import Path
 
@@ -170,6 +171,22 @@ def test_impossible_combination_says_what_to_change():
     cfg = composed("algo=dreamerv2", "algo.policy_input=attention")
     with pytest.raises(ConfigError, match="set algo.policy_input=controllable or algo.free_branch=true"):
         validate_config(cfg)
+
+
+def test_lr_warmup_sets_dreamer_v3s_optimisers_and_is_refused_elsewhere():
+    from isodream_rl.trainers.registry import make_components
+
+    for algo in ("isodream", "torchrl_dreamer_v3"):
+        cfg = composed(f"algo={algo}", "size=tiny", "train.lr_warmup=7")
+        validate_config(cfg)
+        with tempfile.TemporaryDirectory() as scratch:
+            components = make_components(cfg, action_dim=2, scratch_dir=Path(scratch))
+        optimizers = components.stepper.optimizers.values()
+        assert {group["warmup_steps"] for opt in optimizers for group in opt.param_groups} == {7}, algo
+    with pytest.raises(ConfigError, match=r"train.lr_warmup=7 is the learning-rate warm-up of DreamerV3's"):
+        validate_config(composed("algo=isodream_v2", "train.lr_warmup=7"))
+    with pytest.raises(ConfigError, match=r"train.lr_warmup=-1 must be >= 0"):
+        validate_config(composed("train.lr_warmup=-1"))
 
 
 def test_the_former_name_of_the_default_is_refused_naming_the_new_one():

@@ -25,6 +25,10 @@ def trivial_task_config(tmp_path, algo: str) -> RunConfig:
     cfg.train.world_model_lr, cfg.train.actor_lr, cfg.train.value_lr = 1e-3, 3e-4, 3e-4
     cfg.train.threads = 1
     cfg.algo.horizon, cfg.algo.attention_window = 5, 2
+    if algo == "isodream":
+        # DreamerV3's optimiser would warm its learning rate up over 1000 updates; 500 updates at full rate
+        # (measured: evaluation returns 4.5 and 4.8 on seeds 0 and 1, one reach each; 300 gave 2.9 and 4.1)
+        cfg.train.lr_warmup, cfg.train.total_steps = 0, 600
     if algo == "dreamerv2":
         cfg.algo.free_branch = cfg.algo.static_branch = cfg.algo.inverse_dynamics = False
         cfg.algo.reward_uses_free, cfg.algo.policy_input = False, "controllable"
@@ -33,8 +37,7 @@ def trivial_task_config(tmp_path, algo: str) -> RunConfig:
     return cfg
 
 
-# the DreamerV2-style learner: DreamerV3's (the default) warms its learning rates up over 1000 updates
-@pytest.mark.parametrize("algo", ["isodream_v2"])
+@pytest.mark.parametrize("algo", ["isodream_v2", "isodream"])
 def test_agent_learns_to_beat_a_random_policy_on_a_reach_that_needs_no_perception(tmp_path, algo):
     result = train(trivial_task_config(tmp_path, algo))
     summary = result.summary

@@ -16,6 +16,7 @@ from isodream_rl.modules.config import DREAMERV2, PAPER_EXACT, SIZE_PRESETS, Wor
 from isodream_rl.objectives.world_model import FREE_BRANCH_MODES, LOSS_WEIGHTS, PAPER_WEIGHTS
 from isodream_rl.trainers.world_model_config import (
     DREAMER_V3_ISODREAM,
+    DREAMER_V3_LEARNERS,
     MODES,
     WorldModelModeConfig,
     world_model_mode_errors,
@@ -220,6 +221,11 @@ class TrainConfig:
     world_model_warmup: int = 0
     """Updates of the world model alone (after the prefill) before the actor and value start learning;
     0 as the authors (DreamerV1 calls this pretraining)."""
+    lr_warmup: int | None = None
+    """DreamerV3's learners (``algo=isodream``, its ablations, ``algo=torchrl_dreamer_v3``): updates of linear
+    learning-rate warm-up of their ``DreamerV3Optimizer`` (the first update has learning rate 0); ``None``:
+    DreamerV3's 1000 (:class:`~isodream_rl.modules.dreamer_v3.DreamerV3Settings`). The DreamerV2-style learners
+    have no warm-up and refuse a value."""
     max_nonfinite_updates: int = 5
     """K: this many updates in a row with a NaN/inf loss or gradient stop the run."""
     collector_backend: str = "sync"
@@ -438,6 +444,13 @@ def validate_config(cfg: RunConfig) -> None:
     _positive(errors, "checkpoint.keep", cfg.checkpoint.keep, 2)
     _positive(errors, "train.prefill_steps", train.prefill_steps, 0)
     _positive(errors, "train.world_model_warmup", train.world_model_warmup, 0)
+    if train.lr_warmup is not None:
+        _positive(errors, "train.lr_warmup", train.lr_warmup, 0)
+        if algo.name not in DREAMER_V3_LEARNERS:
+            errors.append(
+                f"train.lr_warmup={train.lr_warmup} is the learning-rate warm-up of DreamerV3's optimisers, "
+                f"which algo={algo.name} does not use: drop it, or pick one of {list(DREAMER_V3_LEARNERS)}"
+            )
     _positive(errors, "logging.eval_every", cfg.logging.eval_every, 0)
     _positive(errors, "logging.final_eval_episodes", cfg.logging.final_eval_episodes, 0)
 

@@ -16,6 +16,7 @@ learner use them.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Protocol
 
@@ -189,9 +190,12 @@ def make_dreamer_v3_stepper(
 ) -> DreamerV3OptimizationStepper:
     """The run's DreamerV3 update for ``learner``: :func:`make_dreamer_v3_optimizers` at ``train.world_model_lr`` /
     ``actor_lr`` / ``value_lr``, the slow critic's updater, ``train.sequence_length``, ``max_nonfinite_updates``,
-    ``world_model_warmup``; ``state_dim`` / ``belief_dim`` are the widths of the latent the losses
-    read (:class:`~isodream_rl.trainers.stepper.ZeroStateStepper` zeroes them at each window's start)."""
+    ``world_model_warmup``, ``lr_warmup`` (in place of ``settings.lr_warmup`` where set); ``state_dim`` /
+    ``belief_dim`` are the widths of the latent the losses read
+    (:class:`~isodream_rl.trainers.stepper.ZeroStateStepper` zeroes them at each window's start)."""
     train = cfg.train
+    if train.lr_warmup is not None:
+        settings = dataclasses.replace(settings, lr_warmup=train.lr_warmup)
     rates = {"world_model": train.world_model_lr, "actor": train.actor_lr, "value": train.value_lr}
     return DreamerV3OptimizationStepper(
         loss_module=learner.loss_module,

@@ -22,6 +22,9 @@ TORCHRL_BASELINES = ("torchrl_dreamer", "torchrl_dreamer_v3")
 #: and its ablations. Every other Iso-Dream name (``isodream_v2``, ``isodream_paper``, ``dreamerv2``, a name of your
 #: own) is the DreamerV2-style learner (:class:`~isodream_rl.trainers.components.RunComponents`).
 DREAMER_V3_ISODREAM = ("isodream", "isodream_no_inverse", "isodream_no_attention", "isodream_no_static")
+#: The algorithms trained by DreamerV3's update (:class:`~isodream_rl.trainers.dreamer_v3.DreamerV3OptimizationStepper`):
+#: Iso-Dream on DreamerV3's learner and TorchRL's DreamerV3 (``train.lr_warmup`` is theirs).
+DREAMER_V3_LEARNERS = (*DREAMER_V3_ISODREAM, "torchrl_dreamer_v3")
 #: The algorithms whose world model is not :class:`~isodream_rl.modules.IsoDreamWorldModel` (TorchRL's baselines and
 #: Iso-Dream on DreamerV3's learner): no ``mode=world_model`` nor its probes.
 OTHER_WORLD_MODELS = (*TORCHRL_BASELINES, *DREAMER_V3_ISODREAM)
