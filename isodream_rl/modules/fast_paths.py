@@ -31,7 +31,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from isodream_rl.modules.composition import BRANCHES, PIXEL_RANGE, MaskComposition, compute_dtype, inward_pass
+from isodream_rl.modules.composition import BRANCHES, MaskComposition, compute_dtype, outward
 from isodream_rl.modules.decoder import ConvDecoder
 from isodream_rl.modules.rssm import LayerNormGRUCell, RSSMCell, filter_window, gru_gates, sigmoid2_std
 
@@ -336,7 +336,7 @@ def fused_compose_decoded(
             "fused_compose_decoded needs softmax masks and a mask logit for each of two or more branches"
         )
     names = [name for name in BRANCHES if name in outputs]
-    bounds = PIXEL_RANGE if composition.clamp_components else None
+    bounds = composition.pixel_range if composition.clamp_components else None
     leads = [tuple(outputs[n].shape[:-3]) for n in names]
     flat = [outputs[n].reshape(-1, *outputs[n].shape[-3:]) for n in names]
     composite, stacked, *colors = _SoftmaxComposition.apply(
@@ -420,7 +420,7 @@ class _SoftmaxComposition(torch.autograd.Function):
                 g = grad_colors[i].clone() if g is None else g.add_(grad_colors[i])
             if g is not None and ctx.bounds is not None:
                 if ctx.inward:
-                    g = g.mul_(inward_pass(g, color, *ctx.bounds))
+                    g = g.masked_fill_(outward(g, color, *ctx.bounds), 0.0)
                 else:
                     # zero outside the range; a clamped colour sits exactly on a bound, an unclamped one inside
                     g = torch.ops.aten.hardtanh_backward.grad_input(g, color, *ctx.bounds, grad_input=g)
@@ -530,3 +530,4 @@ def _add_channel_bias_(out: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
         out.permute(0, 2, 3, 1).reshape(n, h * w * c).add_(bias.repeat(h * w))
         return out
     return out.add_(bias[:, None, None])
+
