@@ -40,7 +40,7 @@ from torchrl.modules import (
 )
 
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings, WindowInputCheck
-from isodream_rl.modules.fast_paths import FusedMaskComposition
+from isodream_rl.modules.fast_paths import FusedMaskComposition, use_fast_rms_norms
 from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
 
 PIXELS = ("next", "pixels")
@@ -295,6 +295,9 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
         if cfg.inverse_dynamics:
             out += ["action_pred", "action_pred_valid"]
         self.out_keys = [_next(k) for k in out] + (["background"] if cfg.static_branch else [])
+        # TorchRL's RMS norms (encoder, decoders, RSSM heads, reward / continuation heads) as one fused forward
+        # kernel and a hand-written backward (fast_paths.FastRMSNorm): the same function, parameters and keys
+        use_fast_rms_norms(self)
 
     # ------------------------------------------------------------------ packing
     def split_state(self, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
