@@ -391,3 +391,30 @@ def test_a_world_model_gives_the_same_losses_and_gradients_with_and_without_fast
     for name, got, want in zip(names, fast_grads, ref_grads):
         if want is not None:
             torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5 * float(want.abs().max()), msg=name)
+
+
+@pytest.mark.parametrize("channels_first", [False, True])
+def test_fast_rms_norms_match_torchrl(channels_first):
+    """FastRMSNorm / FastChannelRMSNorm: TorchRL's DreamerV3 RMS norms' values and gradients, same parameter."""
+    from torchrl.modules.models.model_based import _DreamerV3ChannelRMSNorm, _DreamerV3RMSNorm
+
+    from isodream_rl.modules.fast_paths import use_fast_rms_norms
+
+    torch.manual_seed(0)
+    reference = (_DreamerV3ChannelRMSNorm if channels_first else _DreamerV3RMSNorm)(6)
+    with torch.no_grad():
+        reference.weight.uniform_(0.5, 1.5)
+    holder = use_fast_rms_norms(torch.nn.Sequential(reference))
+    fast = holder[0]
+    assert type(fast).__name__ == ("FastChannelRMSNorm" if channels_first else "FastRMSNorm")
+    assert fast.weight is reference.weight and list(holder.state_dict()) == ["0.weight"]
+    shape = (3, 6, 5, 4) if channels_first else (3, 5, 6)
+    x = torch.randn(shape, requires_grad=True)
+    grad = torch.randn(shape)
+    results = []
+    for module in (reference, fast):
+        out = module(x)
+        gx, gw = torch.autograd.grad(out, [x, reference.weight], grad)
+        results.append((out, gx, gw))
+    for expected, got in zip(*results):
+        torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-6)

@@ -102,8 +102,11 @@ class FutureStateAttention(nn.Module):
         )
 
     def _fold_pays(self, rows: int) -> bool:
-        """Whether folding (``2 W Dq Dk`` once, then ``2 Dq Dk`` per query) beats the projections per query."""
-        per_query = self.width * (3 * self.query_dim + self.key_dim) - 2 * self.query_dim * self.key_dim
+        """Whether folding (``2 W Dq Dk`` once, then ``2 Dq Dk`` per query) beats the projections per query
+        (``W Dq`` for the query, ``W Dk`` for the scores' key weight, ``W Dk`` for the value and ``W Dq`` for the
+        output: ``2 W (Dq + Dk)``). It never pays where ``Dq Dk >= W (Dq + Dk)``, e.g. an 800-wide query over
+        80-wide keys at width 64 (Iso-Dream's DreamerV3 learner at ``size=bench``)."""
+        per_query = 2 * self.width * (self.query_dim + self.key_dim) - 2 * self.query_dim * self.key_dim
         return rows * per_query > 2 * self.width * self.query_dim * self.key_dim
 
     def weights(

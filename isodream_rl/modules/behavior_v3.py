@@ -5,7 +5,8 @@ Both read ``e_t`` (eq. 7) from the packed latent of :class:`~isodream_rl.modules
 of ``z`` rolled ``tau - 1`` steps ahead: ``e = Attention([s, h], window)`` (eq. 6,
 :class:`~isodream_rl.modules.FutureStateAttention`). On ``e`` sit DreamerV3's heads: the bounded-normal actor
 (:class:`~isodream_rl.modules.dreamer_v3.DreamerV3ContinuousActor`) and a two-hot critic (``DreamerV3MLP`` +
-``SymExpTwoHot``), each with an attention of its own.
+``SymExpTwoHot``), each with an attention of its own. Their RMS norms run as
+:class:`~isodream_rl.modules.fast_paths.FastRMSNorm` (the same function, fewer passes).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from isodream_rl.modules.dreamer_v3 import (
     bounded_normal_actor,
     two_hot_value,
 )
+from isodream_rl.modules.fast_paths import use_fast_rms_norms
 from isodream_rl.modules.world_model_v3 import FREE_ACTION_DIM, IsoDreamV3Config, IsoDreamV3WorldModel
 
 
@@ -115,7 +117,9 @@ def make_actor_v3(
         max_std=settings.policy_max_std,
         device=device,
     )
-    net = TensorDictModule(_OnFeatures(features, head), in_keys=features.in_keys, out_keys=["loc", "scale"])
+    net = TensorDictModule(
+        use_fast_rms_norms(_OnFeatures(features, head)), in_keys=features.in_keys, out_keys=["loc", "scale"]
+    )
     return bounded_normal_actor(net)
 
 
@@ -127,7 +131,9 @@ def make_value_v3(
     bins = config.settings.num_bins
     features = PolicyFeaturesV3(config, mode=mode, attention_dim=attention_dim, device=device)
     head = DreamerV3MLP(features.feature_dim, bins, depth=3, num_cells=units, outscale=0.0, device=device)
-    return two_hot_value(_OnFeatures(features, head), in_keys=features.in_keys, num_bins=bins)
+    return two_hot_value(
+        use_fast_rms_norms(_OnFeatures(features, head)), in_keys=features.in_keys, num_bins=bins
+    )
 
 
 class IsoDreamV3StateEstimator(TensorDictModuleBase):

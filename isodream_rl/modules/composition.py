@@ -36,13 +36,31 @@ PIXEL_RANGE = (-0.5, 0.5)
 CLAMP_GRADIENTS = ("zero", "inward")
 
 
+def outward(grad: torch.Tensor, value: torch.Tensor, low: float, high: float) -> torch.Tensor:
+    """Where ``"inward"`` mode stops the gradient of ``clamp(x, low, high)`` (bool): on or beyond a bound where a
+    descent step would push ``x`` further out (``grad <= 0`` at the top, ``grad >= 0`` at the bottom); the
+    complement of :func:`inward_pass`."""
+    return ((value >= high) & (grad <= 0)) | ((value <= low) & (grad >= 0))
+
+
 def inward_pass(grad: torch.Tensor, value: torch.Tensor, low: float, high: float) -> torch.Tensor:
     """Where the gradient of ``clamp(x, low, high)`` passes in ``"inward"`` mode, as 0/1 of ``grad``'s dtype:
     inside the range, and on or beyond a bound where a descent step (``x -= lr * grad``) moves ``x`` back
     towards the range (``grad > 0`` at the top, ``grad < 0`` at the bottom). ``value`` may be ``x`` or the
     clamped ``x`` (the same answer)."""
-    keep = ((value > low) & (value < high)) | ((value >= high) & (grad > 0)) | ((value <= low) & (grad < 0))
-    return keep.to(grad.dtype)
+    return (~outward(grad, value, low, high)).to(grad.dtype)
+
+
+def inward_grad(grad: torch.Tensor, value: torch.Tensor, low: float, high: float) -> torch.Tensor:
+    """``grad * inward_pass(grad, value, low, high)``: the gradient ``"inward"`` mode passes.
+
+    The same values (a stopped entry is ``+0.0`` where the product gives ``-0.0`` for a negative ``grad``) in
+    fewer passes over the tensor: four comparisons and three logical ops on bytes, then one masked fill, where
+    the product form makes six comparisons, five logical ops, a cast and a multiplication (about 3x slower on a
+    ``[512, 3, 64, 64]`` gradient on one CPU core). A NaN ``value`` passes its gradient here, where the product
+    form stops it (the loss is NaN then, and the update skipped).
+    """
+    return grad.masked_fill(outward(grad, value, low, high), 0.0)
 
 
 class _InwardClamp(torch.autograd.Function):
@@ -58,7 +76,7 @@ class _InwardClamp(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad):
         (out,) = ctx.saved_tensors
-        return grad * inward_pass(grad, out, *ctx.bounds), None, None
+        return inward_grad(grad, out, *ctx.bounds), None, None
 
 
 class MaskComposition(nn.Module):
@@ -66,12 +84,17 @@ class MaskComposition(nn.Module):
 
     Args:
         mask_mode: ``"softmax"`` or ``"sigmoid"`` (see the module docstring).
-        clamp_components: clamp each component to ``PIXEL_RANGE`` when two or more branches are composed
+        clamp_components: clamp each component to ``pixel_range`` when two or more branches are composed
             (:meth:`bound`); a single branch (the DreamerV2 ablation) is left as decoded, like TorchRL's.
         clamp_gradient: backward of the clamp (no effect without it): ``"inward"`` (the forward unchanged; a
             colour outside the range gets the gradients that move it back towards the range, so a branch whose
             colours all overshoot where its mask is shut can come back) or ``"zero"`` (a plain clamp: no
             gradient to a colour outside the range, in either direction).
+        pixel_range: the units of the components and of the composite: ``PIXEL_RANGE`` (``[-0.5, 0.5]``, the
+            preprocessed pixels) or, e.g., ``(0.0, 1.0)`` for components in ``pixels / 255`` units (TorchRL's
+            DreamerV3 decoders). Eq. 4 commutes with a shift of every component (the masks sum to one), so
+            composing in the decoders' own units equals shifting them into ``PIXEL_RANGE``, composing and
+            shifting back, without three image-sized passes each way.
 
     Forward:
         ``colors`` and ``logits`` map branch names (``"control"``, ``"free"``, ``"static"``; any subset
@@ -90,6 +113,7 @@ class MaskComposition(nn.Module):
         mask_mode: str = "softmax",
         clamp_components: bool = True,
         clamp_gradient: str = "inward",
+        pixel_range: tuple[float, float] = PIXEL_RANGE,
     ):
         super().__init__()
         if mask_mode not in MASK_MODES:
@@ -99,14 +123,15 @@ class MaskComposition(nn.Module):
         self.mask_mode = mask_mode
         self.clamp_components = clamp_components
         self.clamp_gradient = clamp_gradient
+        self.pixel_range = tuple(pixel_range)
 
     def bound(self, colors: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        """The components as :meth:`forward` mixes them: clamped to ``PIXEL_RANGE`` (see ``clamp_components``)."""
+        """The components as :meth:`forward` mixes them: clamped to ``pixel_range`` (see ``clamp_components``)."""
         if not self.clamp_components or len(colors) < 2:
             return dict(colors)
         if self.clamp_gradient == "inward":
-            return {name: _InwardClamp.apply(color, *PIXEL_RANGE) for name, color in colors.items()}
-        return {name: color.clamp(*PIXEL_RANGE) for name, color in colors.items()}
+            return {name: _InwardClamp.apply(color, *self.pixel_range) for name, color in colors.items()}
+        return {name: color.clamp(*self.pixel_range) for name, color in colors.items()}
 
     def forward(
         self, colors: dict[str, torch.Tensor], logits: dict[str, torch.Tensor], *, bounded: bool = False

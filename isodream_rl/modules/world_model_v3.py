@@ -39,8 +39,8 @@ from torchrl.modules import (
     SymExpTwoHot,
 )
 
-from isodream_rl.modules.composition import MaskComposition
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings, WindowInputCheck
+from isodream_rl.modules.fast_paths import FusedMaskComposition, use_fast_rms_norms
 from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
 
 PIXELS = ("next", "pixels")
@@ -256,7 +256,10 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
             if cfg.static_branch
             else None
         )
-        self.composition = MaskComposition(mask_mode="softmax")
+        # Composed in the decoders' units (pixels / 255, see MaskComposition's pixel_range), as one autograd node
+        # (FusedMaskComposition): the same eq. 4 without shifting three [B, T, 4, 64, 64] outputs into [-0.5, 0.5]
+        # and four results back, and without a clamp node and a slice gradient per branch.
+        self.composition = FusedMaskComposition(mask_mode="softmax", pixel_range=(0.0, 1.0))
         self.reward_head = DreamerV3MLP(
             cfg.head_feature_dim, settings.num_bins, depth=1, num_cells=cfg.units, outscale=0.0, device=device
         )
@@ -292,6 +295,9 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
         if cfg.inverse_dynamics:
             out += ["action_pred", "action_pred_valid"]
         self.out_keys = [_next(k) for k in out] + (["background"] if cfg.static_branch else [])
+        # TorchRL's RMS norms (encoder, decoders, RSSM heads, reward / continuation heads) as one fused forward
+        # kernel and a hand-written backward (fast_paths.FastRMSNorm): the same function, parameters and keys
+        use_fast_rms_norms(self)
 
     # ------------------------------------------------------------------ packing
     def split_state(self, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -391,9 +397,8 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
                     [frames, frames[:, -1:].expand(batch, cfg.static_frames - time, -1)], dim=1
                 )
             outputs["static"] = self.static_decoder(frames.reshape(batch, -1)).unsqueeze(1)
-        # The decoders add 0.5 (pixels / 255 units); the composition works in [-0.5, 0.5] (its clamp range) and
-        # the mask logits are shifted alike, which the softmax ignores.
-        composite, masks, colors = self.composition.compose_decoded({k: v - 0.5 for k, v in outputs.items()})
+        # in pixels / 255 units, the decoders' (they add 0.5) and the loss's: components clamped to [0, 1]
+        composite, masks, colors = self.composition.compose_decoded(outputs)
         state, belief = torch.cat(states, dim=-1), torch.cat(beliefs, dim=-1)
         reward_logits, reward = self.reward(state, belief)
         new = {
@@ -401,18 +406,18 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
             "belief": belief,
             "prior_logits": torch.cat(prior, dim=-2),
             "posterior_logits": torch.cat(posterior, dim=-2),
-            "reco_pixels": composite + 0.5,
-            "reco_control": colors["control"] + 0.5,
+            "reco_pixels": composite,
+            "reco_control": colors["control"],
             "mask_control": masks["control"],
             "reward_logits": reward_logits,
             "reward": reward,
             "continue_pred": self.continuation_logit(state, belief),
         }
         if cfg.free_branch:
-            new.update(reco_free=colors["free"] + 0.5, mask_free=masks["free"])
+            new.update(reco_free=colors["free"], mask_free=masks["free"])
         if cfg.static_branch:
             new["mask_static"] = masks["static"]
-            tensordict.set("background", (colors["static"] + 0.5).expand_as(composite))
+            tensordict.set("background", colors["static"].expand_as(composite))
         if cfg.inverse_dynamics:
             new.update(self._inverse(s, tensordict.get("is_init")))
         for key, value in new.items():
@@ -458,7 +463,8 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
             decoded["static"] = self.static_decoder(
                 self.encoder(window.get(PIXELS)[:, : cfg.static_frames]).reshape(batch, -1)
             ).unsqueeze(1)
-        composite, masks, colors = self.composition.compose_decoded({k: v - 0.5 for k, v in decoded.items()})
+        composite, masks, colors = self.composition.compose_decoded(decoded)
+        composite, colors = composite - 0.5, {k: v - 0.5 for k, v in colors.items()}  # [-0.5, 0.5] units
         self.train(was_training)
         out = TensorDict(
             {
