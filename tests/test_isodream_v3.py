@@ -19,7 +19,7 @@ from isodream_rl.data.sprites_episodes import collect_sprites_episodes, episode_
 from isodream_rl.envs import make_env
 from isodream_rl.evaluation import decomposition_scores
 from isodream_rl.modules.behavior_v3 import PolicyFeaturesV3
-from isodream_rl.modules.world_model_v3 import IsoDreamV3Config
+from isodream_rl.modules.world_model_v3 import IsoDreamV3Config, IsoDreamV3WorldModel
 from isodream_rl.trainers import ConfigError, train, validate_config
 from isodream_rl.trainers.isodream_v3 import IsoDreamV3Components, isodream_v3_config
 from isodream_rl.trainers.openloop import open_loop_prediction
@@ -184,6 +184,25 @@ class TestComposition:
         cfg.model.size = "bench"
         bench = isodream_v3_config(cfg, action_dim=A)
         assert (bench.hidden, bench.free_hidden, bench.image_depth) == (80, 40, 8)
+
+    @pytest.mark.parametrize("hidden_dim", [16, 24, 32, 40, 48, 64, 128, 200])
+    def test_every_hidden_dim_builds_and_runs(self, tmp_path, hidden_dim):
+        """``model.hidden_dim`` between the presets builds too: the action-free branch's categoricals are a multiple
+        of the block GRU's blocks (at 32 their 13 of 3 classes made a prior input of 167, which no 8 blocks split)."""
+        cfg = v3_config(tmp_path)
+        cfg.model.hidden_dim = hidden_dim
+        config = isodream_v3_config(cfg, action_dim=A)
+        assert config.free.num_categoricals % config.settings.num_blocks == 0
+        model = IsoDreamV3WorldModel(config)
+        batch = TensorDict(
+            {
+                ("next", "pixels"): torch.zeros(1, 2, 3, 64, 64, dtype=torch.uint8),
+                "action": torch.zeros(1, 2, A),
+                "is_init": torch.zeros(1, 2, 1, dtype=torch.bool),
+            },
+            [1, 2],
+        )
+        assert model(batch)["next", "reco_pixels"].shape == (1, 2, 3, 64, 64)
 
     def test_bad_pixels_get_one_line(self, parts):
         with pytest.raises(ValueError, match="pixels"):

@@ -122,9 +122,11 @@ class IsoDreamV3Config:
     @property
     def free(self) -> BranchWidths:
         """The action-free branch's widths (also when the branch is off): ``free_hidden``, the controllable
-        branch's classes and as many categoricals as ``free_hidden`` is a fraction of ``hidden``."""
+        branch's classes and as many categoricals as ``free_hidden`` is a fraction of ``hidden``, rounded to a
+        multiple of the block GRU's blocks (its input, ``state`` and ``belief``, splits into them)."""
         hidden = self.free_hidden or self.hidden
-        categoricals = max(1, round(self.settings.num_categoricals * hidden / self.hidden))
+        blocks = self.settings.num_blocks
+        categoricals = blocks * max(1, round(self.settings.num_categoricals * hidden / self.hidden / blocks))
         return BranchWidths(hidden, categoricals, dreamer_v3_classes(self.hidden))
 
     @property
