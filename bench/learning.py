@@ -315,7 +315,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--runs", type=Path, default=Path.home() / "isodream-runs" / "bench_learning")
     parser.add_argument("--json", type=Path, default=ROOT / "docs" / "results" / "learning.json")
     parser.add_argument("--png", type=Path, default=None, help="default: the JSON's path with .png")
-    parser.add_argument("--md", type=Path, default=None, help="default: the JSON's path with .md")
+    parser.add_argument(
+        "--md",
+        type=Path,
+        default=None,
+        help="default: the JSON's path with .md (learning_table.md for learning.json: learning.md is the status page)",
+    )
     parser.add_argument(
         "--write-every", type=float, default=120.0, help="seconds between rewrites of --json while runs train"
     )
@@ -341,7 +346,7 @@ def write_results(args: argparse.Namespace, argv: list[str] | None, final: bool 
     tmp.replace(args.json)
     if final:
         plot(results, args.png or args.json.with_suffix(".png"))
-        md = args.md or args.json.with_suffix(".md")
+        md = args.md or table_path(args.json)
         md.write_text(
             f"# Learning on {args.env}: final evaluation at {args.env_steps} env steps\n\n"
             f"Made by `{results['command']}` at commit `{results['commit']}` on `{results['cpu']}`.\n\n"
@@ -349,6 +354,17 @@ def write_results(args: argparse.Namespace, argv: list[str] | None, final: bool 
             + "\n"
         )
     return results
+
+
+#: The hand-written status page of the learning results, which no table may overwrite.
+STATUS_PAGE = ROOT / "docs" / "results" / "learning.md"
+
+
+def table_path(json_path: Path) -> Path:
+    """Where the final table of ``json_path`` goes by default: the same path with ``.md``, except where that is
+    :data:`STATUS_PAGE` (the default ``--json``): ``learning_table.md`` beside it."""
+    md = json_path.with_suffix(".md")
+    return md.with_name("learning_table.md") if md.resolve() == STATUS_PAGE.resolve() else md
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -191,3 +191,11 @@ def test_learning_bench_runs_torchrl_dreamer_v3_by_default_and_accepts_the_older
     with pytest.raises(SystemExit):
         bench.main(["--algos", "torchrl_dreamer_v4", "--collect-only", "--json", str(out)])
     assert "unknown algos ['torchrl_dreamer_v4']" in capsys.readouterr().err
+
+
+def test_the_default_table_never_overwrites_the_status_page(tmp_path):
+    learning = load_bench("learning")
+    results = learning.ROOT / "docs" / "results"
+    assert learning.table_path(results / "learning.json") == results / "learning_table.md"
+    assert learning.table_path(results / "learning_rung1_v3.json") == results / "learning_rung1_v3.md"
+    assert learning.table_path(tmp_path / "learning.json") == tmp_path / "learning.md"
