@@ -55,8 +55,10 @@ def test_groups_hold_the_presets_the_paper_needs():
 def test_every_env_algo_preset_composes_to_a_valid_config(env, algo):
     cfg = composed(f"env={env}", f"algo={algo}", "size=tiny")
     validate_config(cfg)
-    # every env preset names its env, but for gym's, an example id: the group is for any gymnasium id
-    assert cfg.env.name == {"gym": "Pendulum-v1"}.get(env, env) and cfg.algo.name == algo
+    # every env preset names its env, but for gym's, an example id: the group is for any gymnasium id; and
+    # sprites_reach, the plain sprites task of the quickstart
+    assert cfg.env.name == {"gym": "Pendulum-v1", "sprites_reach": "sprites"}.get(env, env)
+    assert cfg.algo.name == algo
 
 
 #: The exp files whose runs a bench records (not docs/results/world_model_demo.json): the bench.
@@ -295,9 +297,20 @@ def test_quickstart_preset_is_the_readme_main_job():
     assert (cfg.env.name, cfg.algo.name, cfg.train.total_steps, cfg.train.threads) == (
         "sprites",
         "isodream",
-        3000,
+        25000,
         1,
     )
+    # the plain reach task (env=sprites_reach) unless an env is named; a named env keeps its own settings
+    assert dict(cfg.env.kwargs) == {
+        "task": "reach",
+        "max_steps": 200,
+        "num_distractors": 0,
+        "sprite_size": 0.15,
+        "num_backgrounds": 1,
+    }
+    for named in (["env=sprites", "size=quickstart"], ["size=quickstart", "env=sprites"]):
+        assert dict(composed(*named).env.kwargs) == {"task": "reach", "max_steps": 200}
+    assert composed("size=quickstart", "env=highway").env.name == "highway"
     assert cfg.run_dir == "runs/sprites-isodream-quickstart"
     assert 0 < cfg.logging.eval_every < cfg.train.total_steps  # pictures during the run, not only at the end
 
