@@ -5,8 +5,9 @@ a checkpoint without its manifest, a corrupted byte, a resume with another algor
 while a checkpoint is written, a corrupted CSV log, an env raising mid-episode in a parallel collector, NaN
 losses; and, from the command line with real processes and real disks: two runs in one run folder, a resume
 while the run trains, SIGKILL then resume (one lock, one timeline of logs), Ctrl-C then resume (exit 130), NaN
-or inf frames and rewards mid-run, a corrupt ``run_config.json`` and a run-dir check that raises, a checkpoint of
-``algo=isodream`` from when it was the DreamerV2-style learner and weights of other widths, a tmpfs that fills up,
+or inf frames and rewards mid-run (in this process and in collector workers), a corrupt ``run_config.json`` and
+a run-dir check that raises, a checkpoint of ``algo=isodream`` from when it was the DreamerV2-style learner and
+weights of other widths, a tmpfs that fills up,
 a start that fails, ``isodream-video train`` twice into one folder and stopped by a signal. Bad inputs
 (``refused``): pixels in the wrong range or NaN, NaN actions, no ``is_init``, 1-step windows, image sizes, argument
 types, and the CLIs' user errors (unknown settings and group options, run folders that cannot be written, damaged
@@ -620,14 +621,26 @@ BAD_ENV_CASES = {
 }
 
 
-@pytest.mark.parametrize("case", list(BAD_ENV_CASES), ids=list(BAD_ENV_CASES))
-def test_nan_or_inf_env_data_stops_the_run_in_one_line(case, tmp_path, said):
+#: the cases also run with two collector worker processes (``env.num_envs=2``)
+BAD_ENV_WORKER_CASES = ("NaN pixels", "-inf reward")
+
+
+@pytest.mark.parametrize(
+    "case,num_envs",
+    [(case, 1) for case in BAD_ENV_CASES] + [(case, 2) for case in BAD_ENV_WORKER_CASES],
+    ids=[*BAD_ENV_CASES, *(f"{case}, 2 worker envs" for case in BAD_ENV_WORKER_CASES)],
+)
+def test_nan_or_inf_env_data_stops_the_run_in_one_line(case, num_envs, tmp_path, said):
     """fault: an env.factory whose float frames in [0, 1], or rewards, turn NaN or inf after 80 frames, once the
     policy acts (was: for NaN frames the policy's `normal expects all elements of std >= 0.0` traceback, exit 1,
-    before the loss's own check saw the batch) | refused: one line naming the entry, the env step and the env,
-    and the last checkpoint to continue from (exit 2), the step refused before the policy acts on it or the
-    replay stores it; once the env is fixed, resume=true continues from that checkpoint"""
+    before the loss's own check saw the batch), in this process or in each of 2 collector worker processes
+    (was there: the worker died with a traceback of its own and the run stopped later on "a process failed")
+    | refused: one line naming the entry, the env step and the env (which worker's), and the last checkpoint to
+    continue from (exit 2), the step refused before the policy acts on it or the replay stores it (a worker
+    marks it in the batch, which the run refuses); once the env is fixed, resume=true continues from that
+    checkpoint"""
     key, value, resume = BAD_ENV_CASES[case]
+    total = 120 * num_envs
     args = [
         *TINY_TRAIN,
         "run_dir=run",
@@ -635,25 +648,27 @@ def test_nan_or_inf_env_data_stops_the_run_in_one_line(case, tmp_path, said):
         "train.prefill_steps=20",
         "train.frames_per_batch=20",
         "checkpoint.every_updates=4",
-        "train.total_steps=120",
+        f"train.total_steps={total}",
+        f"env.num_envs={num_envs}",
     ]
     out = run_command("isodream_rl.cli", args, tmp_path, **{BAD_ENV_DATA: f"{key}:{value}"})
     assert out.returncode == 2, out.stderr[-3000:]
     line = user_error(out)
     state, checkpoint = CheckpointManager(tmp_path / "run" / "checkpoints").load_latest()
-    found = "NaN" if value == "nan" else "inf"
+    found = {"nan": "NaN", "inf": "inf", "-inf": "inf"}[value]
+    which = " (collector env 1 of 2)" if num_envs == 2 else ""  # both go bad at their 80th step; the first named
     assert line == (
-        f"isodream-train: env.factory=tests.test_faults:bad_data_sprites gave {key!r} holding {found} at env step "
-        f"80; the last checkpoint, run/checkpoints/{checkpoint.name}, is intact: fix the env, then continue with "
-        "resume=true"
+        f"isodream-train: env.factory=tests.test_faults:bad_data_sprites{which} gave {key!r} holding {found} at "
+        f"env step 80; the last checkpoint, run/checkpoints/{checkpoint.name}, is intact: fix the env, then "
+        "continue with resume=true"
     )
     said(line)
-    assert state["counters"]["env_steps"] < 80
+    assert state["counters"]["env_steps"] < 80 * num_envs
     if resume:
         resumed = run_command("isodream_rl.cli", [*args, "resume=true"], tmp_path)
         assert resumed.returncode == 0, resumed.stderr[-3000:]
         assert f"resumed from run/checkpoints/{checkpoint.name}" in resumed.stdout
-        assert "run finished: 120 env steps" in resumed.stdout
+        assert f"run finished: {total} env steps" in resumed.stdout
 
 
 @pytest.fixture

@@ -64,8 +64,13 @@ def env_label(cfg: RunConfig) -> str:
     return f"env.factory={cfg.env.factory}" if cfg.env.factory else f"env.name={cfg.env.name}"
 
 
+def collector_env_suffix(index: int, num_envs: int) -> str:
+    """How an env of the collector is told apart in messages: ``" (collector env 1 of 2)"``, ``""`` for one."""
+    return f" (collector env {index + 1} of {num_envs})" if num_envs > 1 else ""
+
+
 def checked_env_factory(
-    cfg: RunConfig, *, eval_mode: bool = False, which: str = "", first_step: int = 0
+    cfg: RunConfig, *, eval_mode: bool = False, which: str = "", first_step: int = 0, on_fault: str = "raise"
 ) -> functools.partial:
     """:func:`env_factory` whose envs refuse NaN/inf frames and rewards where they enter the run
     (:class:`~isodream_rl.envs.finite.FiniteEnvData`, appended last: it checks what the policy and the replay
@@ -76,17 +81,20 @@ def checked_env_factory(
         eval_mode: as :func:`env_factory`.
         which: added to the env's name in the error (``" (collector env 1 of 2)"``).
         first_step: the env steps this env took in the run before it was made (a resumed run's).
+        on_fault: ``"raise"``, or ``"mark"`` for an env in a collector worker process: the finding travels in the
+            batch to the run's process (:func:`~isodream_rl.envs.finite.raise_marked_fault`).
     """
     return functools.partial(
         _finite_env,
         env_factory(cfg, eval_mode=eval_mode),
         env=env_label(cfg) + which,
         first_step=first_step,
+        on_fault=on_fault,
     )
 
 
-def _finite_env(make, *, env: str, first_step: int, **kwargs) -> EnvBase:
-    return make(**kwargs).append_transform(FiniteEnvData(env=env, first_step=first_step))
+def _finite_env(make, *, env: str, first_step: int, on_fault: str = "raise", **kwargs) -> EnvBase:
+    return make(**kwargs).append_transform(FiniteEnvData(env=env, first_step=first_step, on_fault=on_fault))
 
 
 def action_dim_of(env: EnvBase) -> int:

@@ -16,7 +16,7 @@ from typing import Any
 
 from torchrl.collectors import BaseCollector, Collector
 
-from isodream_rl.trainers.builders import checked_env_factory
+from isodream_rl.trainers.builders import checked_env_factory, collector_env_suffix
 from isodream_rl.trainers.config import RunConfig
 
 
@@ -119,10 +119,14 @@ def make_collector(
     # construction reseeds an env whose first observation the collector already holds (drawn unseeded), so the
     # first episode of a run would differ between runs of one seed and start from a frame of another episode.
     # (torchrl 0.14's DistributedCollector.set_seed also fails on its workers: it parses the seed as a list.)
+    # An env in a worker process marks a NaN/inf in the batch instead of raising there (FiniteEnvData's
+    # on_fault="mark"): the run's process refuses the batch in one line (ReplayPreparation).
+    on_fault = "raise" if backend == "direct" else "mark"
     makes = []
     for i in range(num_envs):
-        which = f" (collector env {i + 1} of {num_envs})" if num_envs > 1 else ""
-        make = checked_env_factory(cfg, which=which, first_step=first_step // num_envs)
+        make = checked_env_factory(
+            cfg, which=collector_env_suffix(i, num_envs), first_step=first_step // num_envs, on_fault=on_fault
+        )
         if env_transform is not None:
             make = functools.partial(_with_transform, make, env_transform)
         makes.append(functools.partial(_seeded, make, train.seed + i))

@@ -15,7 +15,14 @@ from torchrl.data import TensorDictReplayBuffer
 from torchrl.trainers import Trainer
 
 from isodream_rl.trainers import trainer_state
-from isodream_rl.trainers.builders import make_adam, make_behavior, make_replay_buffer, make_world_model_loss
+from isodream_rl.trainers.builders import (
+    collector_env_suffix,
+    env_label,
+    make_adam,
+    make_behavior,
+    make_replay_buffer,
+    make_world_model_loss,
+)
 from isodream_rl.trainers.config import RunConfig
 from isodream_rl.trainers.hooks import EpisodeReturns, ReplayPreparation
 from isodream_rl.trainers.run_lifecycle import run_state
@@ -28,15 +35,18 @@ def make_replay_parts(
 ) -> tuple[TensorDictReplayBuffer, ReplayPreparation, EpisodeReturns]:
     """The replay side every algorithm's run shares: the replay buffer
     (:func:`~isodream_rl.trainers.builders.make_replay_buffer`, memmap files under ``scratch_dir``), the hook that
-    prepares collected batches for it (``env.num_envs`` envs, ``train.buffer_size`` split evenly between them) and
-    the episode-return hook.
+    prepares collected batches for it (``env.num_envs`` envs, ``train.buffer_size`` split evenly between them,
+    a NaN/inf an env in a worker marked refused in one line naming the env) and the episode-return hook.
 
     Returns:
         ``(replay_buffer, preparation, returns)``.
     """
     replay_buffer = make_replay_buffer(cfg, scratch_dir=scratch_dir)
+    num_envs = cfg.env.num_envs
     preparation = ReplayPreparation(
-        num_envs=cfg.env.num_envs, capacity_per_env=cfg.train.buffer_size // cfg.env.num_envs
+        num_envs=num_envs,
+        capacity_per_env=cfg.train.buffer_size // num_envs,
+        envs=tuple(env_label(cfg) + collector_env_suffix(i, num_envs) for i in range(num_envs)),
     )
     return replay_buffer, preparation, EpisodeReturns()
 

@@ -10,6 +10,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.trainers import TrainerHookBase
 
+from isodream_rl.envs.finite import raise_marked_fault
 from isodream_rl.trainers.builders import REPLAY_KEYS, STREAM_KEY
 
 logger = logging.getLogger(__name__)
@@ -25,17 +26,26 @@ class ReplayPreparation(TrainerHookBase):
     newest steps sit next to the oldest. The stream id ``lap * num_envs + env`` changes exactly there
     (``lap``: how many times this env's slice of the storage has been filled), and between envs.
 
+    A batch in which an env of a collector worker marked a NaN/inf frame or reward
+    (:class:`~isodream_rl.envs.finite.FiniteEnvData` with ``on_fault="mark"``) is refused here, before the replay
+    stores it: :class:`~isodream_rl.envs.finite.NonFiniteEnvDataError` names the env, the entry and its env step.
+
     Args:
         num_envs: envs of the collector; batches are reshaped to ``[num_envs, T]`` when ``num_envs > 1``.
         capacity_per_env: steps of storage per env (``buffer_size // num_envs``).
+        envs: how each env is named in that error, one per env. Defaults to ``"collector env i of n"``.
     """
 
-    def __init__(self, *, num_envs: int, capacity_per_env: int) -> None:
+    def __init__(self, *, num_envs: int, capacity_per_env: int, envs: tuple[str, ...] | None = None) -> None:
         self.num_envs = num_envs
         self.capacity_per_env = capacity_per_env
+        self.envs = envs or tuple(f"collector env {i + 1} of {num_envs}" for i in range(num_envs))
+        if len(self.envs) != num_envs:
+            raise ValueError(f"envs names {len(self.envs)} envs, num_envs={num_envs}")
         self.written = 0
 
     def __call__(self, batch: TensorDictBase) -> TensorDictBase:
+        raise_marked_fault(batch, self.envs)
         batch = batch.select(*REPLAY_KEYS, strict=False)
         if self.num_envs > 1 and batch.ndim == 1:
             batch = batch.reshape(self.num_envs, -1)
