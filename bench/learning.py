@@ -66,7 +66,7 @@ ALGOS = ("isodream", "dreamerv2", "torchrl_dreamer_v3")
 #: (DreamerV1-style) Dreamer pieces.
 MORE_ALGOS = ("isodream_v2", "torchrl_dreamer")
 #: The task's success count reported beside the return, per env.
-SUCCESS_KEY = {"sprites": "reaches", "highway": "distance"}
+SUCCESS_KEY = {"sprites": "reaches", "sprites_reach": "reaches", "highway": "distance"}
 #: Seconds between polls of the running runs.
 POLL_S = 5.0
 
