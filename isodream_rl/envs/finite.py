@@ -98,8 +98,9 @@ class FiniteEnvData(Transform):
             if not mark[0]:
                 mark = torch.tensor([1, self.steps, index, int(inf), int(at_reset)], device=data.device)
             data.set(key, torch.nan_to_num(value, nan=0.0, posinf=0.0, neginf=0.0))
+        if mark[0] and not at_reset:  # end the episode there
             for flag in ("truncated", "done"):
-                if not at_reset and data.get(flag, None) is not None:
+                if data.get(flag, None) is not None:
                     data.set(flag, torch.ones_like(data.get(flag)))
         if self.on_fault == "mark":
             data.set(FAULT_KEY, mark)
