@@ -8,7 +8,9 @@ builds (``_world_model.*``: ``make_world_model_config``) plus the behavior width
 is not in the record and is not compared; the five curriculum options of the world-model mode removed since
 (``world_model.static_mask_bias_schedule``, ``lambda_reco_pyramid``, ``pyramid_levels``, ``reco_pyramid_from``,
 ``ramp_updates``) were taken out of it with them. One value moved on purpose: ``exp=world_model`` names its
-algo ``isodream_v2`` (the DreamerV2-style learner, ``isodream`` before that became DreamerV3's learner). The
+algo ``isodream_v2`` (the DreamerV2-style learner, ``isodream`` before that became DreamerV3's learner), and
+``size=quickstart`` became the README's learning run (``env=sprites_reach``: no distractors, sprite size 0.15, one
+background; 25000 env steps, a 500-update world-model warm-up, exploration 0.3, evaluation every 2500). The
 ``algo=isodream`` lines compose the same values, now read by DreamerV3's learner (``_world_model.*`` is what
 ``make_world_model_config``, the DreamerV2-style world model, makes of them).
 """
