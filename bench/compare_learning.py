@@ -91,13 +91,13 @@ def side_table(results: dict, marks: list[int] | None = None) -> str:
         "|---|---|---|---|" + "---|" * len(marks),
     ]
 
-    def seeds(values) -> str:
-        return " / ".join("-" if v is None else f"{v:.1f}" for v in values) or "-"
+    def seeds(values, spec: str = ".1f") -> str:
+        return " / ".join("-" if v is None else format(v, spec) for v in values) or "-"
 
     for label, entry in results["algos"].items():
         at = [seeds(entry["eval_at"].get(str(m), {}).values()) for m in marks]
         lines.append(
-            f"| {label} | {seeds(entry['updates_per_seed']).replace('.0', '')} | {seeds(entry['final_per_seed'])} "
+            f"| {label} | {seeds(entry['updates_per_seed'], '.0f')} | {seeds(entry['final_per_seed'])} "
             f"| {seeds(entry['mean_eval_per_seed'])} | " + " | ".join(at) + " |"
         )
     return "\n".join(lines)

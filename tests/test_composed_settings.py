@@ -7,7 +7,7 @@ is one command line's ``RunConfig`` as flat ``section.field`` keys, its ``model`
 builds (``_world_model.*``: ``make_world_model_config``) plus the behavior widths. A setting added since then
 is not in the record and is not compared; the five curriculum options of the world-model mode removed since
 (``world_model.static_mask_bias_schedule``, ``lambda_reco_pyramid``, ``pyramid_levels``, ``reco_pyramid_from``,
-``ramp_updates``) were taken out of it with them. One value moved on purpose: ``exp=world_model`` names its
+``ramp_updates``) were taken out of it with them. Two moved on purpose: ``exp=world_model`` names its
 algo ``isodream_v2`` (the DreamerV2-style learner, ``isodream`` before that became DreamerV3's learner), and
 ``size=quickstart`` became the README's learning run (``env=sprites_reach``: no distractors, sprite size 0.15, one
 background; 25000 env steps, a 500-update world-model warm-up, exploration 0.3, evaluation every 2500). The
