@@ -38,6 +38,7 @@ from torchrl.modules import (
     RSSMRolloutV3,
     SymExpTwoHot,
 )
+from torchrl.modules.models.model_based import _straight_through_categorical
 
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings, WindowInputCheck
 from isodream_rl.modules.fast_paths import FusedMaskComposition, use_fast_rms_norms
@@ -46,6 +47,8 @@ from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
 PIXELS = ("next", "pixels")
 #: Width of the constant zero action of the action-free prior.
 FREE_ACTION_DIM = 1
+#: What the action-free decoder may draw from (:attr:`IsoDreamV3Config.free_decodes`).
+FREE_DECODER_INPUTS = ("prior", "posterior")
 
 
 def _next(key: str) -> tuple[str, str]:
@@ -111,8 +114,19 @@ class IsoDreamV3Config:
     """The reward and continuation heads read ``[h, s, h', z]`` (CARLA, sprites) rather than ``[h, s]``."""
     static_frames: int = 1
     """K: the frames whose embeddings give a window's background."""
+    free_decodes: str = "prior"
+    """What the action-free decoder draws from (:data:`FREE_DECODER_INPUTS`): ``"prior"`` (default), its one-step
+    prior ``z~_t ~ p(z_t | h'_t)`` with ``h'_t`` from the previous posterior, so that it cannot draw what the
+    actions moved since (the authors' DMC code, where the action-free branch is a one-step predictor); the
+    window's first step and episode starts, which have no previous posterior, draw from the posterior.
+    ``"posterior"``: ``z_t ~ q(z_t | h'_t, o_t)`` at every step, as eq. 4's text (the frame it draws is in its
+    input, so the agent can land in either dynamic branch)."""
     settings: DreamerV3Settings = DreamerV3Settings()
     """DreamerV3's settings (unimix, categoricals, bins, blocks)."""
+
+    def __post_init__(self) -> None:
+        if self.free_decodes not in FREE_DECODER_INPUTS:
+            raise ValueError(f"free_decodes must be one of {FREE_DECODER_INPUTS}, got {self.free_decodes!r}")
 
     @property
     def control(self) -> BranchWidths:
@@ -389,7 +403,7 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
             beliefs.append(hz)
             prior.append(free.get(_next("prior_logits")))
             posterior.append(free.get(_next("posterior_logits")))
-            outputs["free"] = self.free_decoder(z, hz)
+            outputs["free"] = self.free_decoder(self._free_drawn(z, prior[-1], tensordict.get("is_init")), hz)
             tensordict.set(_next("free_window"), self.free_window(z, hz))
         if cfg.static_branch:
             batch, time = embed.shape[:2]
@@ -484,6 +498,27 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
         for name, mask in masks.items():
             out[f"mask_{name}"] = mask
         return out
+
+    def _free_drawn(
+        self, posterior: torch.Tensor, prior_logits: torch.Tensor, is_init: torch.Tensor
+    ) -> torch.Tensor:
+        """The state the action-free decoder draws at each step (:attr:`IsoDreamV3Config.free_decodes`).
+
+        Args:
+            posterior: the posterior ``z_t`` ``[B, T, S_z]``.
+            prior_logits: the prior's logits ``[B, T, K, C]`` (from ``h'_t``, which the previous posterior made).
+            is_init: ``[B, T, 1]`` episode starts.
+
+        Returns:
+            ``[B, T, S_z]``: a straight-through sample of the prior (with the RSSM's unimix) where a previous
+            posterior exists in the window, the posterior elsewhere (the first step, episode starts).
+        """
+        if self.config.free_decodes == "posterior":
+            return posterior
+        prior = _straight_through_categorical(prior_logits, self.config.settings.unimix).flatten(-2)
+        blind = is_init.reshape(*posterior.shape[:2], 1).clone()
+        blind[:, 0] = True
+        return torch.where(blind, posterior, prior)
 
     def _inverse(self, s: torch.Tensor, is_init: torch.Tensor) -> dict[str, torch.Tensor]:
         """``action_pred[t]`` from ``[s_t, s_{t+1}]`` (the posteriors before and after ``action[t]``, i.e. ``("next",
