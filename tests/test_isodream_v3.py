@@ -75,6 +75,46 @@ class TestDecomposition:
         torch.testing.assert_close(a["next", "state"][..., width:], b["next", "state"][..., width:])
         assert not torch.allclose(a["next", "belief"][..., :deter], b["next", "belief"][..., :deter])
 
+    @pytest.mark.parametrize("free_decoder_input", ["prior", "posterior"])
+    def test_action_free_branch_draws_its_prior_not_the_frame(self, free_decoder_input):
+        """The default's action-free decoder draws ``z~_t ~ p(z_t | h'_t)``: a frame changed at step t changes what
+        it draws from step t + 1 on, never at t, so that it cannot draw what the actions just moved (the agent
+        lands in the controllable branch); it draws the posterior where no previous posterior exists (the window's
+        first step). ``free_decoder_input="posterior"`` (eq. 4's text) draws the frame it is given."""
+        torch.manual_seed(0)
+        config = IsoDreamV3Config(
+            action_dim=A, hidden=16, image_depth=2, units=16, free_decoder_input=free_decoder_input
+        )
+        model = IsoDreamV3WorldModel(config)
+        pixels = torch.randint(0, 256, (2, 4, 3, 64, 64), dtype=torch.uint8)
+
+        def drawn(frames):
+            torch.manual_seed(1)
+            batch = TensorDict(
+                {
+                    ("next", "pixels"): frames,
+                    "action": torch.ones(2, 4, A),
+                    "is_init": torch.zeros(2, 4, 1, dtype=torch.bool),
+                },
+                [2, 4],
+            )
+            return model(batch)["next", "reco_free"]
+
+        def moved(step):  # [T]: which steps' drawings change when the frame of `step` changes
+            changed = pixels.clone()
+            changed[:, step] = 255 - changed[:, step]
+            return (drawn(pixels) - drawn(changed)).flatten(2).abs().amax(-1).amax(0) > 0
+
+        assert moved(0).tolist() == [True, True, True, True]  # the first step draws its posterior
+        sees_its_frame = free_decoder_input == "posterior"
+        assert moved(2).tolist() == [False, False, sees_its_frame, True]
+
+    def test_free_decoder_input_is_checked(self):
+        with pytest.raises(ValueError, match="free_decoder_input must be one of"):
+            IsoDreamV3Config(
+                action_dim=A, hidden=16, image_depth=2, units=16, free_decoder_input="prior_mean"
+            )
+
     def test_inverse_loss_trains_the_controllable_branch_only(self, parts):
         model = parts.learner.world_model
         model.zero_grad()
@@ -287,6 +327,9 @@ def test_train_writes_a_summary_and_resumes(tmp_path):
     result = train(cfg)
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["algo"] == ALGO and math.isfinite(summary["eval_return"])
+    # sprites renders the ground truth: the final decomposition and where it put the agent
+    assert 0.0 <= summary["decomposition"]["iou_control_vs_agent"] <= 1.0
+    assert summary["isolation"]["agent_branch"] in ("control", "free", "static")
     assert math.isfinite(result.metrics["loss_model_inverse"]) and math.isfinite(result.metrics["loss_actor"])
     cfg.resume, cfg.train.total_steps = True, 80
     resumed = train(cfg)

@@ -40,6 +40,7 @@ from torchrl.modules import (
 )
 from torchrl.modules.models.model_based import _straight_through_categorical
 
+from isodream_rl.modules.config import FREE_DECODER_INPUTS
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings, WindowInputCheck
 from isodream_rl.modules.fast_paths import FusedMaskComposition, use_fast_rms_norms
 from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
@@ -47,8 +48,6 @@ from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
 PIXELS = ("next", "pixels")
 #: Width of the constant zero action of the action-free prior.
 FREE_ACTION_DIM = 1
-#: What the action-free decoder may draw from (:attr:`IsoDreamV3Config.free_decodes`).
-FREE_DECODER_INPUTS = ("prior", "posterior")
 
 
 def _next(key: str) -> tuple[str, str]:
@@ -114,7 +113,7 @@ class IsoDreamV3Config:
     """The reward and continuation heads read ``[h, s, h', z]`` (CARLA, sprites) rather than ``[h, s]``."""
     static_frames: int = 1
     """K: the frames whose embeddings give a window's background."""
-    free_decodes: str = "prior"
+    free_decoder_input: str = "prior"
     """What the action-free decoder draws from (:data:`FREE_DECODER_INPUTS`): ``"prior"`` (default), its one-step
     prior ``z~_t ~ p(z_t | h'_t)`` with ``h'_t`` from the previous posterior, so that it cannot draw what the
     actions moved since (the authors' DMC code, where the action-free branch is a one-step predictor); the
@@ -125,8 +124,10 @@ class IsoDreamV3Config:
     """DreamerV3's settings (unimix, categoricals, bins, blocks)."""
 
     def __post_init__(self) -> None:
-        if self.free_decodes not in FREE_DECODER_INPUTS:
-            raise ValueError(f"free_decodes must be one of {FREE_DECODER_INPUTS}, got {self.free_decodes!r}")
+        if self.free_decoder_input not in FREE_DECODER_INPUTS:
+            raise ValueError(
+                f"free_decoder_input must be one of {FREE_DECODER_INPUTS}, got {self.free_decoder_input!r}"
+            )
 
     @property
     def control(self) -> BranchWidths:
@@ -502,7 +503,7 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
     def _free_drawn(
         self, posterior: torch.Tensor, prior_logits: torch.Tensor, is_init: torch.Tensor
     ) -> torch.Tensor:
-        """The state the action-free decoder draws at each step (:attr:`IsoDreamV3Config.free_decodes`).
+        """The state the action-free decoder draws at each step (:attr:`IsoDreamV3Config.free_decoder_input`).
 
         Args:
             posterior: the posterior ``z_t`` ``[B, T, S_z]``.
@@ -513,7 +514,7 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
             ``[B, T, S_z]``: a straight-through sample of the prior (with the RSSM's unimix) where a previous
             posterior exists in the window, the posterior elsewhere (the first step, episode starts).
         """
-        if self.config.free_decodes == "posterior":
+        if self.config.free_decoder_input == "posterior":
             return posterior
         prior = _straight_through_categorical(prior_logits, self.config.settings.unimix).flatten(-2)
         blind = is_init.reshape(*posterior.shape[:2], 1).clone()
