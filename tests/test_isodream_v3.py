@@ -75,15 +75,17 @@ class TestDecomposition:
         torch.testing.assert_close(a["next", "state"][..., width:], b["next", "state"][..., width:])
         assert not torch.allclose(a["next", "belief"][..., :deter], b["next", "belief"][..., :deter])
 
-    @pytest.mark.parametrize("free_decoder_input", ["prior", "posterior"])
-    def test_action_free_branch_draws_its_prior_not_the_frame(self, free_decoder_input):
-        """The default's action-free decoder draws ``z~_t ~ p(z_t | h'_t)``: a frame changed at step t changes what
-        it draws from step t + 1 on, never at t, so that it cannot draw what the actions just moved (the agent
-        lands in the controllable branch); it draws the posterior where no previous posterior exists (the window's
-        first step). ``free_decoder_input="posterior"`` (eq. 4's text) draws the frame it is given."""
+    @pytest.mark.parametrize("branch", ["control", "free"])
+    @pytest.mark.parametrize("source", ["prior", "posterior"])
+    def test_each_dynamic_branch_draws_its_prior_not_the_frame(self, branch, source):
+        """The default's dynamic decoders draw their one-step priors (``s~_t ~ p(s_t | h_t)``, ``h_t`` from the
+        previous posterior and the action; ``z~_t ~ p(z_t | h'_t)`` without the action): a frame changed at step t
+        changes what they draw from step t + 1 on, never at t, so only the action can tell where the agent went
+        (it lands in the controllable branch). They draw the posterior where no previous posterior exists (the
+        window's first step). ``*_decoder_input="posterior"`` draws the frame it is given."""
         torch.manual_seed(0)
         config = IsoDreamV3Config(
-            action_dim=A, hidden=16, image_depth=2, units=16, free_decoder_input=free_decoder_input
+            action_dim=A, hidden=16, image_depth=2, units=16, **{f"{branch}_decoder_input": source}
         )
         model = IsoDreamV3WorldModel(config)
         pixels = torch.randint(0, 256, (2, 4, 3, 64, 64), dtype=torch.uint8)
@@ -98,7 +100,7 @@ class TestDecomposition:
                 },
                 [2, 4],
             )
-            return model(batch)["next", "reco_free"]
+            return model(batch)["next", f"reco_{branch}"]
 
         def moved(step):  # [T]: which steps' drawings change when the frame of `step` changes
             changed = pixels.clone()
@@ -106,14 +108,12 @@ class TestDecomposition:
             return (drawn(pixels) - drawn(changed)).flatten(2).abs().amax(-1).amax(0) > 0
 
         assert moved(0).tolist() == [True, True, True, True]  # the first step draws its posterior
-        sees_its_frame = free_decoder_input == "posterior"
+        sees_its_frame = source == "posterior"
         assert moved(2).tolist() == [False, False, sees_its_frame, True]
 
-    def test_free_decoder_input_is_checked(self):
-        with pytest.raises(ValueError, match="free_decoder_input must be one of"):
-            IsoDreamV3Config(
-                action_dim=A, hidden=16, image_depth=2, units=16, free_decoder_input="prior_mean"
-            )
+    def test_decoder_inputs_are_checked(self):
+        with pytest.raises(ValueError, match="control_decoder_input must be one of"):
+            IsoDreamV3Config(action_dim=A, hidden=16, image_depth=2, units=16, control_decoder_input="paper")
 
     def test_inverse_loss_trains_the_controllable_branch_only(self, parts):
         model = parts.learner.world_model
