@@ -113,19 +113,22 @@ class IsoDreamV3Config:
     """The reward and continuation heads read ``[h, s, h', z]`` (CARLA, sprites) rather than ``[h, s]``."""
     static_frames: int = 1
     """K: the frames whose embeddings give a window's background."""
-    control_decoder_input: str = "prior"
-    """What the controllable decoder draws from (:data:`DECODER_INPUTS`): ``"prior"`` (default), its one-step prior
-    ``s~_t ~ p(s_t | h_t)``, ``h_t`` made from the previous posterior and the action ``a_{t-1}``, so that it draws
-    what the action predicts (eq. 4's text, §3.2); ``"posterior"``: ``s_t ~ q(s_t | h_t, o_t)``."""
+    static_mask_bias: float = 3.0
+    """Initial bias of the static branch's mask logit (a learned parameter): 3 starts training with the background
+    owning 91 % of every pixel, so that the dynamic branches take only the pixels it cannot explain (what moves)
+    instead of one of them taking the still background and leaving the agent to the static image."""
+    control_decoder_input: str = "posterior"
+    """What the controllable decoder draws from (:data:`DECODER_INPUTS`): ``"posterior"`` (default), ``s_t ~
+    q(s_t | h_t, o_t)`` (the authors' DMC code); ``"prior"``, its one-step prior ``s~_t ~ p(s_t | h_t)``, ``h_t``
+    made from the previous posterior and the action ``a_{t-1}`` (eq. 4's text, §3.2)."""
     free_decoder_input: str = "prior"
     """What the action-free decoder draws from (:data:`DECODER_INPUTS`): ``"prior"`` (default), its one-step prior
     ``z~_t ~ p(z_t | h'_t)``, ``h'_t`` made from the previous posterior without the action, so that it cannot draw
     what the actions moved since (the authors' DMC code, where this branch is a one-step predictor);
-    ``"posterior"``: ``z_t ~ q(z_t | h'_t, o_t)`` (eq. 4's text).
+    ``"posterior"``: ``z_t ~ q(z_t | h'_t, o_t)`` (eq. 4's text), with which the agent can land in this branch.
 
-    From the priors only the controllable branch can draw the agent where the action took it: the posteriors see
-    the frame they draw, and with them the agent landed in whichever branch came first. Both decoders draw their
-    posterior where no previous posterior exists (a window's first step, an episode's start)."""
+    A decoder that draws its prior draws the posterior where no previous posterior exists (a window's first step,
+    an episode's start)."""
     settings: DreamerV3Settings = DreamerV3Settings()
     """DreamerV3's settings (unimix, categoricals, bins, blocks)."""
 
@@ -278,6 +281,9 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
             if cfg.static_branch
             else None
         )
+        if self.static_decoder is not None:
+            with torch.no_grad():
+                self.static_decoder.layers[-1].bias[3] += cfg.static_mask_bias
         # Composed in the decoders' units (pixels / 255, see MaskComposition's pixel_range), as one autograd node
         # (FusedMaskComposition): the same eq. 4 without shifting three [B, T, 4, 64, 64] outputs into [-0.5, 0.5]
         # and four results back, and without a clamp node and a slice gradient per branch.
