@@ -76,7 +76,12 @@ SUCCESS_KEY = {"sprites": "reaches", "sprites_reach": "reaches", "highway": "dis
 #: Seconds between polls of the running runs.
 POLL_S = 5.0
 #: The decomposition scores a curve carries at each evaluation (runs whose env renders the ground truth).
-CURVE_DECOMPOSITION = ("iou_control_vs_agent", "iou_free_vs_agent", "iou_free_vs_distractors")
+CURVE_DECOMPOSITION = (
+    "iou_control_vs_agent",
+    "iou_free_vs_agent",
+    "iou_static_vs_agent",
+    "iou_free_vs_distractors",
+)
 
 
 def run_command(algo: str, seed: int, run_dir: Path, args: argparse.Namespace) -> list[str]:
@@ -299,14 +304,13 @@ def _final_scores(entry: dict, score: str) -> list:
 
 def table(results: dict) -> str:
     """Markdown table over the finished seeds, with the count of unfinished ones (logs, no summary.json): returns,
-    success and contact counts, wall-clock, and the world models' final mask IoUs (agent in the controllable
-    branch, agent in the action-free branch, distractors in the action-free branch)."""
+    success and contact counts, wall-clock, and the world models' final mask IoUs (:data:`CURVE_DECOMPOSITION`)."""
     success = SUCCESS_KEY.get(results["env"], "successes")
     lines = [
         f"| algo | seeds | unfinished | final return | normalised score | {success} per episode "
         "| contacts per episode | wall-clock per run (min) | IoU controllable vs agent | IoU action-free vs agent "
-        "| IoU action-free vs distractors |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| IoU static vs agent | IoU action-free vs distractors |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for algo, entry in results["algos"].items():
         unfinished = sum(not c.get("finished", True) for c in entry["curves"].values())
@@ -324,7 +328,7 @@ def table(results: dict) -> str:
             normalised = {"constant": "0", "scripted": "1"}.get(name, "-")
             lines.append(
                 f"| {name} policy | - | - | {ref['return']:.1f} | {normalised} "
-                f"| {ref.get(success, float('nan')):.1f} | {ref.get('contacts', float('nan')):.1f} | - | - | - | - |"
+                f"| {ref.get(success, float('nan')):.1f} | {ref.get('contacts', float('nan')):.1f} | - | - | - | - | - |"
             )
     return "\n".join(lines)
 

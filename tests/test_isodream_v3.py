@@ -111,6 +111,23 @@ class TestDecomposition:
         sees_its_frame = source == "posterior"
         assert moved(2).tolist() == [False, False, sees_its_frame, True]
 
+    @pytest.mark.parametrize("bias, share", [(3.0, (0.85, 0.97)), (0.0, (0.25, 0.45))])
+    def test_static_mask_starts_with_most_of_every_pixel(self, bias, share):
+        """``static_mask_bias=3`` (the default): an untrained model gives the static branch ~91 % of every pixel, so
+        the dynamic branches must earn what moves; without it the three masks start near 1/3 each."""
+        torch.manual_seed(0)
+        config = IsoDreamV3Config(action_dim=A, hidden=16, image_depth=2, units=16, static_mask_bias=bias)
+        batch = TensorDict(
+            {
+                ("next", "pixels"): torch.randint(0, 256, (2, 4, 3, 64, 64), dtype=torch.uint8),
+                "action": torch.zeros(2, 4, A),
+                "is_init": torch.zeros(2, 4, 1, dtype=torch.bool),
+            },
+            [2, 4],
+        )
+        static = IsoDreamV3WorldModel(config)(batch)["next", "mask_static"]
+        assert share[0] < static.mean() < share[1]
+
     def test_decoder_inputs_are_checked(self):
         with pytest.raises(ValueError, match="control_decoder_input must be one of"):
             IsoDreamV3Config(action_dim=A, hidden=16, image_depth=2, units=16, control_decoder_input="paper")
