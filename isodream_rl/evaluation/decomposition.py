@@ -214,7 +214,8 @@ def isolation_verdict(scores: dict[str, float]) -> dict[str, object]:
     Returns:
         ``agent_branch``: the branch of :data:`BRANCHES` whose mask overlaps the agent most (``None`` without an
         agent in the windows); ``isolates_agent``: ``iou_control_vs_agent >= 0.7`` and ``iou_free_vs_agent <= 0.2``;
-        ``isolates_distractors``: ``iou_free_vs_distractors >= 0.5`` (``None`` without distractors in the windows);
+        ``isolates_distractors``: ``iou_free_vs_distractors >= 0.5`` (``None`` without distractor pixels in the
+        windows, ``mse_distractors`` being ``nan``);
         ``message``: one line saying where the agent landed when it is not isolated, else ``None``.
     """
     agent = {b: scores.get(f"iou_{b}_vs_agent", math.nan) for b in BRANCHES}
@@ -225,7 +226,9 @@ def isolation_verdict(scores: dict[str, float]) -> dict[str, object]:
         and agent["control"] >= ISOLATION_AIMS["iou_control_vs_agent"]
         and not agent["free"] > ISOLATION_AIMS["iou_free_vs_agent"]
     )
-    distractors = scores.get("iou_free_vs_distractors", math.nan)
+    # no distractor pixels in the windows (mse_distractors counts them): nothing to isolate
+    has_distractors = not math.isnan(scores.get("mse_distractors", math.nan))
+    distractors = scores.get("iou_free_vs_distractors", math.nan) if has_distractors else math.nan
     verdict: dict[str, object] = {
         "agent_branch": branch,
         "isolates_agent": bool(isolates) if has_agent else None,
