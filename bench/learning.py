@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import subprocess
 import sys
@@ -299,7 +300,14 @@ def _fmt(values, digits=1) -> str:
 
 
 def _final_scores(entry: dict, score: str) -> list:
-    return [(d or {}).get(score) for d in entry.get("decomposition_per_seed", [])]
+    """Each finished seed's final ``score``; ``None`` where the run has none, or where the score is about the
+    distractors and its scene had none (``mse_distractors`` is then ``nan``)."""
+    values = []
+    for scores in entry.get("decomposition_per_seed", []):
+        scores = scores or {}
+        absent = score.endswith("_distractors") and math.isnan(scores.get("mse_distractors", math.nan))
+        values.append(None if absent else scores.get(score))
+    return values
 
 
 def table(results: dict) -> str:
