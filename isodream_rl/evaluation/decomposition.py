@@ -241,7 +241,7 @@ def isolation_verdict(scores: dict[str, float]) -> dict[str, object]:
         where = {
             "free": "in the action-free branch",
             "static": "in the static branch",
-            "control": "only partly in the controllable branch",
+            "control": "mostly in the controllable branch, short of the aims",
         }[branch]
         verdict["message"] = (
             f"the world model draws the agent {where} (mask IoU with the agent: controllable "
