@@ -13,7 +13,7 @@ the library's learning rates) on :class:`~isodream_rl.evaluation.ExactSpritesMod
   controller's by update 750).
 
 The variants set ``algo`` fields of the library's defaults (:data:`VARIANTS`): ``isodream`` is the default's
-learner, DreamerV3's (:mod:`isodream_rl.evaluation.exact_sprites_v3`: its actor and two-hot critic on ``[s, h]``,
+learner, DreamerV3's (:mod:`isodream_rl.evaluation.exact_sprites_behavior`: its actor and two-hot critic on ``[s, h]``,
 ``DreamerV3ActorLoss`` (REINFORCE, percentile return normalisation, entropy 3e-4) and ``DreamerV3ValueLoss``
 (slow critic), the exact continuation ``1 - 1/333``, ``DreamerV3Optimizer`` at the run's learning rates with its
 1000-update warm-up; it reads neither ``algo.gamma`` nor the loc penalty); ``isodream_v2`` and the others are the

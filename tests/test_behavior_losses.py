@@ -21,7 +21,7 @@ from isodream_rl.objectives import (
     lambda_returns,
     make_target_updater,
 )
-from isodream_rl.objectives.imagination import policy_features
+from isodream_rl.objectives.isodream_v2.imagination import policy_features
 
 A, L, N = 2, 5, 6
 GAMMA, LMBDA = 0.99, 0.95

@@ -140,8 +140,8 @@ def test_sprites_trains_with_the_library_defaults_and_the_paper_preset_with_the_
     """The DreamerV2-style learner: ``algo=isodream_v2`` at the library's settings, ``isodream_paper`` at the
     paper's."""
     from isodream_rl.modules import WorldModelConfig
-    from isodream_rl.modules.config import PAPER_EXACT
-    from isodream_rl.objectives.world_model import PAPER_WEIGHTS
+    from isodream_rl.modules.isodream_v2.config import PAPER_EXACT
+    from isodream_rl.objectives.isodream_v2.world_model import PAPER_WEIGHTS
     from isodream_rl.trainers.builders import make_world_model_loss
 
     defaults = make_world_model_loss(composed("env=sprites", "size=tiny", "algo=isodream_v2"), action_dim=2)
@@ -395,7 +395,7 @@ def test_a_run_saved_by_an_algo_that_changed_learner_resumes_as_isodream_v2(env)
 
 
 def test_the_model_section_holds_every_world_model_field_but_the_envs():
-    from isodream_rl.modules.config import WorldModelConfig
+    from isodream_rl.modules.isodream_v2.config import WorldModelConfig
     from isodream_rl.trainers.config import ModelConfig
 
     names = [f.name for f in dataclasses_fields(ModelConfig)]
@@ -408,7 +408,7 @@ def test_the_model_section_holds_every_world_model_field_but_the_envs():
 
 
 def test_the_loss_weights_have_one_table_and_the_paper_preset_names_its_alpha_once():
-    from isodream_rl.objectives.world_model import LOSS_WEIGHTS, PAPER_WEIGHTS
+    from isodream_rl.objectives.isodream_v2.world_model import LOSS_WEIGHTS, PAPER_WEIGHTS
     from isodream_rl.trainers.builders import make_world_model_loss
 
     loss = make_world_model_loss(composed("size=tiny", "env=dmc_walker_walk"), action_dim=2)

@@ -2,7 +2,7 @@
 
 The model is the env itself written in torch, so these tests separate what the behavior learner can do from
 what a young world model lets it do: the default's learner (DreamerV3's, ``algo=isodream``,
-``isodream_rl.evaluation.exact_sprites_v3``), checked to be the one a run builds, must learn the task, and it must
+``isodream_rl.evaluation.exact_sprites_behavior``), checked to be the one a run builds, must learn the task, and it must
 recover once an early, systematic reward error of the model is gone (the lock-in that real runs show when their
 world model is still young). The DreamerV2-style learner (``algo=isodream_v2``) is checked to be the one a run of
 it builds and to train; how it learns and recovers, with and without its loc penalty, is
@@ -22,10 +22,10 @@ from torchrl.trainers.algorithms import DreamerV3Optimizer
 
 from isodream_rl.envs.sprites import SpritesEnv
 from isodream_rl.evaluation import ExactSpritesModel
-from isodream_rl.evaluation.exact_sprites_v3 import make_exact_model_v3_behavior
-from isodream_rl.modules.world_model_v3 import IsoDreamV3Config
+from isodream_rl.evaluation.exact_sprites_behavior import make_exact_model_v3_behavior
+from isodream_rl.modules.isodream.world_model import IsoDreamV3Config
 from isodream_rl.objectives import IsoDreamActorLoss
-from isodream_rl.objectives.isodream_v3 import make_isodream_v3
+from isodream_rl.objectives.isodream import make_isodream_v3
 from isodream_rl.trainers import RunConfig
 from isodream_rl.trainers.exact_model import exact_model_learner, train_behavior_on_exact_model
 from isodream_rl.trainers.world_model_config import DREAMER_V3_ISODREAM

@@ -9,8 +9,8 @@ from tensordict import TensorDict
 from torch import nn
 
 from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
-from isodream_rl.modules.composition import MaskComposition
-from isodream_rl.modules.decoder import ConvDecoder
+from isodream_rl.modules.isodream_v2.composition import MaskComposition
+from isodream_rl.modules.isodream_v2.decoder import ConvDecoder
 from isodream_rl.modules.fast_paths import (
     FastConvDecoder,
     FusedMaskComposition,
@@ -18,7 +18,7 @@ from isodream_rl.modules.fast_paths import (
     fused_compose_decoded,
     paired_filter_window,
 )
-from isodream_rl.modules.rssm import filter_window
+from isodream_rl.modules.isodream_v2.rssm import filter_window
 
 
 def reference_decoder(decoder: ConvDecoder, latent: torch.Tensor) -> torch.Tensor:
@@ -283,7 +283,7 @@ def test_fused_composition_reads_bf16_decoder_outputs_and_composes_in_float32(ch
 
 
 def test_inward_clamp_passes_only_the_gradients_that_point_back_into_the_range():
-    from isodream_rl.modules.composition import inward_pass
+    from isodream_rl.modules.isodream_v2.composition import inward_pass
 
     value = torch.tensor([-0.9, -0.5, -0.5, 0.0, 0.5, 0.5, 0.9, 0.9])
     grad = torch.tensor([-1.0, -1.0, 1.0, 1.0, 1.0, -1.0, 1.0, -1.0])

@@ -43,7 +43,7 @@ from isodream_rl.data import write_tiny_bair
 from isodream_rl.envs import make_env
 from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
 from isodream_rl.objectives import IsoDreamModelLoss
-from isodream_rl.run_lock import LOCK_FILE, lock_owner
+from isodream_rl.run_utils.run_lock import LOCK_FILE, lock_owner
 from isodream_rl.trainers import (
     CheckpointError,
     CheckpointManager,
@@ -54,8 +54,8 @@ from isodream_rl.trainers import (
     evaluate_checkpoint,
     train,
 )
-from isodream_rl.trainers import checkpoint as checkpoint_module
-from isodream_rl.trainers.checkpoint import set_rng_state, write_manifest
+from isodream_rl.run_utils import checkpoint as checkpoint_module
+from isodream_rl.run_utils.checkpoint import set_rng_state, write_manifest
 from isodream_rl.trainers.config import config_from_dict
 from isodream_rl.trainers.hooks import ReplayPreparation
 from isodream_rl.trainers.run_dir import existing_run_files

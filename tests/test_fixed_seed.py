@@ -30,7 +30,7 @@ from omegaconf import OmegaConf
 
 import isodream_rl.cli
 from isodream_rl.trainers import run as run_module
-from isodream_rl.trainers.checkpoint import CheckpointManager
+from isodream_rl.run_utils.checkpoint import CheckpointManager
 
 RECORD = Path(__file__).parent / "data" / "fixed_seed.json"
 CONFIGS = Path(isodream_rl.cli.__file__).parent / "configs"

@@ -10,7 +10,7 @@ import pytest
 
 from isodream_rl.trainers.components import RunComponents
 from isodream_rl.trainers.config import ALGO_NAMES, ConfigError
-from isodream_rl.trainers.isodream_v3 import IsoDreamV3Components
+from isodream_rl.trainers.isodream import IsoDreamV3Components
 from isodream_rl.trainers.registry import ALGORITHMS, components_builder, register_algorithm
 from isodream_rl.trainers.world_model_config import DREAMER_V3_ISODREAM
 

@@ -17,7 +17,7 @@ ROOT = PACKAGE_DIR.name
 #: Each entry is a subpackage or a top-level module of isodream_rl (the package's own ``__init__`` is the lowest).
 LAYERS: tuple[frozenset[str], ...] = (
     # process-wide helpers
-    frozenset({"__init__", "process_settings", "user_errors", "run_lock", "csv_logs"}),
+    frozenset({"__init__", "process_settings", "user_errors", "run_utils"}),
     frozenset({"envs", "data", "modules"}),
     frozenset({"objectives"}),
     frozenset({"evaluation"}),

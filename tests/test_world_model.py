@@ -14,7 +14,7 @@ from isodream_rl.modules import (
     MaskComposition,
     WorldModelConfig,
 )
-from isodream_rl.modules.config import DREAMERV2, PAPER_EXACT
+from isodream_rl.modules.isodream_v2.config import DREAMERV2, PAPER_EXACT
 from isodream_rl.objectives import InverseDynamicsLoss, IsoDreamModelLoss, balanced_kl, gaussian_kl
 
 B, T, A = 2, 6, 2

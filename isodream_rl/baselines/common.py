@@ -6,7 +6,7 @@
 
 The other shared pieces live in the lower layers, where Iso-Dream's learners use them too:
 :func:`~isodream_rl.objectives.imagination_env.latent_dreamer_env` (a ``DreamerEnv`` over ``state``/``belief``
-with its specs set by hand), :class:`~isodream_rl.modules.policy.CarriedStatePolicy` (an acting policy that carries
+with its specs set by hand), :class:`~isodream_rl.modules.isodream_v2.policy.CarriedStatePolicy` (an acting policy that carries
 its recurrent state under TorchRL's ``("next", ...)`` convention) and
 :class:`~isodream_rl.trainers.stepper.ZeroStateStepper` (a stepper that turns a flat replay sample into the loss's
 input, zero root ``state``/``belief`` added).
@@ -19,7 +19,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import ClassVar
 
-from isodream_rl.modules.config import SIZE_PRESETS
+from isodream_rl.modules.isodream_v2.config import SIZE_PRESETS
 from isodream_rl.trainers.components import RunComponents, make_replay_parts
 from isodream_rl.trainers.config import RunConfig
 

@@ -61,7 +61,7 @@ from torchrl.objectives import DreamerActorLoss, DreamerModelLoss, DreamerValueL
 from torchrl.objectives.utils import ValueEstimators
 
 from isodream_rl.baselines.common import BaselineComponents, preset_widths
-from isodream_rl.modules.policy import CarriedStatePolicy
+from isodream_rl.modules.isodream_v2.policy import CarriedStatePolicy
 from isodream_rl.objectives.imagination_env import latent_dreamer_env
 from isodream_rl.trainers.builders import make_adam
 from isodream_rl.trainers.config import RunConfig
@@ -208,7 +208,7 @@ class TorchRLDreamerPolicy(CarriedStatePolicy):
     ``module`` is a ``TensorDictSequential``: ``ObsEncoder`` (float ``"pixels"`` -> ``"encoded_latents"``),
     ``RSSMPosterior`` (``"belief"``, ``"encoded_latents"`` -> ``"state"``), ``DreamerActor`` + ``TanhNormal``
     (-> ``"action"``), ``RSSMPrior`` (-> ``("next", "belief")``), then ``AdditiveGaussianModule``. This wrapper
-    (a :class:`~isodream_rl.modules.policy.CarriedStatePolicy`, carrying ``"state"``/``"belief"``) feeds it and
+    (a :class:`~isodream_rl.modules.isodream_v2.policy.CarriedStatePolicy`, carrying ``"state"``/``"belief"``) feeds it and
     keeps the env's tensordict clean:
 
     - uint8 ``"pixels"`` ``[*B, 3, 64, 64]`` become floats in [0, 1] (TorchRL's example: ``ToTensorImage``);

@@ -128,7 +128,7 @@ from isodream_rl.modules.dreamer_v3 import (
     continuation_probability,
     two_hot_value,
 )
-from isodream_rl.modules.world_model_v3 import BranchWidths, dreamer_v3_classes, make_rssm
+from isodream_rl.modules.isodream.world_model import BranchWidths, dreamer_v3_classes, make_rssm
 from isodream_rl.objectives.dreamer_v3_behavior import (
     dreamer_v3_model_loss_settings,
     make_dreamer_v3_behavior,

@@ -12,7 +12,7 @@ from torch import nn
 
 from isodream_rl.data.sprites_episodes import episode_windows, model_input
 from isodream_rl.evaluation.decomposition import branch_assignment, score_decomposition
-from isodream_rl.modules.encoder import preprocess_pixels
+from isodream_rl.modules.isodream_v2.encoder import preprocess_pixels
 
 #: Rows of :func:`branch_grid`: (label, key under "next" or root, kind).
 _ROWS = (

@@ -22,7 +22,7 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
-from isodream_rl.modules.world_model_v3 import IsoDreamV3WorldModel
+from isodream_rl.modules.isodream.world_model import IsoDreamV3WorldModel
 
 #: The world model's branches, in the order their masks are stacked.
 BRANCHES = ("control", "free", "static")

@@ -31,8 +31,8 @@ from tensordict.nn import (
 from torch import nn
 from torchrl.modules import DreamerV3MLP, IndependentNormal, SymExpTwoHot
 
-from isodream_rl.modules.encoder import check_pixel_values, check_pixels
-from isodream_rl.modules.policy import CarriedStatePolicy
+from isodream_rl.modules.isodream_v2.encoder import check_pixel_values, check_pixels
+from isodream_rl.modules.isodream_v2.policy import CarriedStatePolicy
 
 #: The observation key of the world model (uint8 pixels of the step's outcome).
 PIXELS = ("next", "pixels")
@@ -222,7 +222,7 @@ class SequenceActingPolicy(CarriedStatePolicy):
     ``"state"``, ``"belief"``, ``"previous_action"`` (resetting them at ``is_init`` itself) and writes the new
     ``"state"``, ``"belief"`` and the sampled (or, under a deterministic exploration type, mean) ``"action"``: the
     action is clamped to [-1, 1] and becomes the next ``previous_action`` (a
-    :class:`~isodream_rl.modules.policy.CarriedStatePolicy`: prime the env with :meth:`make_tensordict_primer`).
+    :class:`~isodream_rl.modules.isodream_v2.policy.CarriedStatePolicy`: prime the env with :meth:`make_tensordict_primer`).
 
     Args:
         module: the acting sequence.

@@ -1,28 +1,28 @@
 """The CPU fast paths of the world model: the same functions as the reference modules, computed another way.
 
-The paper's equations live in their plain form in :mod:`~isodream_rl.modules.rssm` (eq. 3),
-:mod:`~isodream_rl.modules.composition` (eq. 4) and :mod:`~isodream_rl.modules.decoder`. Each class or
+The paper's equations live in their plain form in :mod:`~isodream_rl.modules.isodream_v2.rssm` (eq. 3),
+:mod:`~isodream_rl.modules.isodream_v2.composition` (eq. 4) and :mod:`~isodream_rl.modules.isodream_v2.decoder`. Each class or
 function here reproduces one of them, named in its docstring, with the same values within float tolerance,
 the same random draws and the same gradients (tests/test_fast_layers.py compares each pair):
 
-* :func:`fast_filter_window` for :func:`~isodream_rl.modules.rssm.filter_window` (eq. 3): both branches'
+* :func:`fast_filter_window` for :func:`~isodream_rl.modules.isodream_v2.rssm.filter_window` (eq. 3): both branches'
   filtering step as one batched computation (:class:`RSSMPair`, :func:`paired_filter_window`), the window's
   loop forward and backward on one thread (:func:`single_threaded`);
-* :class:`FusedMaskComposition` for :meth:`~isodream_rl.modules.composition.MaskComposition.compose_decoded`
+* :class:`FusedMaskComposition` for :meth:`~isodream_rl.modules.isodream_v2.composition.MaskComposition.compose_decoded`
   (eq. 4): the softmax-mode composition as one autograd node with a hand-written backward
   (:class:`_SoftmaxComposition`);
-* :class:`FastConvDecoder` for :class:`~isodream_rl.modules.decoder.ConvDecoder`: the first transposed
+* :class:`FastConvDecoder` for :class:`~isodream_rl.modules.isodream_v2.decoder.ConvDecoder`: the first transposed
   convolution (on a 1x1 map) as one matrix product, the other transposed convolutions with their bias added
   outside the convolution;
 * :class:`FastRMSNorm` / :class:`FastChannelRMSNorm` for TorchRL's DreamerV3 RMS norms (the DreamerV3 learner's
   MLPs, RSSM heads, image encoder and decoders; :func:`use_fast_rms_norms`): one fused forward kernel and a
   hand-written backward (:class:`_FusedRMSNorm`).
 
-One switch chooses: :class:`~isodream_rl.modules.world_model.IsoDreamWorldModel` builds these when
+One switch chooses: :class:`~isodream_rl.modules.isodream_v2.world_model.IsoDreamWorldModel` builds these when
 ``WorldModelConfig.fast_paths`` is true (the default) and the reference forms when it is false. Where a fast
 path does not apply (sigmoid masks, a lone branch, a plain ``nn.GRUCell``) it runs the reference. Measured
 gains: docs/architecture.md, "Speed" (``bench/world_model_speed.py``). Iso-Dream's DreamerV3 learner
-(:mod:`~isodream_rl.modules.world_model_v3`, :mod:`~isodream_rl.modules.behavior_v3`) always builds
+(:mod:`~isodream_rl.modules.isodream.world_model`, :mod:`~isodream_rl.modules.isodream.behavior`) always builds
 :class:`FusedMaskComposition` and the fast RMS norms (``bench/update_speed.py``).
 """
 
@@ -36,9 +36,9 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from isodream_rl.modules.composition import BRANCHES, MaskComposition, compute_dtype, outward
-from isodream_rl.modules.decoder import ConvDecoder
-from isodream_rl.modules.rssm import LayerNormGRUCell, RSSMCell, filter_window, gru_gates, sigmoid2_std
+from isodream_rl.modules.isodream_v2.composition import BRANCHES, MaskComposition, compute_dtype, outward
+from isodream_rl.modules.isodream_v2.decoder import ConvDecoder
+from isodream_rl.modules.isodream_v2.rssm import LayerNormGRUCell, RSSMCell, filter_window, gru_gates, sigmoid2_std
 
 # ---------------------------------------------------------------------------------------------------------------
 # eq. 3: the filter over a window (reference: rssm.filter_window)
@@ -121,7 +121,7 @@ def single_threaded(
     return dict(zip(keys, outputs))
 
 
-#: The outputs of :meth:`~isodream_rl.modules.rssm.RSSMCell.observe_step`.
+#: The outputs of :meth:`~isodream_rl.modules.isodream_v2.rssm.RSSMCell.observe_step`.
 OUT_KEYS = (
     "belief",
     "prior_mean",
@@ -150,8 +150,8 @@ def can_pair(control: RSSMCell, free: RSSMCell | None) -> bool:
 class RSSMPair:
     """One filtering step of the controllable and the action-free branch, batched over the two.
 
-    Reproduces :meth:`~isodream_rl.modules.rssm.RSSMCell.observe_step` (eq. 3) of both cells, in the order
-    :func:`~isodream_rl.modules.rssm.filter_step` calls them. The controllable cell ``GRU_s(h, s, a)`` and
+    Reproduces :meth:`~isodream_rl.modules.isodream_v2.rssm.RSSMCell.observe_step` (eq. 3) of both cells, in the order
+    :func:`~isodream_rl.modules.isodream_v2.rssm.filter_step` calls them. The controllable cell ``GRU_s(h, s, a)`` and
     the action-free cell ``GRU_z(h', z)`` have the same layer shapes except for the action input, so one
     filtering step of both is the same sequence of matrix products on a leading branch dimension of size 2:
     ``bmm`` over stacked weights instead of two calls per layer (the action-free cell's transition input is
@@ -160,8 +160,8 @@ class RSSMPair:
     (``torch.stack`` is differentiable), so modules, parameter names and checkpoints are unchanged.
 
     Args:
-        control: the :class:`~isodream_rl.modules.rssm.ActionConditionedRSSM`.
-        free: the :class:`~isodream_rl.modules.rssm.ActionFreeRSSM` (:func:`can_pair` must hold).
+        control: the :class:`~isodream_rl.modules.isodream_v2.rssm.ActionConditionedRSSM`.
+        free: the :class:`~isodream_rl.modules.isodream_v2.rssm.ActionFreeRSSM` (:func:`can_pair` must hold).
 
     Build one per rollout (it stacks the current weights); tensors carry a leading branch dimension
     ``[2, B, .]``, index 0 the controllable branch and 1 the noncontrollable one.
@@ -208,7 +208,7 @@ class RSSMPair:
     ) -> dict[str, torch.Tensor]:
         """``[2, B, S]`` states, ``[2, B, D]`` beliefs, ``[B, A]`` action, ``[2, B, hidden]`` projected embeddings.
 
-        Returns the keys of :meth:`~isodream_rl.modules.rssm.RSSMCell.observe_step`, each ``[2, B, .]``.
+        Returns the keys of :meth:`~isodream_rl.modules.isodream_v2.rssm.RSSMCell.observe_step`, each ``[2, B, .]``.
         """
         batch = state.shape[1]
         padded = torch.cat([action[None], torch.zeros_like(action)[None]]).to(state.dtype)
@@ -246,7 +246,7 @@ def paired_filter_window(
     action: torch.Tensor,
     is_init: torch.Tensor | None,
 ) -> dict[str, torch.Tensor]:
-    """:func:`~isodream_rl.modules.rssm.filter_window` (eq. 3) with :class:`RSSMPair` steps.
+    """:func:`~isodream_rl.modules.isodream_v2.rssm.filter_window` (eq. 3) with :class:`RSSMPair` steps.
 
     Same arguments and outputs as the reference, with the same values, random draws and gradients.
 
@@ -289,7 +289,7 @@ def fast_filter_window(
     action: torch.Tensor,
     is_init: torch.Tensor | None,
 ) -> dict[str, torch.Tensor]:
-    """:func:`~isodream_rl.modules.rssm.filter_window` (eq. 3) on one thread (:func:`single_threaded`), with
+    """:func:`~isodream_rl.modules.isodream_v2.rssm.filter_window` (eq. 3) on one thread (:func:`single_threaded`), with
     :func:`paired_filter_window` where the cells pair (:func:`can_pair`) and the reference elsewhere.
 
     Same arguments and outputs as the reference, with the same values, random draws and gradients.
@@ -351,8 +351,8 @@ def fused_compose_decoded(
 
 
 class FusedMaskComposition(MaskComposition):
-    """:class:`~isodream_rl.modules.composition.MaskComposition` whose
-    :meth:`~isodream_rl.modules.composition.MaskComposition.compose_decoded` (eq. 4) runs
+    """:class:`~isodream_rl.modules.isodream_v2.composition.MaskComposition` whose
+    :meth:`~isodream_rl.modules.isodream_v2.composition.MaskComposition.compose_decoded` (eq. 4) runs
     :func:`fused_compose_decoded` where it applies (:func:`can_fuse`) and the reference elsewhere. Same
     arguments, outputs, values and gradients; :meth:`bound` and :meth:`forward` are the reference's."""
 
@@ -367,8 +367,8 @@ class FusedMaskComposition(MaskComposition):
 class _SoftmaxComposition(torch.autograd.Function):
     """Softmax-mode eq. 4 as one autograd node, forward and backward on planar (NCHW) tensors.
 
-    Reproduces :meth:`~isodream_rl.modules.composition.MaskComposition.bound` then
-    :meth:`~isodream_rl.modules.composition.MaskComposition.forward` in softmax mode.
+    Reproduces :meth:`~isodream_rl.modules.isodream_v2.composition.MaskComposition.bound` then
+    :meth:`~isodream_rl.modules.isodream_v2.composition.MaskComposition.forward` in softmax mode.
     Forward, per pixel: ``c_i = clamp(rgb_i)``, ``m = softmax(l)`` over branches, ``y = sum_i m_i c_i``.
     Backward, with ``g = dL/dy`` and ``q_i = <g, c_i> + dL/dm_i`` (sum over RGB):
     ``dL/drgb_i = (g m_i + dL/dc_i) * [rgb_i in range]`` and ``dL/dl_i = m_i (q_i - sum_j m_j q_j)``.
@@ -472,7 +472,7 @@ class _SoftmaxComposition(torch.autograd.Function):
 
 
 class FastConvDecoder(ConvDecoder):
-    """:class:`~isodream_rl.modules.decoder.ConvDecoder` (the decoders ``Dec_phi1..3`` of eq. 4) with the same
+    """:class:`~isodream_rl.modules.isodream_v2.decoder.ConvDecoder` (the decoders ``Dec_phi1..3`` of eq. 4) with the same
     layers, parameters and state dict, computed another way; same values and gradients.
 
     * The first transposed convolution sees a 1x1 map: it is an outer product, computed as one matrix

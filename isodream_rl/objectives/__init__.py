@@ -1,11 +1,11 @@
 """Iso-Dream objectives: world-model loss (eq. 5), inverse-dynamics loss, KL balancing."""
 
-from isodream_rl.objectives.actor import IsoDreamActorLoss, lambda_returns
-from isodream_rl.objectives.imagination import IsoDreamImagination
+from isodream_rl.objectives.isodream_v2.actor import IsoDreamActorLoss, lambda_returns
+from isodream_rl.objectives.isodream_v2.imagination import IsoDreamImagination
 from isodream_rl.objectives.inverse_dynamics import InverseDynamicsLoss
-from isodream_rl.objectives.kl import balanced_kl, gaussian_kl
-from isodream_rl.objectives.value import IsoDreamValueLoss, make_target_updater
-from isodream_rl.objectives.world_model import IsoDreamModelLoss
+from isodream_rl.objectives.isodream_v2.kl import balanced_kl, gaussian_kl
+from isodream_rl.objectives.isodream_v2.value import IsoDreamValueLoss, make_target_updater
+from isodream_rl.objectives.isodream_v2.world_model import IsoDreamModelLoss
 
 __all__ = [
     "InverseDynamicsLoss",

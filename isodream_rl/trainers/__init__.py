@@ -1,6 +1,6 @@
 """Training: configuration, Trainer assembly, algorithm registry, optimisation stepper, hooks, checkpoints."""
 
-from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
+from isodream_rl.run_utils.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.components import RunComponents
 from isodream_rl.trainers.config import (
     AlgoConfig,

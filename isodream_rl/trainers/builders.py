@@ -22,7 +22,7 @@ from isodream_rl.modules import (
     PolicyInput,
     WorldModelConfig,
 )
-from isodream_rl.modules.policy import IsoDreamPolicy
+from isodream_rl.modules.isodream_v2.policy import IsoDreamPolicy
 from isodream_rl.objectives import (
     IsoDreamActorLoss,
     IsoDreamImagination,

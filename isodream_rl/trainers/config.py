@@ -12,8 +12,8 @@ import typing
 from dataclasses import dataclass, field, fields, make_dataclass
 from typing import Any
 
-from isodream_rl.modules.config import DREAMERV2, PAPER_EXACT, SIZE_PRESETS, WorldModelConfig
-from isodream_rl.objectives.world_model import FREE_BRANCH_MODES, LOSS_WEIGHTS, PAPER_WEIGHTS
+from isodream_rl.modules.isodream_v2.config import DREAMERV2, PAPER_EXACT, SIZE_PRESETS, WorldModelConfig
+from isodream_rl.objectives.isodream_v2.world_model import FREE_BRANCH_MODES, LOSS_WEIGHTS, PAPER_WEIGHTS
 from isodream_rl.trainers.world_model_config import (
     DREAMER_V3_ISODREAM,
     DREAMER_V3_LEARNERS,
@@ -31,7 +31,7 @@ LOGGER_BACKENDS = ("csv", "tensorboard", "wandb")
 _ALL_BRANCHES = {"free_branch": True, "static_branch": True, "inverse_dynamics": True}
 #: The branch switches of each ``algo=<name>`` preset: their one home (the algo YAML files set the other
 #: fields). ``AlgoConfig``'s switches left ``None`` take these (:func:`resolve_algo`); a name not here takes
-#: ``isodream``'s. The single-branch ones are DreamerV2's (:data:`~isodream_rl.modules.config.DREAMERV2`).
+#: ``isodream``'s. The single-branch ones are DreamerV2's (:data:`~isodream_rl.modules.isodream_v2.config.DREAMERV2`).
 #: Which learner each name builds: :data:`~isodream_rl.trainers.world_model_config.DREAMER_V3_ISODREAM`.
 ALGO_BRANCHES: dict[str, dict[str, bool]] = {
     "isodream": _ALL_BRANCHES,
@@ -99,7 +99,7 @@ class _ModelSizes:
     """The behavior's widths and the world model's size preset (the rest of ``model`` is :data:`ModelConfig`)."""
 
     size: str = "small"
-    """A preset of ``WorldModelConfig``'s widths, a key of ``isodream_rl.modules.config.SIZE_PRESETS``."""
+    """A preset of ``WorldModelConfig``'s widths, a key of ``isodream_rl.modules.isodream_v2.config.SIZE_PRESETS``."""
     actor_units: int = 400
     """Width of the actor MLP (4 layers in the paper)."""
     value_units: int = 400
@@ -123,7 +123,7 @@ def _world_model_section() -> list[tuple[str, Any, Any]]:
 
 
 #: The ``model`` section: the size preset and behavior widths (``_ModelSizes``), then every field of
-#: :class:`~isodream_rl.modules.config.WorldModelConfig` but ``action_dim``, typed as there and ``None`` by
+#: :class:`~isodream_rl.modules.isodream_v2.config.WorldModelConfig` but ``action_dim``, typed as there and ``None`` by
 #: default: ``None`` keeps the size preset's value, or the one the algo sets (``world_model_overrides``), and a
 #: value replaces it (``model.precision=bf16``, ``model.depth=8``). Derived from ``WorldModelConfig``, the one
 #: home of the field list, so a field added there is a setting here with no change.
@@ -331,8 +331,8 @@ def resolve_algo(algo: AlgoConfig) -> AlgoConfig:
     """Fill the fields of ``algo`` left ``None`` with the values its preset implies (in place; returned).
 
     The branch switches: :data:`ALGO_BRANCHES` of ``algo.name``; ``lambda_inverse``:
-    :data:`~isodream_rl.objectives.world_model.LOSS_WEIGHTS`'s, or with ``paper_exact``
-    :data:`~isodream_rl.objectives.world_model.PAPER_WEIGHTS`'s. Runs when a :class:`RunConfig` is made (Hydra's
+    :data:`~isodream_rl.objectives.isodream_v2.world_model.LOSS_WEIGHTS`'s, or with ``paper_exact``
+    :data:`~isodream_rl.objectives.isodream_v2.world_model.PAPER_WEIGHTS`'s. Runs when a :class:`RunConfig` is made (Hydra's
     ``OmegaConf.to_object``, ``config_from_dict``, ``RunConfig()``); a value given anywhere is kept.
     """
     for name, value in ALGO_BRANCHES.get(algo.name, ALGO_BRANCHES["isodream"]).items():

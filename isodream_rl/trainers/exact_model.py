@@ -9,7 +9,7 @@ reward error:
   :func:`~isodream_rl.trainers.builders.make_behavior` (the actor, value, losses and their settings, as a real run has them), trained the way
   :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` does after its world-model step;
 - ``algo=isodream`` (the default) and its ablations, DreamerV3's learner:
-  :func:`~isodream_rl.evaluation.exact_sprites_v3.make_exact_model_v3_behavior`
+  :func:`~isodream_rl.evaluation.exact_sprites_behavior.make_exact_model_v3_behavior`
   (the actor and two-hot critic of ``make_actor_v3`` / ``make_value_v3``, ``DreamerV3ActorLoss`` (REINFORCE)
   and ``DreamerV3ValueLoss`` with DreamerV3's settings, the exact continuation ``1 - 1/333``), a
   ``DreamerV3Optimizer`` per group (:func:`~isodream_rl.trainers.dreamer_v3.make_dreamer_v3_optimizers`) and
@@ -35,7 +35,7 @@ from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from isodream_rl.evaluation.exact_sprites import ExactSpritesModel, reference_returns
-from isodream_rl.evaluation.exact_sprites_v3 import make_exact_model_v3_behavior
+from isodream_rl.evaluation.exact_sprites_behavior import make_exact_model_v3_behavior
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings
 from isodream_rl.trainers.builders import make_adam, make_behavior
 from isodream_rl.trainers.config import RunConfig

@@ -15,8 +15,8 @@ from PIL import Image, ImageDraw
 from tensordict import TensorDict, TensorDictBase
 
 from isodream_rl.modules import IsoDreamWorldModel
-from isodream_rl.modules.encoder import IMAGE_SHAPE
-from isodream_rl.modules.world_model_v3 import IsoDreamV3WorldModel
+from isodream_rl.modules.isodream_v2.encoder import IMAGE_SHAPE
+from isodream_rl.modules.isodream.world_model import IsoDreamV3WorldModel
 
 #: Columns of each GIF frame: (label, key in the prediction tensordict, kind).
 _COLUMNS = (
@@ -39,7 +39,7 @@ def open_loop_prediction(
 
     Args:
         world_model: the trained world model (an ``IsoDreamV3WorldModel`` predicts with its own
-            :meth:`~isodream_rl.modules.world_model_v3.IsoDreamV3WorldModel.open_loop`).
+            :meth:`~isodream_rl.modules.isodream.world_model.IsoDreamV3WorldModel.open_loop`).
         window: a ``[B, T]`` replay window with ``("next", "pixels")`` uint8 ``[B, T, 3, 64, 64]`` and
             ``"action"`` ``[B, T, A]``, on any device (a replay sample is on the CPU).
         context: observed steps, ``2 <= context < T`` (the world model filters windows of 2 steps or more).

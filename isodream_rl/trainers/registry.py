@@ -1,7 +1,7 @@
 """The algorithms ``isodream-train`` can build, by ``algo.name``: a registry ``name -> components builder``.
 
 Iso-Dream (the default) and its ablations are Iso-Dream on DreamerV3's learner,
-:class:`~isodream_rl.trainers.isodream_v3.IsoDreamV3Components`
+:class:`~isodream_rl.trainers.isodream.IsoDreamV3Components`
 (:data:`~isodream_rl.trainers.world_model_config.DREAMER_V3_ISODREAM`); the DreamerV2-style learner
 (``isodream_v2``, ``isodream_paper``) and the DreamerV2 baseline are
 :class:`~isodream_rl.trainers.components.RunComponents`, registered here; so is any other name (``algo.name``
@@ -23,7 +23,7 @@ from typing import Protocol, TypeVar
 
 from isodream_rl.trainers.components import RunComponents
 from isodream_rl.trainers.config import ALGO_NAMES, ConfigError, RunConfig, renamed_algo_error
-from isodream_rl.trainers.isodream_v3 import IsoDreamV3Components
+from isodream_rl.trainers.isodream import IsoDreamV3Components
 from isodream_rl.trainers.world_model_config import DREAMER_V3_ISODREAM, TORCHRL_BASELINES
 
 

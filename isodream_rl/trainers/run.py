@@ -16,11 +16,11 @@ from pathlib import Path
 import torch
 from torchrl.trainers import ReplayBufferTrainer, Trainer, UpdateWeights
 
-from isodream_rl.csv_logs import csv_log_sizes
+from isodream_rl.run_utils.csv_logs import csv_log_sizes
 from isodream_rl.envs.builder import ground_truth_mask_keys
 from isodream_rl.trainers import trainer_state, world_model_run
 from isodream_rl.trainers.builders import checked_env_factory, close_logger, make_logger
-from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
+from isodream_rl.run_utils.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.collectors import make_collector
 from isodream_rl.trainers.config import (
     ConfigError,
@@ -28,7 +28,7 @@ from isodream_rl.trainers.config import (
     device_error,
     validate_config,
 )
-from isodream_rl.trainers.disk_space import ReplayReservation
+from isodream_rl.run_utils.disk_space import ReplayReservation
 from isodream_rl.trainers.evaluation import Evaluation, learning_summary, run_episodes, save_episode_gif
 from isodream_rl.trainers.hooks import Throughput
 from isodream_rl.trainers.registry import make_components
@@ -61,7 +61,7 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
     ``resume``, restore the newest readable checkpoint; train until ``train.total_steps`` or a signal.
 
     The run folder is held by this process while it trains (:func:`~isodream_rl.trainers.run_dir.hold_run_dir`);
-    a resumed run cuts its CSV logs back to what they held at its checkpoint (:mod:`isodream_rl.csv_logs`).
+    a resumed run cuts its CSV logs back to what they held at its checkpoint (:mod:`isodream_rl.run_utils.csv_logs`).
 
     Args:
         cfg: the run's configuration.

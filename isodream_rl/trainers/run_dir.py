@@ -9,7 +9,7 @@ records (``.hydra/``, ``<job>.log``) are not a run's files; ``isodream-train`` c
 writes them (:class:`RunDirGuard`).
 
 While a run uses its folder, :func:`hold_run_dir` keeps it to this process (``run.lock``, see
-:mod:`isodream_rl.run_lock`), removes what a start that failed before ``run_config.json`` made (so the corrected
+:mod:`isodream_rl.run_utils.run_lock`), removes what a start that failed before ``run_config.json`` made (so the corrected
 command is not refused), and turns a full disk, a read-only folder or an env's NaN/inf data met on the way into
 one line naming the checkpoint to continue from.
 :func:`hold_folder` does the same for another program's run folder (``isodream-video train --out-dir``), named
@@ -35,11 +35,11 @@ from hydra.experimental.callback import Callback
 from omegaconf import OmegaConf
 
 from isodream_rl.envs.finite import NonFiniteEnvDataError
-from isodream_rl.modules.config import SIZE_PRESETS
-from isodream_rl.run_lock import RunDirBusyError, RunDirLock
-from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
+from isodream_rl.modules.isodream_v2.config import SIZE_PRESETS
+from isodream_rl.run_utils.run_lock import RunDirBusyError, RunDirLock
+from isodream_rl.run_utils.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.config import FORMER_DREAMER_V2_ALGOS, ConfigError, RunConfig, config_from_dict
-from isodream_rl.trainers.disk_space import DiskFullError
+from isodream_rl.run_utils.disk_space import DiskFullError
 from isodream_rl.user_errors import debugging, exit_user_error, log_to_stderr, one_line
 
 #: the files and folders of a run (a folder holding one of them holds a run)
@@ -182,7 +182,7 @@ def hold_run_dir(cfg: RunConfig) -> Iterator[Path]:
     """Hold ``cfg.run_dir`` for one run: ``with hold_run_dir(cfg) as run_dir: ...``.
 
     On entering: refuse a path that cannot be a writable folder, take the folder's lock
-    (:class:`~isodream_rl.run_lock.RunDirLock`), claim it (:func:`claim_run_dir`), and remove the half-written
+    (:class:`~isodream_rl.run_utils.run_lock.RunDirLock`), claim it (:func:`claim_run_dir`), and remove the half-written
     checkpoints a killed or failed process left. If the block fails before ``run_config.json`` exists (a new run
     that did not start), the run files it made are removed. A full disk, a read-only folder and an env's NaN/inf
     data met in the block become one-line errors. The lock is released on leaving, however the block ends.
@@ -216,7 +216,7 @@ def hold_folder(
     claim=None,
 ) -> Iterator[Path]:
     """Hold the run folder ``run_dir``: refuse a path that cannot be a writable folder, take its lock
-    (:class:`~isodream_rl.run_lock.RunDirLock`), claim it (``claim()``, or :func:`claim_folder` with ``resume``,
+    (:class:`~isodream_rl.run_utils.run_lock.RunDirLock`), claim it (``claim()``, or :func:`claim_folder` with ``resume``,
     ``overwrite``, ``run_files`` and ``flags``), and remove the half-written checkpoints of
     ``<run_dir>/checkpoints`` a killed or failed process left; a full disk, a read-only folder and an env's
     NaN/inf data met in the block become one-line errors; the lock is released on leaving.

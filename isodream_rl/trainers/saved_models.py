@@ -20,7 +20,7 @@ from pathlib import Path
 
 from torch import nn
 
-from isodream_rl.trainers.checkpoint import CheckpointError
+from isodream_rl.run_utils.checkpoint import CheckpointError
 from isodream_rl.trainers.config import FORMER_DREAMER_V2_ALGOS, RunConfig, config_from_dict
 
 #: ``learner -> (model names, world-model key prefix)``: what the weights of a checkpoint of Iso-Dream's two learners

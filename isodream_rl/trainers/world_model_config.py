@@ -11,14 +11,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from isodream_rl.modules.config import SIZE_PRESETS
-from isodream_rl.objectives.world_model import FREE_BRANCH_MODES
+from isodream_rl.modules.isodream_v2.config import SIZE_PRESETS
+from isodream_rl.objectives.isodream_v2.world_model import FREE_BRANCH_MODES
 
 #: What ``isodream-train`` trains: Algorithm 1 (world model, actor and value), or the world model alone.
 MODES = ("rl", "world_model")
 #: The algorithms built from TorchRL's own Dreamer pieces (``isodream_rl.baselines``): no Iso-Dream world model.
 TORCHRL_BASELINES = ("torchrl_dreamer", "torchrl_dreamer_v3")
-#: Iso-Dream on DreamerV3's learner (:class:`~isodream_rl.trainers.isodream_v3.IsoDreamV3Components`): the default
+#: Iso-Dream on DreamerV3's learner (:class:`~isodream_rl.trainers.isodream.IsoDreamV3Components`): the default
 #: and its ablations. Every other Iso-Dream name (``isodream_v2``, ``isodream_paper``, ``dreamerv2``, a name of your
 #: own) is the DreamerV2-style learner (:class:`~isodream_rl.trainers.components.RunComponents`).
 DREAMER_V3_ISODREAM = ("isodream", "isodream_no_inverse", "isodream_no_attention", "isodream_no_static")

@@ -14,7 +14,7 @@ passes ``world_model.max_minutes``. At the end, on sprites, it probes what each 
 writes ``summary.json``. The loop is the RL run's
 (:func:`~isodream_rl.trainers.run_lifecycle.train_with_checkpoints`: TorchRL's ``Trainer``, fed by
 :class:`FixedData`, no new env steps), and so is the run folder: ``logs/`` (the TorchRL logger),
-``checkpoints/step_<updates>/`` (:class:`~isodream_rl.trainers.checkpoint.CheckpointManager`, which
+``checkpoints/step_<updates>/`` (:class:`~isodream_rl.run_utils.checkpoint.CheckpointManager`, which
 ``resume=true`` continues from), ``pictures/``.
 
 The data are generated from the seed, so checkpoints hold no replay buffer; evaluations run on a forked
@@ -55,7 +55,7 @@ from isodream_rl.trainers.builders import (
     make_world_model_config,
     make_world_model_loss,
 )
-from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
+from isodream_rl.run_utils.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.config import ConfigError, RunConfig
 from isodream_rl.trainers.run_dir import resuming, write_run_config
 from isodream_rl.trainers.run_lifecycle import (

@@ -3,7 +3,7 @@ and the per-frame evaluation protocol (train 2 -> 10, test 2 -> 28 / 2 -> 18).
 
 The run folder (``--out-dir``) is held and claimed as ``isodream-train``'s is
 (:func:`~isodream_rl.trainers.run_dir.hold_folder`), and its checkpoints are ``isodream-train``'s
-(:class:`~isodream_rl.trainers.checkpoint.CheckpointManager`: ``<out_dir>/checkpoints/step_<iteration>/``,
+(:class:`~isodream_rl.run_utils.checkpoint.CheckpointManager`: ``<out_dir>/checkpoints/step_<iteration>/``,
 written atomically with a verified manifest; an unreadable newest one falls back to the one before)."""
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from tensordict import TensorDict
 from torch.utils.data import DataLoader, default_collate
 from tqdm.auto import tqdm
 
-from isodream_rl.csv_logs import csv_log_sizes, cut_csv_logs
+from isodream_rl.run_utils.csv_logs import csv_log_sizes, cut_csv_logs
 from isodream_rl.data import (
     ArraySequences,
     BAIRDataset,
@@ -28,7 +28,7 @@ from isodream_rl.data import (
     VideoClips,
     load_pusher_dataset,
 )
-from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
+from isodream_rl.run_utils.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.config import device_error
 from isodream_rl.trainers.hooks import StopOnSignal
 from isodream_rl.trainers.run_dir import RunFlags, hold_folder, refuse_another_run
@@ -415,7 +415,7 @@ def train(
     Every ``val_every`` iterations the model is scored on the first ``val_batches`` batches of the test split
     (the validation curve: MSE, PSNR and SSIM over the predicted frames, logged as ``val/*`` and kept in the
     result's ``history``); every ``checkpoint_every`` iterations a checkpoint ``<out_dir>/checkpoints/step_*/``
-    is written (:class:`~isodream_rl.trainers.checkpoint.CheckpointManager`, the last two kept) with everything
+    is written (:class:`~isodream_rl.run_utils.checkpoint.CheckpointManager`, the last two kept) with everything
     a resumed run needs (model, optimizer, the sampler's position, the random
     states of the balls, the history); every ``eval_every`` iterations and at the end the whole test split is
     evaluated. A resumed run (``resume=True`` with a checkpoint in ``out_dir``) continues to ``iterations``
@@ -428,7 +428,7 @@ def train(
     holding another run is refused unless ``resume`` (continue it) or ``overwrite`` (delete it first), and it
     is held by this process while the run writes to it, as ``isodream-train`` does
     (:func:`~isodream_rl.trainers.run_dir.hold_folder`); a resumed run cuts its CSV logs back to what they held
-    at the checkpoint (:mod:`isodream_rl.csv_logs`).
+    at the checkpoint (:mod:`isodream_rl.run_utils.csv_logs`).
 
     Returns:
         ``{"iterations", "train_seconds", "metrics": {"psnr_10": .., ...}, "curves": {"psnr": [...], ..},

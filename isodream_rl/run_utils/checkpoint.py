@@ -15,7 +15,7 @@ verification at load a smaller one (measured in docs/recipes/index.md, "Run fold
 faults").
 
 The replay data are written and read through memory maps, where a full disk is a SIGBUS, not an ``OSError``:
-the free space they need is checked first (:mod:`~isodream_rl.trainers.disk_space`), so a full disk is a
+the free space they need is checked first (:mod:`~isodream_rl.run_utils.disk_space`), so a full disk is a
 :class:`CheckpointError` saying to free space and resume.
 
 TorchRL's ``Trainer(save_trainer_file=...)`` writes one file in place and has no fallback, and its ``Checkpoint``
@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from isodream_rl.trainers.disk_space import folder_bytes, require_free_space
+from isodream_rl.run_utils.disk_space import folder_bytes, require_free_space
 
 logger = logging.getLogger(__name__)
 
@@ -233,7 +233,7 @@ class CheckpointManager:
 
     def remove_leftovers(self) -> None:
         """Delete the half-written ``step_*.tmp`` folders and replay copies a killed or failed process left
-        behind. Only the process that holds the run folder (:class:`~isodream_rl.run_lock.RunDirLock`) may: for
+        behind. Only the process that holds the run folder (:class:`~isodream_rl.run_utils.run_lock.RunDirLock`) may: for
         another, they are writes in progress."""
         if not self.directory.exists():
             return

@@ -18,10 +18,10 @@ from torchrl.trainers.algorithms import DreamerV3Optimizer
 from isodream_rl.data.sprites_episodes import collect_sprites_episodes, episode_windows
 from isodream_rl.envs import make_env
 from isodream_rl.evaluation import decomposition_scores
-from isodream_rl.modules.behavior_v3 import PolicyFeaturesV3
-from isodream_rl.modules.world_model_v3 import IsoDreamV3Config, IsoDreamV3WorldModel
+from isodream_rl.modules.isodream.behavior import PolicyFeaturesV3
+from isodream_rl.modules.isodream.world_model import IsoDreamV3Config, IsoDreamV3WorldModel
 from isodream_rl.trainers import ConfigError, train, validate_config
-from isodream_rl.trainers.isodream_v3 import IsoDreamV3Components, isodream_v3_config
+from isodream_rl.trainers.isodream import IsoDreamV3Components, isodream_v3_config
 from isodream_rl.trainers.openloop import open_loop_prediction
 from isodream_rl.trainers.registry import components_builder, make_components
 from tests.test_torchrl_dreamer import A, B, T, env_batch, replay_batch, tiny_config

@@ -31,7 +31,7 @@ from torch import nn
 
 MASK_MODES = ("softmax", "sigmoid")
 BRANCHES = ("control", "free", "static")
-#: The preprocessed pixel range (``isodream_rl.modules.encoder.preprocess_pixels``).
+#: The preprocessed pixel range (``isodream_rl.modules.isodream_v2.encoder.preprocess_pixels``).
 PIXEL_RANGE = (-0.5, 0.5)
 CLAMP_GRADIENTS = ("zero", "inward")
 

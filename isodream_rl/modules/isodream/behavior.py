@@ -1,6 +1,6 @@
 """The actor, the critic and the acting policy of Iso-Dream's DreamerV3 learner (paper eqs. 6-7, Algorithm 1).
 
-Both read ``e_t`` (eq. 7) from the packed latent of :class:`~isodream_rl.modules.world_model_v3.IsoDreamV3WorldModel`
+Both read ``e_t`` (eq. 7) from the packed latent of :class:`~isodream_rl.modules.isodream.world_model.IsoDreamV3WorldModel`
 (``state = [s, z]``, ``belief = [h, h']``) and, in ``"attention"`` mode, the window ``free_window`` ``[*N, tau, F]``
 of ``z`` rolled ``tau - 1`` steps ahead: ``e = Attention([s, h], window)`` (eq. 6,
 :class:`~isodream_rl.modules.FutureStateAttention`). On ``e`` sit DreamerV3's heads: the bounded-normal actor
@@ -30,7 +30,7 @@ from isodream_rl.modules.dreamer_v3 import (
     two_hot_value,
 )
 from isodream_rl.modules.fast_paths import use_fast_rms_norms
-from isodream_rl.modules.world_model_v3 import FREE_ACTION_DIM, IsoDreamV3Config, IsoDreamV3WorldModel
+from isodream_rl.modules.isodream.world_model import FREE_ACTION_DIM, IsoDreamV3Config, IsoDreamV3WorldModel
 
 
 class PolicyFeaturesV3(nn.Module):
@@ -42,7 +42,7 @@ class PolicyFeaturesV3(nn.Module):
     out, as it would multiply the attention's cost by about ``(S_z + D_z) / S_z``.
 
     Args:
-        config: the world model's :class:`~isodream_rl.modules.world_model_v3.IsoDreamV3Config`.
+        config: the world model's :class:`~isodream_rl.modules.isodream.world_model.IsoDreamV3Config`.
         mode: ``"attention"`` (eq. 6), ``"controllable"`` (``[h, s]``, the DMC setting) or ``"concat"``
             (``[h, s, h', z]``).
         attention_dim: width of the attention's projections.
@@ -147,7 +147,7 @@ class IsoDreamV3StateEstimator(TensorDictModuleBase):
     at a time.
 
     Args:
-        world_model: the trained :class:`~isodream_rl.modules.world_model_v3.IsoDreamV3WorldModel` (shared).
+        world_model: the trained :class:`~isodream_rl.modules.isodream.world_model.IsoDreamV3WorldModel` (shared).
     """
 
     def __init__(self, world_model: IsoDreamV3WorldModel) -> None:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
-from isodream_rl.modules.composition import CLAMP_GRADIENTS, MASK_MODES
+from isodream_rl.modules.isodream_v2.composition import CLAMP_GRADIENTS, MASK_MODES
 from isodream_rl.modules.inverse_dynamics import INVERSE_INPUTS
 
 #: Size presets. ``paper``: Table 5 and the authors' configs (cnn depth 32, deter 200, stoch 50,
@@ -39,7 +39,7 @@ PRECISIONS = ("fp32", "bf16")
 
 @dataclass
 class WorldModelConfig:
-    """Everything that shapes an :class:`~isodream_rl.modules.world_model.IsoDreamWorldModel`."""
+    """Everything that shapes an :class:`~isodream_rl.modules.isodream_v2.world_model.IsoDreamWorldModel`."""
 
     action_dim: int
     """Width of the action vector."""
@@ -77,7 +77,7 @@ class WorldModelConfig:
     """Backward of that clamp: ``"inward"`` (forward unchanged; a colour beyond the range gets the gradients
     that move it back, so a branch whose colours overshoot under a shut mask can come back) or ``"zero"`` (the
     authors' plain clamp); without ``clamp_components`` it has no effect. See
-    :class:`~isodream_rl.modules.composition.MaskComposition`."""
+    :class:`~isodream_rl.modules.isodream_v2.composition.MaskComposition`."""
     decoder_input: str = "posterior"
     """``"posterior"``: both dynamic components from posteriors; ``"paper"``: the controllable component from
     the one-step prior s~_t, the noncontrollable one from the posterior z_t (§3.2, against collapse)."""

@@ -21,9 +21,9 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import nn
 
-from isodream_rl.modules.actor import IsoDreamActor
+from isodream_rl.modules.isodream_v2.actor import IsoDreamActor
 from isodream_rl.modules.attention import PolicyInput
-from isodream_rl.modules.world_model import IsoDreamWorldModel
+from isodream_rl.modules.isodream_v2.world_model import IsoDreamWorldModel
 
 ATTENTION_WINDOWS = ("start", "per_step")
 

@@ -1,6 +1,6 @@
 """Iso-Dream's objectives on DreamerV3's learner: TorchRL's DreamerV3 losses over the decoupled world model.
 
-- World model (eq. 5): ``DreamerV3ModelLoss`` on :class:`~isodream_rl.modules.world_model_v3.IsoDreamV3WorldModel`
+- World model (eq. 5): ``DreamerV3ModelLoss`` on :class:`~isodream_rl.modules.isodream.world_model.IsoDreamV3WorldModel`
   (dynamics / representation KL of both branches with free bits, squared error of the composite, two-hot reward,
   continuation) plus the inverse-dynamics term (:class:`~isodream_rl.objectives.InverseDynamicsLoss`):
   :class:`IsoDreamV3ModelLoss`.
@@ -28,9 +28,9 @@ from torchrl.modules import WorldModelWrapper
 from torchrl.objectives import DreamerV3ActorLoss, DreamerV3Loss, DreamerV3ModelLoss, DreamerV3ValueLoss
 from torchrl.objectives.utils import SoftUpdate
 
-from isodream_rl.modules.behavior_v3 import IsoDreamV3Policy, make_actor_v3, make_value_v3
+from isodream_rl.modules.isodream.behavior import IsoDreamV3Policy, make_actor_v3, make_value_v3
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings, continuation_probability
-from isodream_rl.modules.world_model_v3 import IsoDreamV3Config, IsoDreamV3WorldModel
+from isodream_rl.modules.isodream.world_model import IsoDreamV3Config, IsoDreamV3WorldModel
 from isodream_rl.objectives.dreamer_v3_behavior import (
     dreamer_v3_model_loss_settings,
     make_dreamer_v3_behavior,
@@ -38,7 +38,7 @@ from isodream_rl.objectives.dreamer_v3_behavior import (
 )
 from isodream_rl.objectives.imagination_env import latent_dreamer_env
 from isodream_rl.objectives.inverse_dynamics import InverseDynamicsLoss
-from isodream_rl.objectives.world_model import LOSS_WEIGHTS
+from isodream_rl.objectives.isodream_v2.world_model import LOSS_WEIGHTS
 
 
 class IsoDreamV3ModelLoss(DreamerV3ModelLoss):
@@ -51,7 +51,7 @@ class IsoDreamV3ModelLoss(DreamerV3ModelLoss):
     ``DreamerV3ModelLoss`` has no slot for.
 
     Args:
-        world_model: the :class:`~isodream_rl.modules.world_model_v3.IsoDreamV3WorldModel`.
+        world_model: the :class:`~isodream_rl.modules.isodream.world_model.IsoDreamV3WorldModel`.
         lambda_inverse: weight of the inverse-dynamics term (``alpha`` of eq. 5; the library's default from
             ``LOSS_WEIGHTS``, on the same per-frame squared-error scale as the image term).
         settings: DreamerV3's settings.
@@ -204,7 +204,7 @@ def make_isodream_v3(
 
     Args:
         config: the world model's widths and switches (with DreamerV3's settings in ``config.settings``).
-        policy_input: ``e_t``'s mode (:class:`~isodream_rl.modules.behavior_v3.PolicyFeaturesV3`).
+        policy_input: ``e_t``'s mode (:class:`~isodream_rl.modules.isodream.behavior.PolicyFeaturesV3`).
         attention_dim: width of the attention's projections.
         actor_units: width of the actor's 3 hidden layers.
         value_units: width of the critic's 3 hidden layers.

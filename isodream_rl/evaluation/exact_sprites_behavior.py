@@ -1,8 +1,8 @@
 """DreamerV3's behaviour learner (``algo=isodream``) on :class:`~isodream_rl.evaluation.ExactSpritesModel`.
 
 :func:`make_exact_model_v3_behavior` puts the learner of ``algo=isodream`` on the exact model of sprites
-``reach``: the actor and the two-hot critic of :func:`~isodream_rl.modules.behavior_v3.make_actor_v3` /
-:func:`~isodream_rl.modules.behavior_v3.make_value_v3` on the model's ``[s, h]`` (policy input
+``reach``: the actor and the two-hot critic of :func:`~isodream_rl.modules.isodream.behavior.make_actor_v3` /
+:func:`~isodream_rl.modules.isodream.behavior.make_value_v3` on the model's ``[s, h]`` (policy input
 ``"controllable"``: the model has no noncontrollable branch), and the losses of
 :func:`~isodream_rl.objectives.dreamer_v3_behavior.make_dreamer_v3_behavior` with the exact model as the
 imagination ``DreamerEnv`` (:func:`exact_imagination_env`: its step and reward, the reward error included).
@@ -25,7 +25,7 @@ from torchrl.envs.model_based.dreamer import DreamerEnv
 from torchrl.modules import WorldModelWrapper
 
 from isodream_rl.evaluation.exact_sprites import ExactSpritesModel
-from isodream_rl.modules.behavior_v3 import make_actor_v3, make_value_v3
+from isodream_rl.modules.isodream.behavior import make_actor_v3, make_value_v3
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings
 from isodream_rl.objectives.dreamer_v3_behavior import DreamerV3Behavior, make_dreamer_v3_behavior
 from isodream_rl.objectives.imagination_env import latent_dreamer_env
@@ -33,7 +33,7 @@ from isodream_rl.objectives.imagination_env import latent_dreamer_env
 
 @dataclass(frozen=True)
 class ExactWidths:
-    """A branch's widths as :class:`~isodream_rl.modules.world_model_v3.BranchWidths` gives them to the actor and
+    """A branch's widths as :class:`~isodream_rl.modules.isodream.world_model.BranchWidths` gives them to the actor and
     critic: ``state_dim`` and ``deter`` (the belief), here the exact model's."""
 
     state_dim: int
@@ -47,8 +47,8 @@ class ExactWidths:
 
 @dataclass(frozen=True)
 class ExactModelV3Config:
-    """What :func:`~isodream_rl.modules.behavior_v3.make_actor_v3` and ``make_value_v3`` read of an
-    :class:`~isodream_rl.modules.world_model_v3.IsoDreamV3Config`, at the exact model's widths: ``s`` the 4
+    """What :func:`~isodream_rl.modules.isodream.behavior.make_actor_v3` and ``make_value_v3`` read of an
+    :class:`~isodream_rl.modules.isodream.world_model.IsoDreamV3Config`, at the exact model's widths: ``s`` the 4
     positions, ``h`` the last reward, no action-free branch."""
 
     action_dim: int
@@ -138,7 +138,7 @@ class ExactModelV3Behavior:
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """The trained parameters: ``actor``, ``value`` (not the slow copy), as
-        :meth:`~isodream_rl.objectives.isodream_v3.IsoDreamV3Learner.parameter_groups` has them."""
+        :meth:`~isodream_rl.objectives.isodream.IsoDreamV3Learner.parameter_groups` has them."""
         return {"actor": list(self.actor.parameters()), "value": list(self.losses.value_loss.parameters())}
 
 

@@ -1,7 +1,7 @@
 """The parts of an ``algo=isodream`` run (the default, and its ablations ``isodream_no_inverse``,
 ``isodream_no_attention``, ``isodream_no_static``): Iso-Dream's decomposition on DreamerV3's learner.
 
-The world model, actor and critic of :func:`~isodream_rl.objectives.isodream_v3.make_isodream_v3`, one
+The world model, actor and critic of :func:`~isodream_rl.objectives.isodream.make_isodream_v3`, one
 ``DreamerV3Optimizer`` per parameter group (:func:`~isodream_rl.trainers.dreamer_v3.make_dreamer_v3_optimizers`)
 and the DreamerV3 update (:class:`~isodream_rl.trainers.dreamer_v3.DreamerV3OptimizationStepper`), both shared with
 ``algo=torchrl_dreamer_v3``; the replay side is every run's.
@@ -30,10 +30,10 @@ from pathlib import Path
 
 from torch import nn
 
-from isodream_rl.modules.config import SIZE_PRESETS
+from isodream_rl.modules.isodream_v2.config import SIZE_PRESETS
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings
-from isodream_rl.modules.world_model_v3 import IsoDreamV3Config
-from isodream_rl.objectives.isodream_v3 import IsoDreamV3Learner, make_isodream_v3
+from isodream_rl.modules.isodream.world_model import IsoDreamV3Config
+from isodream_rl.objectives.isodream import IsoDreamV3Learner, make_isodream_v3
 from isodream_rl.trainers.components import RunComponents, make_replay_parts
 from isodream_rl.trainers.config import ConfigError, RunConfig
 from isodream_rl.trainers.dreamer_v3 import dreamer_v3_checkpoint_modules, make_dreamer_v3_stepper
@@ -47,7 +47,7 @@ FREE_HIDDEN_FRACTION = 0.5
 def isodream_v3_config(
     cfg: RunConfig, *, action_dim: int, settings: DreamerV3Settings = DreamerV3Settings()
 ) -> IsoDreamV3Config:
-    """The world model's :class:`~isodream_rl.modules.world_model_v3.IsoDreamV3Config` for ``cfg``.
+    """The world model's :class:`~isodream_rl.modules.isodream.world_model.IsoDreamV3Config` for ``cfg``.
 
     Raises:
         ConfigError: an unknown size preset or a precision other than fp32.
@@ -92,7 +92,7 @@ class IsoDreamV3Components(RunComponents):
         settings: DreamerV3's settings. Defaults to TorchRL's reproduction's.
 
     Attributes:
-        learner (:class:`~isodream_rl.objectives.isodream_v3.IsoDreamV3Learner`), model_loss, world_model,
+        learner (:class:`~isodream_rl.objectives.isodream.IsoDreamV3Learner`), model_loss, world_model,
         behavior (``policy``, ``actor_loss``, ``value_loss``), stepper, replay_buffer, preparation, returns.
     """
 

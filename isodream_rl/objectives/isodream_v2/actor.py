@@ -13,9 +13,9 @@ from torchrl.objectives import LossModule
 from torchrl.objectives.utils import hold_out_net
 from torchrl.objectives.value.functional import td_lambda_return_estimate, vec_td_lambda_return_estimate
 
-from isodream_rl.modules.actor import IsoDreamActor
-from isodream_rl.objectives.imagination import IsoDreamImagination, policy_features
-from isodream_rl.objectives.value import IsoDreamValueLoss
+from isodream_rl.modules.isodream_v2.actor import IsoDreamActor
+from isodream_rl.objectives.isodream_v2.imagination import IsoDreamImagination, policy_features
+from isodream_rl.objectives.isodream_v2.value import IsoDreamValueLoss
 
 ACTOR_GRADIENTS = ("dynamics", "reinforce")
 

@@ -12,10 +12,10 @@ from torch import nn
 from torch.nn import functional as F
 from torchrl.objectives import LossModule
 
-from isodream_rl.modules.encoder import preprocess_pixels
-from isodream_rl.modules.world_model import IsoDreamWorldModel
+from isodream_rl.modules.isodream_v2.encoder import preprocess_pixels
+from isodream_rl.modules.isodream_v2.world_model import IsoDreamWorldModel
 from isodream_rl.objectives.inverse_dynamics import InverseDynamicsLoss
-from isodream_rl.objectives.kl import balanced_kl
+from isodream_rl.objectives.isodream_v2.kl import balanced_kl
 
 FREE_BRANCH_MODES = ("kl", "recon_only")
 #: The weights of eq. 5's terms: the one table of their defaults (as DreamerV3's ``loss_scales``), read by
@@ -187,7 +187,7 @@ class IsoDreamModelLoss(LossModule):
     @classmethod
     def paper_exact(cls, world_model: IsoDreamWorldModel, **overrides) -> IsoDreamModelLoss:
         """The loss with eq. 5's weights (``alpha = 1``), the partner of
-        :meth:`WorldModelConfig.paper_exact <isodream_rl.modules.config.WorldModelConfig.paper_exact>`."""
+        :meth:`WorldModelConfig.paper_exact <isodream_rl.modules.isodream_v2.config.WorldModelConfig.paper_exact>`."""
         return cls(world_model, **{**PAPER_WEIGHTS, **overrides})
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:

@@ -14,11 +14,11 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs import TensorDictPrimer
 from torchrl.envs.utils import ExplorationType, exploration_type
 
-from isodream_rl.modules.actor import IsoDreamActor
+from isodream_rl.modules.isodream_v2.actor import IsoDreamActor
 from isodream_rl.modules.attention import PolicyInput
-from isodream_rl.modules.encoder import IMAGE_SHAPE, check_pixel_values, check_pixels
-from isodream_rl.modules.rssm import filter_step
-from isodream_rl.modules.world_model import IsoDreamWorldModel
+from isodream_rl.modules.isodream_v2.encoder import IMAGE_SHAPE, check_pixel_values, check_pixels
+from isodream_rl.modules.isodream_v2.rssm import filter_step
+from isodream_rl.modules.isodream_v2.world_model import IsoDreamWorldModel
 
 _RANDOM = (None, ExplorationType.RANDOM)
 
@@ -149,7 +149,7 @@ class IsoDreamPolicy(TensorDictModuleBase):
     """Acting policy: filter the new observation, roll ``z`` ``tau - 1`` steps ahead, attend, act.
 
     At each environment step ``t``: both branches' posteriors ``(s_t, h_t)``, ``(z_t, h'_t)`` from the
-    previous posteriors, the previous action and ``o_t`` (:func:`~isodream_rl.modules.rssm.filter_step`, the same filter as
+    previous posteriors, the previous action and ``o_t`` (:func:`~isodream_rl.modules.isodream_v2.rssm.filter_step`, the same filter as
     in training, zeroing the carried state where ``is_init``); the window ``[z_t, z~_{t+1..t+tau-1}]`` from the
     action-free prior; ``e_t`` from the policy input; ``a_t`` sampled from the actor (exploration type
     ``RANDOM`` or unset, plus optional Gaussian ``exploration_noise``, clamped to [-1, 1]) or its mode

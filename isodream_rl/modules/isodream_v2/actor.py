@@ -13,7 +13,7 @@ import torch
 from torch import nn
 from torchrl.modules import MLP, TanhNormal
 
-from isodream_rl.modules.rssm import sigmoid2_std
+from isodream_rl.modules.isodream_v2.rssm import sigmoid2_std
 
 
 class IsoDreamActor(nn.Module):

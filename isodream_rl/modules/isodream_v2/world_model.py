@@ -14,14 +14,14 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from isodream_rl.modules.composition import MaskComposition
-from isodream_rl.modules.config import WorldModelConfig
-from isodream_rl.modules.decoder import ConvDecoder
-from isodream_rl.modules.encoder import IMAGE_SHAPE, BranchedEncoder, check_pixel_values, check_pixels
+from isodream_rl.modules.isodream_v2.composition import MaskComposition
+from isodream_rl.modules.isodream_v2.config import WorldModelConfig
+from isodream_rl.modules.isodream_v2.decoder import ConvDecoder
+from isodream_rl.modules.isodream_v2.encoder import IMAGE_SHAPE, BranchedEncoder, check_pixel_values, check_pixels
 from isodream_rl.modules.fast_paths import FastConvDecoder, FusedMaskComposition, fast_filter_window
-from isodream_rl.modules.heads import make_discount_head, make_reward_head
+from isodream_rl.modules.isodream_v2.heads import make_discount_head, make_reward_head
 from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
-from isodream_rl.modules.rssm import ActionConditionedRSSM, ActionFreeRSSM, filter_window
+from isodream_rl.modules.isodream_v2.rssm import ActionConditionedRSSM, ActionFreeRSSM, filter_window
 
 
 def _next(key: str) -> tuple[str, str]:
@@ -32,7 +32,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
     """Encoder, decoupled RSSM, masked decoders, inverse-dynamics cell and reward/discount heads.
 
     Args:
-        config: a :class:`~isodream_rl.modules.config.WorldModelConfig`.
+        config: a :class:`~isodream_rl.modules.isodream_v2.config.WorldModelConfig`.
         device: where to create the parameters.
         check_inputs: check every batch at the boundary (one min/max of the pixels, a finiteness check of the
             actions): float pixels outside ``[0, 1]``, NaN/inf pixels or actions, a missing ``"is_init"`` and
@@ -58,8 +58,8 @@ class IsoDreamWorldModel(TensorDictModuleBase):
 
     ``config.fast_paths`` picks, once, how the decoders, the composition and the filter are computed: the CPU
     fast paths of :mod:`~isodream_rl.modules.fast_paths` (``True``) or the reference forms (``False``:
-    :class:`~isodream_rl.modules.decoder.ConvDecoder`, :class:`~isodream_rl.modules.composition.MaskComposition`,
-    :func:`~isodream_rl.modules.rssm.filter_window`). Both have the same parameters and state dict and give the
+    :class:`~isodream_rl.modules.isodream_v2.decoder.ConvDecoder`, :class:`~isodream_rl.modules.isodream_v2.composition.MaskComposition`,
+    :func:`~isodream_rl.modules.isodream_v2.rssm.filter_window`). Both have the same parameters and state dict and give the
     same values and gradients within float tolerance.
 
     Examples:

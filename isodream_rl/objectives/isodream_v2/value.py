@@ -10,8 +10,8 @@ from tensordict.utils import NestedKey
 from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 from torchrl.objectives.utils import TargetNetUpdater
 
-from isodream_rl.modules.value import IsoDreamValue
-from isodream_rl.objectives.imagination import IsoDreamImagination, policy_features
+from isodream_rl.modules.isodream_v2.value import IsoDreamValue
+from isodream_rl.objectives.isodream_v2.imagination import IsoDreamImagination, policy_features
 
 
 class IsoDreamValueLoss(LossModule):
