@@ -29,7 +29,7 @@ The committed JSONs name the variants as they were named when measured: ``exact_
 calls ``isodream_v2`` ``default`` (it was ``algo=isodream`` then), ``exact_model_v3.json`` calls ``isodream``
 ``isodream_v3``. ``exact_model.json`` also holds two variants whose code was removed after they did not help:
 ``return_norm`` (the lambda-returns divided by DreamerV3's 5th-95th percentile span, TorchRL's
-``PercentileValueNorm``, entropy 3e-3) and ``reinforce_return_norm`` (``IsoDreamActorLoss(gradient="reinforce")``
+``PercentileValueNorm``, entropy 3e-3) and ``reinforce_return_norm`` (``IsoDreamV2ActorLoss(gradient="reinforce")``
 with advantages normalised the same way, entropy 3e-4), both without the loc penalty.
 
     python bench/exact_model.py                                  # the committed results

@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 import isodream_rl.cli  # noqa: F401  (registers the config schema)
 from isodream_rl.trainers import ConfigError, RunConfig, validate_config
 from isodream_rl.trainers.config import ALGO_NAMES
-from isodream_rl.trainers.world_model_config import TORCHRL_BASELINES, WORLD_MODEL_ALGOS
+from isodream_rl.trainers.world_model_config import TORCHRL_BASELINES, ISODREAM_V2_ALGOS
 
 CONFIGS = Path(isodream_rl.cli.__file__).parent / "configs"
 ENVS = sorted(p.stem for p in (CONFIGS / "env").glob("*.yaml"))
@@ -70,7 +70,7 @@ RESULTS = CONFIGS.parents[1] / "docs" / "results"
 def test_every_exp_composes_to_a_valid_config_and_its_results_page_names_the_recorded_runs(exp):
     cfg = composed(f"exp={exp}")
     validate_config(cfg)
-    assert cfg.algo.name in WORLD_MODEL_ALGOS  # the exp names its algo: the default's world model is another
+    assert cfg.algo.name in ISODREAM_V2_ALGOS  # the exp names its algo: the default's world model is another
     header = (CONFIGS / "exp" / f"{exp}.yaml").read_text()
     # settings only: no run names or scores in the file, at most a pointer to the results page
     assert not re.search(r"\bruns? [A-Z]+[0-9]+\b|Recorded|R²", header), header
@@ -139,13 +139,13 @@ def test_domain_presets_follow_the_paper():
 def test_sprites_trains_with_the_library_defaults_and_the_paper_preset_with_the_papers_settings():
     """The DreamerV2-style learner: ``algo=isodream_v2`` at the library's settings, ``isodream_paper`` at the
     paper's."""
-    from isodream_rl.modules import WorldModelConfig
+    from isodream_rl.modules import IsoDreamV2Config
     from isodream_rl.modules.isodream_v2.config import PAPER_EXACT
     from isodream_rl.objectives.isodream_v2.world_model import PAPER_WEIGHTS
     from isodream_rl.trainers.builders import make_world_model_loss
 
     defaults = make_world_model_loss(composed("env=sprites", "size=tiny", "algo=isodream_v2"), action_dim=2)
-    library = WorldModelConfig(action_dim=2)
+    library = IsoDreamV2Config(action_dim=2)
     for name in PAPER_EXACT:
         assert getattr(defaults.world_model.config, name) == getattr(library, name)
     assert defaults.inverse_loss.lambda_inverse == 30.0
@@ -156,11 +156,11 @@ def test_sprites_trains_with_the_library_defaults_and_the_paper_preset_with_the_
 
 
 def test_dreamerv2_preset_is_the_libraries_baseline():
-    from isodream_rl.modules import WorldModelConfig
+    from isodream_rl.modules import IsoDreamV2Config
     from isodream_rl.trainers.builders import make_world_model_config
 
     trained = make_world_model_config(composed("algo=dreamerv2", "size=tiny"), action_dim=2)
-    baseline = WorldModelConfig.dreamerv2("tiny", action_dim=2)
+    baseline = IsoDreamV2Config.dreamerv2("tiny", action_dim=2)
     assert trained.to_dict() == {**baseline.to_dict(), "channels_last": trained.channels_last}
 
 
@@ -381,9 +381,9 @@ def test_a_run_saved_by_an_algo_that_changed_learner_resumes_as_isodream_v2(env)
 
     from isodream_rl.trainers.config import FORMER_DREAMER_V2_ALGOS
     from isodream_rl.trainers.run_dir import differing_settings
-    from isodream_rl.trainers.world_model_config import DREAMER_V3_ISODREAM
+    from isodream_rl.trainers.world_model_config import ISODREAM_ALGOS
 
-    assert set(FORMER_DREAMER_V2_ALGOS) == set(DREAMER_V3_ISODREAM)
+    assert set(FORMER_DREAMER_V2_ALGOS) == set(ISODREAM_ALGOS)
     for name, settings in FORMER_DREAMER_V2_ALGOS.items():
         # saved by algo=<name> (its algo fields are the same before and after it changed learner), continued by
         # algo=isodream_v2 with the settings that build the same variant; the weights tell which it was
@@ -395,11 +395,11 @@ def test_a_run_saved_by_an_algo_that_changed_learner_resumes_as_isodream_v2(env)
 
 
 def test_the_model_section_holds_every_world_model_field_but_the_envs():
-    from isodream_rl.modules.isodream_v2.config import WorldModelConfig
+    from isodream_rl.modules.isodream_v2.config import IsoDreamV2Config
     from isodream_rl.trainers.config import ModelConfig
 
     names = [f.name for f in dataclasses_fields(ModelConfig)]
-    assert names[4:] == [f.name for f in dataclasses_fields(WorldModelConfig) if f.name != "action_dim"]
+    assert names[4:] == [f.name for f in dataclasses_fields(IsoDreamV2Config) if f.name != "action_dim"]
     assert all(getattr(ModelConfig(), name) is None for name in names[4:])  # None: the preset's value
     assert composed("model.depth=8", "model.precision=bf16").model.world_model_fields() == {
         "depth": 8,

@@ -41,8 +41,8 @@ from torchrl.envs.transforms import DTypeCastTransform, ObservationNorm, Transfo
 
 from isodream_rl.data import write_tiny_bair
 from isodream_rl.envs import make_env
-from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
-from isodream_rl.objectives import IsoDreamModelLoss
+from isodream_rl.modules import IsoDreamV2WorldModel, IsoDreamV2Config
+from isodream_rl.objectives import IsoDreamV2ModelLoss
 from isodream_rl.run_utils.run_lock import LOCK_FILE, lock_owner
 from isodream_rl.trainers import (
     CheckpointError,
@@ -913,7 +913,7 @@ def model_batch(entries: dict | None = None, *, time: int = 4) -> TensorDict:
 
 @pytest.fixture(scope="module")
 def model_loss():
-    return IsoDreamModelLoss(IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=A)))
+    return IsoDreamV2ModelLoss(IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=A)))
 
 
 PIXELS = torch.randint(0, 256, (2, 4, 3, 64, 64), dtype=torch.uint8)
@@ -934,7 +934,7 @@ BAD_INPUTS = {
 
 @pytest.mark.parametrize("case", list(BAD_INPUTS), ids=list(BAD_INPUTS))
 def test_model_loss_refuses_bad_inputs(model_loss, case, said):
-    """refused: IsoDreamModelLoss (through the world model) on a bad batch | a ValueError naming what is
+    """refused: IsoDreamV2ModelLoss (through the world model) on a bad batch | a ValueError naming what is
     wrong and the fix (the range [0, 1] and how to get there for pixels)"""
     entries, message = BAD_INPUTS[case]
     with pytest.raises(ValueError, match=message) as error:
@@ -943,13 +943,13 @@ def test_model_loss_refuses_bad_inputs(model_loss, case, said):
 
 
 def test_one_step_window_is_refused_and_checks_can_be_skipped(model_loss, said):
-    """refused: IsoDreamModelLoss on a window of T=1 (was an internal tensordict error) | a ValueError asking
-    for 2 steps or more; IsoDreamWorldModel(check_inputs=False) skips the value checks"""
+    """refused: IsoDreamV2ModelLoss on a window of T=1 (was an internal tensordict error) | a ValueError asking
+    for 2 steps or more; IsoDreamV2WorldModel(check_inputs=False) skips the value checks"""
     with pytest.raises(ValueError, match="at least 2 steps.*got T=1") as error:
         model_loss(model_batch(time=1))
     said(error.value)
-    unchecked = IsoDreamModelLoss(
-        IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=A), check_inputs=False)
+    unchecked = IsoDreamV2ModelLoss(
+        IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=A), check_inputs=False)
     )
     losses, _ = unchecked(model_batch({("next", "pixels"): PIXELS.float()}))
     assert losses["loss_model_reco"] > 1e5  # the [0, 255] floats, taken as [0, 1]: why the check is on

@@ -18,10 +18,10 @@ from torchrl.trainers.algorithms import DreamerV3Optimizer
 from isodream_rl.data.sprites_episodes import collect_sprites_episodes, episode_windows
 from isodream_rl.envs import make_env
 from isodream_rl.evaluation import decomposition_scores
-from isodream_rl.modules.isodream.behavior import PolicyFeaturesV3
-from isodream_rl.modules.isodream.world_model import IsoDreamV3Config, IsoDreamV3WorldModel
+from isodream_rl.modules.isodream.behavior import PolicyFeatures
+from isodream_rl.modules.isodream.world_model import IsoDreamConfig, IsoDreamWorldModel
 from isodream_rl.trainers import ConfigError, train, validate_config
-from isodream_rl.trainers.isodream import IsoDreamV3Components, isodream_v3_config
+from isodream_rl.trainers.isodream import IsoDreamComponents, isodream_config
 from isodream_rl.trainers.openloop import open_loop_prediction
 from isodream_rl.trainers.registry import components_builder, make_components
 from tests.test_torchrl_dreamer import A, B, T, env_batch, replay_batch, tiny_config
@@ -30,7 +30,7 @@ from tests.test_torchrl_dreamer_v3 import assert_resume_is_exact, composed
 ALGO = "isodream"
 
 
-def v3_config(tmp_path, **train_changes):
+def isodream_run_config(tmp_path, **train_changes):
     """The tiny run of the baselines' tests with Iso-Dream's branches and the attention policy input."""
     cfg = tiny_config(tmp_path, ALGO, **train_changes)
     cfg.algo.free_branch = cfg.algo.static_branch = cfg.algo.inverse_dynamics = True
@@ -42,8 +42,8 @@ def v3_config(tmp_path, **train_changes):
 @pytest.fixture(scope="module")
 def parts(tmp_path_factory):
     torch.manual_seed(0)
-    cfg = v3_config(tmp_path_factory.mktemp("run"))
-    return IsoDreamV3Components(cfg, action_dim=A, scratch_dir=tmp_path_factory.mktemp("scratch"))
+    cfg = isodream_run_config(tmp_path_factory.mktemp("run"))
+    return IsoDreamComponents(cfg, action_dim=A, scratch_dir=tmp_path_factory.mktemp("scratch"))
 
 
 def model_batch(parts, **changes) -> TensorDict:
@@ -118,9 +118,9 @@ class TestImagination:
 
     @pytest.mark.parametrize("mode", ["attention", "controllable", "concat"])
     def test_policy_features_of_each_mode(self, mode):
-        config = IsoDreamV3Config(action_dim=A, hidden=32, free_hidden=16, image_depth=2, units=8)
+        config = IsoDreamConfig(action_dim=A, hidden=32, free_hidden=16, image_depth=2, units=8)
         control, free = config.control, config.free
-        features = PolicyFeaturesV3(config, mode=mode, attention_dim=4)
+        features = PolicyFeatures(config, mode=mode, attention_dim=4)
         window = torch.randn(5, config.attention_window, free.feature_dim)
         state, belief = torch.randn(5, config.packed_state_dim), torch.randn(5, config.packed_belief_dim)
         out = features(state, belief, window) if mode == "attention" else features(state, belief)
@@ -129,8 +129,8 @@ class TestImagination:
 
     def test_attention_reads_the_windows_stochastic_states(self):
         """Eq. 6 attends over the noncontrollable states z; the beliefs h' the window carries are not read."""
-        config = IsoDreamV3Config(action_dim=A, hidden=32, free_hidden=16, image_depth=2, units=8)
-        features = PolicyFeaturesV3(config, mode="attention", attention_dim=4)
+        config = IsoDreamConfig(action_dim=A, hidden=32, free_hidden=16, image_depth=2, units=8)
+        features = PolicyFeatures(config, mode="attention", attention_dim=4)
         window = torch.randn(5, config.attention_window, config.free.feature_dim)
         state, belief = torch.randn(5, config.packed_state_dim), torch.randn(5, config.packed_belief_dim)
         other = window.clone()
@@ -140,7 +140,7 @@ class TestImagination:
         assert not torch.allclose(features(state, belief, window), features(state, belief, other))
 
     def test_free_branch_has_the_controllable_classes_and_fewer_categoricals(self):
-        config = IsoDreamV3Config(action_dim=A, hidden=80, free_hidden=40, image_depth=8, units=80)
+        config = IsoDreamConfig(action_dim=A, hidden=80, free_hidden=40, image_depth=8, units=80)
         assert (config.control.deter, config.control.num_categoricals, config.control.classes) == (640, 32, 5)
         assert (config.free.deter, config.free.num_categoricals, config.free.classes) == (320, 16, 5)
 
@@ -172,28 +172,28 @@ class TestComposition:
         assert metrics["nonfinite_skipped"] == 0
 
     def test_registered_and_sized_from_the_preset(self, tmp_path):
-        assert components_builder(ALGO) is IsoDreamV3Components
-        config = isodream_v3_config(v3_config(tmp_path), action_dim=A)
+        assert components_builder(ALGO) is IsoDreamComponents
+        config = isodream_config(isodream_run_config(tmp_path), action_dim=A)
         assert (config.hidden, config.free_hidden, config.control.classes, config.image_depth) == (
             16,
             8,
             2,
             2,
         )
-        cfg = v3_config(tmp_path)
+        cfg = isodream_run_config(tmp_path)
         cfg.model.size = "bench"
-        bench = isodream_v3_config(cfg, action_dim=A)
+        bench = isodream_config(cfg, action_dim=A)
         assert (bench.hidden, bench.free_hidden, bench.image_depth) == (80, 40, 8)
 
     @pytest.mark.parametrize("hidden_dim", [16, 24, 32, 40, 48, 64, 128, 200])
     def test_every_hidden_dim_builds_and_runs(self, tmp_path, hidden_dim):
         """``model.hidden_dim`` between the presets builds too: the action-free branch's categoricals are a multiple
         of the block GRU's blocks (at 32 their 13 of 3 classes made a prior input of 167, which no 8 blocks split)."""
-        cfg = v3_config(tmp_path)
+        cfg = isodream_run_config(tmp_path)
         cfg.model.hidden_dim = hidden_dim
-        config = isodream_v3_config(cfg, action_dim=A)
+        config = isodream_config(cfg, action_dim=A)
         assert config.free.num_categoricals % config.settings.num_blocks == 0
-        model = IsoDreamV3WorldModel(config)
+        model = IsoDreamWorldModel(config)
         batch = TensorDict(
             {
                 ("next", "pixels"): torch.zeros(1, 2, 3, 64, 64, dtype=torch.uint8),
@@ -209,11 +209,11 @@ class TestComposition:
             parts.model_loss(model_batch(parts).set(("next", "pixels"), torch.full((B, T, 3, 64, 64), 2.0)))
 
     def test_bf16_and_world_model_mode_are_refused(self, tmp_path):
-        cfg = v3_config(tmp_path)
+        cfg = isodream_run_config(tmp_path)
         cfg.model.precision = "bf16"
         with pytest.raises(ConfigError, match="fp32 only"):
-            isodream_v3_config(cfg, action_dim=A)
-        cfg = v3_config(tmp_path)
+            isodream_config(cfg, action_dim=A)
+        cfg = isodream_run_config(tmp_path)
         cfg.mode = "world_model"
         with pytest.raises(ConfigError, match="not algo=isodream's: pick algo=isodream_v2"):
             validate_config(cfg)
@@ -235,11 +235,11 @@ def test_each_ablation_is_the_default_without_its_part_and_updates(tmp_path, alg
     cfg = composed(f"algo={algo}", "size=tiny", *window)
     validate_config(cfg)
     parts = make_components(cfg, action_dim=A, scratch_dir=tmp_path)
-    assert isinstance(parts, IsoDreamV3Components) and parts.algo == algo
+    assert isinstance(parts, IsoDreamComponents) and parts.algo == algo
     config = parts.world_model.config
     switches = ("free_branch", "static_branch", "inverse_dynamics")
     assert {name: getattr(config, name) for name in switches} == {name: name != removed for name in switches}
-    modes = {m.mode for m in parts.learner.actor.modules() if isinstance(m, PolicyFeaturesV3)}
+    modes = {m.mode for m in parts.learner.actor.modules() if isinstance(m, PolicyFeatures)}
     assert modes == {"controllable" if removed == "attention" else "attention"}
     assert ("background" in parts.world_model(model_batch(parts)).keys()) == (removed != "static_branch")
     metrics = parts.stepper.step(None, replay_batch())
@@ -283,7 +283,7 @@ class TestPolicy:
 
 
 def test_train_writes_a_summary_and_resumes(tmp_path):
-    cfg = v3_config(tmp_path)
+    cfg = isodream_run_config(tmp_path)
     result = train(cfg)
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["algo"] == ALGO and math.isfinite(summary["eval_return"])
@@ -294,7 +294,7 @@ def test_train_writes_a_summary_and_resumes(tmp_path):
 
 
 def test_resume_is_exact(tmp_path):
-    assert_resume_is_exact(IsoDreamV3Components, v3_config(tmp_path / "run"), tmp_path)
+    assert_resume_is_exact(IsoDreamComponents, isodream_run_config(tmp_path / "run"), tmp_path)
 
 
 class TestPictures:

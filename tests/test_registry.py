@@ -10,9 +10,9 @@ import pytest
 
 from isodream_rl.trainers.components import RunComponents
 from isodream_rl.trainers.config import ALGO_NAMES, ConfigError
-from isodream_rl.trainers.isodream import IsoDreamV3Components
+from isodream_rl.trainers.isodream import IsoDreamComponents
 from isodream_rl.trainers.registry import ALGORITHMS, components_builder, register_algorithm
-from isodream_rl.trainers.world_model_config import DREAMER_V3_ISODREAM
+from isodream_rl.trainers.world_model_config import ISODREAM_ALGOS
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -28,14 +28,14 @@ def test_the_baselines_register_themselves_when_imported():
 
 
 def test_the_default_and_its_ablations_are_dreamer_v3s_learner_and_isodream_v2_the_dreamerv2_style_one():
-    assert DREAMER_V3_ISODREAM == (
+    assert ISODREAM_ALGOS == (
         "isodream",
         "isodream_no_inverse",
         "isodream_no_attention",
         "isodream_no_static",
     )
-    for name in DREAMER_V3_ISODREAM:
-        assert components_builder(name) is IsoDreamV3Components, name
+    for name in ISODREAM_ALGOS:
+        assert components_builder(name) is IsoDreamComponents, name
     for name in ("isodream_v2", "isodream_paper", "dreamerv2"):
         assert components_builder(name) is RunComponents, name
 

@@ -1,8 +1,8 @@
 """DreamerV3's behaviour learner (``algo=isodream``) on :class:`~isodream_rl.evaluation.ExactSpritesModel`.
 
-:func:`make_exact_model_v3_behavior` puts the learner of ``algo=isodream`` on the exact model of sprites
-``reach``: the actor and the two-hot critic of :func:`~isodream_rl.modules.isodream.behavior.make_actor_v3` /
-:func:`~isodream_rl.modules.isodream.behavior.make_value_v3` on the model's ``[s, h]`` (policy input
+:func:`make_exact_model_behavior` puts the learner of ``algo=isodream`` on the exact model of sprites
+``reach``: the actor and the two-hot critic of :func:`~isodream_rl.modules.isodream.behavior.make_actor` /
+:func:`~isodream_rl.modules.isodream.behavior.make_value` on the model's ``[s, h]`` (policy input
 ``"controllable"``: the model has no noncontrollable branch), and the losses of
 :func:`~isodream_rl.objectives.dreamer_v3_behavior.make_dreamer_v3_behavior` with the exact model as the
 imagination ``DreamerEnv`` (:func:`exact_imagination_env`: its step and reward, the reward error included).
@@ -25,7 +25,7 @@ from torchrl.envs.model_based.dreamer import DreamerEnv
 from torchrl.modules import WorldModelWrapper
 
 from isodream_rl.evaluation.exact_sprites import ExactSpritesModel
-from isodream_rl.modules.isodream.behavior import make_actor_v3, make_value_v3
+from isodream_rl.modules.isodream.behavior import make_actor, make_value
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings
 from isodream_rl.objectives.dreamer_v3_behavior import DreamerV3Behavior, make_dreamer_v3_behavior
 from isodream_rl.objectives.imagination_env import latent_dreamer_env
@@ -46,9 +46,9 @@ class ExactWidths:
 
 
 @dataclass(frozen=True)
-class ExactModelV3Config:
-    """What :func:`~isodream_rl.modules.isodream.behavior.make_actor_v3` and ``make_value_v3`` read of an
-    :class:`~isodream_rl.modules.isodream.world_model.IsoDreamV3Config`, at the exact model's widths: ``s`` the 4
+class ExactModelConfig:
+    """What :func:`~isodream_rl.modules.isodream.behavior.make_actor` and ``make_value`` read of an
+    :class:`~isodream_rl.modules.isodream.world_model.IsoDreamConfig`, at the exact model's widths: ``s`` the 4
     positions, ``h`` the last reward, no action-free branch."""
 
     action_dim: int
@@ -60,7 +60,7 @@ class ExactModelV3Config:
     @classmethod
     def of(
         cls, model: ExactSpritesModel, settings: DreamerV3Settings = DreamerV3Settings()
-    ) -> ExactModelV3Config:
+    ) -> ExactModelConfig:
         cfg = model.config
         return cls(
             action_dim=cfg.action_dim, control=ExactWidths(cfg.state_dim, cfg.belief_dim), settings=settings
@@ -128,8 +128,8 @@ def exact_continuation(settings: DreamerV3Settings = DreamerV3Settings()) -> Ten
 
 
 @dataclass
-class ExactModelV3Behavior:
-    """The V3 learner on the exact model: the networks, the imagination env and the losses."""
+class ExactModelBehavior:
+    """The default learner on the exact model: the networks, the imagination env and the losses."""
 
     actor: ProbabilisticTensorDictSequential
     value: TensorDictSequential
@@ -138,18 +138,18 @@ class ExactModelV3Behavior:
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """The trained parameters: ``actor``, ``value`` (not the slow copy), as
-        :meth:`~isodream_rl.objectives.isodream.IsoDreamV3Learner.parameter_groups` has them."""
+        :meth:`~isodream_rl.objectives.isodream.IsoDreamLearner.parameter_groups` has them."""
         return {"actor": list(self.actor.parameters()), "value": list(self.losses.value_loss.parameters())}
 
 
-def make_exact_model_v3_behavior(
+def make_exact_model_behavior(
     model: ExactSpritesModel,
     *,
     actor_units: int = 128,
     value_units: int = 128,
     horizon: int = 15,
     settings: DreamerV3Settings = DreamerV3Settings(),
-) -> ExactModelV3Behavior:
+) -> ExactModelBehavior:
     """``algo=isodream``'s actor, critic and losses on the exact model (module docstring).
 
     Args:
@@ -159,21 +159,21 @@ def make_exact_model_v3_behavior(
         horizon: L, the imagination horizon.
         settings: DreamerV3's settings.
     """
-    config = ExactModelV3Config.of(model, settings)
+    config = ExactModelConfig.of(model, settings)
     heads = {"mode": "controllable", "attention_dim": 1}
-    actor = make_actor_v3(config, units=actor_units, **heads)
-    value = make_value_v3(config, units=value_units, **heads)
+    actor = make_actor(config, units=actor_units, **heads)
+    value = make_value(config, units=value_units, **heads)
     env = exact_imagination_env(model)
     losses = make_dreamer_v3_behavior(
         actor, value, env, continuation=exact_continuation(settings), horizon=horizon, settings=settings
     )
-    return ExactModelV3Behavior(actor=actor, value=value, model_based_env=env, losses=losses)
+    return ExactModelBehavior(actor=actor, value=value, model_based_env=env, losses=losses)
 
 
 __all__ = [
-    "ExactModelV3Behavior",
-    "ExactModelV3Config",
+    "ExactModelBehavior",
+    "ExactModelConfig",
     "exact_continuation",
     "exact_imagination_env",
-    "make_exact_model_v3_behavior",
+    "make_exact_model_behavior",
 ]

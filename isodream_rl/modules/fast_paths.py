@@ -18,8 +18,8 @@ the same random draws and the same gradients (tests/test_fast_layers.py compares
   MLPs, RSSM heads, image encoder and decoders; :func:`use_fast_rms_norms`): one fused forward kernel and a
   hand-written backward (:class:`_FusedRMSNorm`).
 
-One switch chooses: :class:`~isodream_rl.modules.isodream_v2.world_model.IsoDreamWorldModel` builds these when
-``WorldModelConfig.fast_paths`` is true (the default) and the reference forms when it is false. Where a fast
+One switch chooses: :class:`~isodream_rl.modules.isodream_v2.world_model.IsoDreamV2WorldModel` builds these when
+``IsoDreamV2Config.fast_paths`` is true (the default) and the reference forms when it is false. Where a fast
 path does not apply (sigmoid masks, a lone branch, a plain ``nn.GRUCell``) it runs the reference. Measured
 gains: docs/architecture.md, "Speed" (``bench/world_model_speed.py``). Iso-Dream's DreamerV3 learner
 (:mod:`~isodream_rl.modules.isodream.world_model`, :mod:`~isodream_rl.modules.isodream.behavior`) always builds

@@ -1,7 +1,7 @@
 """DreamerV3's behaviour losses on any imagination env: TorchRL's ``DreamerV3ActorLoss`` and ``DreamerV3ValueLoss``
 with DreamerV3's settings, and the slow critic's ``SoftUpdate``.
 
-:func:`make_dreamer_v3_behavior` composes them as :func:`~isodream_rl.objectives.isodream.make_isodream_v3`
+:func:`make_dreamer_v3_behavior` composes them as :func:`~isodream_rl.objectives.isodream.make_isodream`
 (``algo=isodream``) and :func:`~isodream_rl.baselines.torchrl_dreamer_v3.make_torchrl_dreamer_v3`
 (``algo=torchrl_dreamer_v3``) do: REINFORCE with the 5th-95th percentile return normalisation, the entropy bonus
 on normalised returns, TD(lambda) with ``gamma = 1`` (the continuation model's probabilities discount), a two-hot

@@ -1,17 +1,17 @@
 """Iso-Dream's objectives on DreamerV3's learner: TorchRL's DreamerV3 losses over the decoupled world model.
 
-- World model (eq. 5): ``DreamerV3ModelLoss`` on :class:`~isodream_rl.modules.isodream.world_model.IsoDreamV3WorldModel`
+- World model (eq. 5): ``DreamerV3ModelLoss`` on :class:`~isodream_rl.modules.isodream.world_model.IsoDreamWorldModel`
   (dynamics / representation KL of both branches with free bits, squared error of the composite, two-hot reward,
   continuation) plus the inverse-dynamics term (:class:`~isodream_rl.objectives.InverseDynamicsLoss`):
-  :class:`IsoDreamV3ModelLoss`.
+  :class:`IsoDreamModelLoss`.
 - Imagination (Algorithm 1, lines 7-12): a TorchRL ``DreamerEnv`` whose transition steps the controllable branch
   with the action and slides the window of the action-free branch one step, so that at imagined step ``j`` the
   window holds ``z_{j .. j+tau-1}`` of one action-free chain rolled from the start state (the paper's ``L + tau``
-  rollout, generated as it is read): :class:`IsoDreamV3Transition`, :func:`isodream_imagination_env`.
+  rollout, generated as it is read): :class:`IsoDreamTransition`, :func:`isodream_imagination_env`.
 - Behaviour: ``DreamerV3ActorLoss`` (REINFORCE, percentile return normalisation, entropy on normalised returns,
   continuation-weighted lambda-returns) and ``DreamerV3ValueLoss`` (two-hot critic, slow-critic regulariser), the
   actor and the critic reading ``e_t`` (eqs. 6-7), composed by ``DreamerV3Loss`` with the replay-value term:
-  :func:`make_isodream_v3`.
+  :func:`make_isodream`.
 """
 
 from __future__ import annotations
@@ -28,9 +28,9 @@ from torchrl.modules import WorldModelWrapper
 from torchrl.objectives import DreamerV3ActorLoss, DreamerV3Loss, DreamerV3ModelLoss, DreamerV3ValueLoss
 from torchrl.objectives.utils import SoftUpdate
 
-from isodream_rl.modules.isodream.behavior import IsoDreamV3Policy, make_actor_v3, make_value_v3
+from isodream_rl.modules.isodream.behavior import IsoDreamPolicy, make_actor, make_value
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings, continuation_probability
-from isodream_rl.modules.isodream.world_model import IsoDreamV3Config, IsoDreamV3WorldModel
+from isodream_rl.modules.isodream.world_model import IsoDreamConfig, IsoDreamWorldModel
 from isodream_rl.objectives.dreamer_v3_behavior import (
     dreamer_v3_model_loss_settings,
     make_dreamer_v3_behavior,
@@ -41,7 +41,7 @@ from isodream_rl.objectives.inverse_dynamics import InverseDynamicsLoss
 from isodream_rl.objectives.isodream_v2.world_model import LOSS_WEIGHTS
 
 
-class IsoDreamV3ModelLoss(DreamerV3ModelLoss):
+class IsoDreamModelLoss(DreamerV3ModelLoss):
     """Eq. 5 on DreamerV3's terms: ``DreamerV3ModelLoss`` plus ``loss_model_inverse`` (the inverse-dynamics term).
 
     ``DreamerV3ModelLoss`` as TorchRL's DreamerV3 reproduction configures it for pixels (separate dynamics and
@@ -51,7 +51,7 @@ class IsoDreamV3ModelLoss(DreamerV3ModelLoss):
     ``DreamerV3ModelLoss`` has no slot for.
 
     Args:
-        world_model: the :class:`~isodream_rl.modules.isodream.world_model.IsoDreamV3WorldModel`.
+        world_model: the :class:`~isodream_rl.modules.isodream.world_model.IsoDreamWorldModel`.
         lambda_inverse: weight of the inverse-dynamics term (``alpha`` of eq. 5; the library's default from
             ``LOSS_WEIGHTS``, on the same per-frame squared-error scale as the image term).
         settings: DreamerV3's settings.
@@ -64,7 +64,7 @@ class IsoDreamV3ModelLoss(DreamerV3ModelLoss):
 
     def __init__(
         self,
-        world_model: IsoDreamV3WorldModel,
+        world_model: IsoDreamWorldModel,
         *,
         lambda_inverse: float = LOSS_WEIGHTS["lambda_inverse"],
         settings: DreamerV3Settings = DreamerV3Settings(),
@@ -87,7 +87,7 @@ class IsoDreamV3ModelLoss(DreamerV3ModelLoss):
         return losses, output
 
 
-class IsoDreamV3Transition(nn.Module):
+class IsoDreamTransition(nn.Module):
     """One imagined step (Algorithm 1, line 10): the controllable prior with the action; the window of the
     action-free chain slides by one (its new last entry one action-free prior step from the old last).
 
@@ -96,7 +96,7 @@ class IsoDreamV3Transition(nn.Module):
     first entry).
     """
 
-    def __init__(self, world_model: IsoDreamV3WorldModel) -> None:
+    def __init__(self, world_model: IsoDreamWorldModel) -> None:
         super().__init__()
         self.world_model = world_model
 
@@ -137,7 +137,7 @@ class IsoDreamImaginationEnv(DreamerEnv):
         return tensordict
 
 
-def isodream_imagination_env(world_model: IsoDreamV3WorldModel, *, device=None) -> IsoDreamImaginationEnv:
+def isodream_imagination_env(world_model: IsoDreamWorldModel, *, device=None) -> IsoDreamImaginationEnv:
     """Imagination on the packed latent (and the window, with the action-free branch), the reward head's decoded
     two-hot reward as the reward."""
     cfg = world_model.config
@@ -146,7 +146,7 @@ def isodream_imagination_env(world_model: IsoDreamV3WorldModel, *, device=None) 
     return latent_dreamer_env(
         WorldModelWrapper(
             TensorDictModule(
-                IsoDreamV3Transition(world_model),
+                IsoDreamTransition(world_model),
                 in_keys=["state", "belief", "action", *transition_keys[2:]],
                 out_keys=transition_keys,
             ),
@@ -165,19 +165,19 @@ def isodream_imagination_env(world_model: IsoDreamV3WorldModel, *, device=None) 
 
 
 @dataclass
-class IsoDreamV3Learner:
+class IsoDreamLearner:
     """Iso-Dream on DreamerV3's learner: networks, losses, slow-critic updater, imagination env, acting policy."""
 
-    world_model: IsoDreamV3WorldModel
+    world_model: IsoDreamWorldModel
     actor: ProbabilisticTensorDictSequential
     value: TensorDictSequential
     model_based_env: DreamerEnv
-    model_loss: IsoDreamV3ModelLoss
+    model_loss: IsoDreamModelLoss
     actor_loss: DreamerV3ActorLoss
     value_loss: DreamerV3ValueLoss
     loss_module: DreamerV3Loss
     target_updater: SoftUpdate
-    policy: IsoDreamV3Policy
+    policy: IsoDreamPolicy
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """The trained parameters, each once: ``world_model``, ``actor`` (with its attention), ``value`` (with its
@@ -189,8 +189,8 @@ class IsoDreamV3Learner:
         }
 
 
-def make_isodream_v3(
-    config: IsoDreamV3Config,
+def make_isodream(
+    config: IsoDreamConfig,
     *,
     policy_input: str = "attention",
     attention_dim: int = 64,
@@ -199,12 +199,12 @@ def make_isodream_v3(
     horizon: int = 15,
     lambda_inverse: float = LOSS_WEIGHTS["lambda_inverse"],
     device: str | torch.device = "cpu",
-) -> IsoDreamV3Learner:
+) -> IsoDreamLearner:
     """Iso-Dream's world model, actor and critic composed with TorchRL's DreamerV3 losses (module docstring).
 
     Args:
         config: the world model's widths and switches (with DreamerV3's settings in ``config.settings``).
-        policy_input: ``e_t``'s mode (:class:`~isodream_rl.modules.isodream.behavior.PolicyFeaturesV3`).
+        policy_input: ``e_t``'s mode (:class:`~isodream_rl.modules.isodream.behavior.PolicyFeatures`).
         attention_dim: width of the attention's projections.
         actor_units: width of the actor's 3 hidden layers.
         value_units: width of the critic's 3 hidden layers.
@@ -213,22 +213,22 @@ def make_isodream_v3(
         device: where the modules live.
 
     Returns:
-        :class:`IsoDreamV3Learner`; ``loss_module(td)`` on a ``[B, T]`` replay batch (root packed ``"state"`` /
+        :class:`IsoDreamLearner`; ``loss_module(td)`` on a ``[B, T]`` replay batch (root packed ``"state"`` /
         ``"belief"`` zeros) returns every ``loss_*`` term.
     """
     settings = config.settings
-    world_model = IsoDreamV3WorldModel(config, device=device)
+    world_model = IsoDreamWorldModel(config, device=device)
     heads = {"mode": policy_input, "attention_dim": attention_dim, "device": device}
-    actor = make_actor_v3(config, units=actor_units, **heads)
-    value = make_value_v3(config, units=value_units, **heads)
+    actor = make_actor(config, units=actor_units, **heads)
+    value = make_value(config, units=value_units, **heads)
     model_based_env = isodream_imagination_env(world_model, device=device)
-    model_loss = IsoDreamV3ModelLoss(world_model, lambda_inverse=lambda_inverse, settings=settings)
+    model_loss = IsoDreamModelLoss(world_model, lambda_inverse=lambda_inverse, settings=settings)
     continuation = continuation_probability(world_model.continuation_logit, in_keys=["state", "belief"])
     behavior = make_dreamer_v3_behavior(
         actor, value, model_based_env, continuation=continuation, horizon=horizon, settings=settings
     )
     loss_module = make_dreamer_v3_loss(model_loss, behavior, settings=settings)
-    return IsoDreamV3Learner(
+    return IsoDreamLearner(
         world_model=world_model,
         actor=actor,
         value=value,
@@ -238,15 +238,15 @@ def make_isodream_v3(
         value_loss=behavior.value_loss,
         loss_module=loss_module,
         target_updater=behavior.target_updater,
-        policy=IsoDreamV3Policy(world_model, actor),
+        policy=IsoDreamPolicy(world_model, actor),
     )
 
 
 __all__ = [
     "IsoDreamImaginationEnv",
-    "IsoDreamV3Learner",
-    "IsoDreamV3ModelLoss",
-    "IsoDreamV3Transition",
+    "IsoDreamLearner",
+    "IsoDreamModelLoss",
+    "IsoDreamTransition",
     "isodream_imagination_env",
-    "make_isodream_v3",
+    "make_isodream",
 ]

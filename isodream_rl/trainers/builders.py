@@ -16,18 +16,18 @@ from torchrl.record.loggers import Logger, get_logger
 from isodream_rl.envs import make_env
 from isodream_rl.envs.finite import FiniteEnvData
 from isodream_rl.modules import (
-    IsoDreamActor,
-    IsoDreamValue,
-    IsoDreamWorldModel,
+    IsoDreamV2Actor,
+    IsoDreamV2Value,
+    IsoDreamV2WorldModel,
     PolicyInput,
-    WorldModelConfig,
+    IsoDreamV2Config,
 )
-from isodream_rl.modules.isodream_v2.policy import IsoDreamPolicy
+from isodream_rl.modules.isodream_v2.policy import IsoDreamV2Policy
 from isodream_rl.objectives import (
-    IsoDreamActorLoss,
-    IsoDreamImagination,
-    IsoDreamModelLoss,
-    IsoDreamValueLoss,
+    IsoDreamV2ActorLoss,
+    IsoDreamV2Imagination,
+    IsoDreamV2ModelLoss,
+    IsoDreamV2ValueLoss,
     make_target_updater,
 )
 from isodream_rl.trainers.config import RunConfig, world_model_overrides
@@ -121,19 +121,19 @@ def make_replay_buffer(cfg: RunConfig, *, scratch_dir: str | Path) -> TensorDict
     )
 
 
-def make_world_model_config(cfg: RunConfig, *, action_dim: int) -> WorldModelConfig:
-    """``WorldModelConfig`` of the size preset with the algorithm's branch switches."""
-    return WorldModelConfig.from_preset(cfg.model.size, action_dim=action_dim, **world_model_overrides(cfg))
+def make_world_model_config(cfg: RunConfig, *, action_dim: int) -> IsoDreamV2Config:
+    """``IsoDreamV2Config`` of the size preset with the algorithm's branch switches."""
+    return IsoDreamV2Config.from_preset(cfg.model.size, action_dim=action_dim, **world_model_overrides(cfg))
 
 
-def make_world_model_loss(cfg: RunConfig, *, action_dim: int, extra_terms=()) -> IsoDreamModelLoss:
+def make_world_model_loss(cfg: RunConfig, *, action_dim: int, extra_terms=()) -> IsoDreamV2ModelLoss:
     """The world model and its loss (eq. 5) with the algorithm's weights and free-branch mode, plus
-    ``extra_terms`` (see :class:`~isodream_rl.objectives.IsoDreamModelLoss`)."""
-    world_model = IsoDreamWorldModel(
+    ``extra_terms`` (see :class:`~isodream_rl.objectives.IsoDreamV2ModelLoss`)."""
+    world_model = IsoDreamV2WorldModel(
         make_world_model_config(cfg, action_dim=action_dim), device=cfg.train.device
     )
     algo = cfg.algo
-    return IsoDreamModelLoss(
+    return IsoDreamV2ModelLoss(
         world_model,
         lambda_reward=algo.lambda_reward,
         lambda_inverse=algo.lambda_inverse,
@@ -181,30 +181,30 @@ class Behavior:
     """The behavior side of a run (paper §3.3-3.4): policy input, actor, value, their losses and the policy."""
 
     policy_input: PolicyInput
-    actor_loss: IsoDreamActorLoss
-    value_loss: IsoDreamValueLoss
+    actor_loss: IsoDreamV2ActorLoss
+    value_loss: IsoDreamV2ValueLoss
     target_updater: object
-    policy: IsoDreamPolicy
+    policy: IsoDreamV2Policy
 
 
-def make_behavior(cfg: RunConfig, world_model: IsoDreamWorldModel) -> Behavior:
+def make_behavior(cfg: RunConfig, world_model: IsoDreamV2WorldModel) -> Behavior:
     """Future-state attention (or plain [s, h]), actor, value with its slow target, losses and acting policy."""
     algo, model, device = cfg.algo, cfg.model, cfg.train.device
     policy_input = PolicyInput.for_world_model(
         world_model, mode=algo.policy_input, window=algo.attention_window, width=model.attention_dim
     )
-    imagination = IsoDreamImagination(world_model, policy_input, horizon=algo.horizon)
-    value_loss = IsoDreamValueLoss(
-        IsoDreamValue(in_features=policy_input.out_features, num_cells=model.value_units, device=device),
+    imagination = IsoDreamV2Imagination(world_model, policy_input, horizon=algo.horizon)
+    value_loss = IsoDreamV2ValueLoss(
+        IsoDreamV2Value(in_features=policy_input.out_features, num_cells=model.value_units, device=device),
         imagination,
     )
-    actor = IsoDreamActor(
+    actor = IsoDreamV2Actor(
         in_features=policy_input.out_features,
         action_dim=world_model.config.action_dim,
         num_cells=model.actor_units,
         device=device,
     )
-    actor_loss = IsoDreamActorLoss(
+    actor_loss = IsoDreamV2ActorLoss(
         actor,
         imagination,
         value_loss,
@@ -219,5 +219,5 @@ def make_behavior(cfg: RunConfig, world_model: IsoDreamWorldModel) -> Behavior:
         actor_loss=actor_loss,
         value_loss=value_loss,
         target_updater=make_target_updater(value_loss, period=algo.slow_target_every),
-        policy=IsoDreamPolicy(world_model, actor, policy_input, exploration_noise=algo.exploration_noise),
+        policy=IsoDreamV2Policy(world_model, actor, policy_input, exploration_noise=algo.exploration_noise),
     )

@@ -12,10 +12,10 @@ import typing
 from dataclasses import dataclass, field, fields, make_dataclass
 from typing import Any
 
-from isodream_rl.modules.isodream_v2.config import DREAMERV2, PAPER_EXACT, SIZE_PRESETS, WorldModelConfig
+from isodream_rl.modules.isodream_v2.config import DREAMERV2, PAPER_EXACT, SIZE_PRESETS, IsoDreamV2Config
 from isodream_rl.objectives.isodream_v2.world_model import FREE_BRANCH_MODES, LOSS_WEIGHTS, PAPER_WEIGHTS
 from isodream_rl.trainers.world_model_config import (
-    DREAMER_V3_ISODREAM,
+    ISODREAM_ALGOS,
     DREAMER_V3_LEARNERS,
     MODES,
     WorldModelModeConfig,
@@ -32,7 +32,7 @@ _ALL_BRANCHES = {"free_branch": True, "static_branch": True, "inverse_dynamics":
 #: The branch switches of each ``algo=<name>`` preset: their one home (the algo YAML files set the other
 #: fields). ``AlgoConfig``'s switches left ``None`` take these (:func:`resolve_algo`); a name not here takes
 #: ``isodream``'s. The single-branch ones are DreamerV2's (:data:`~isodream_rl.modules.isodream_v2.config.DREAMERV2`).
-#: Which learner each name builds: :data:`~isodream_rl.trainers.world_model_config.DREAMER_V3_ISODREAM`.
+#: Which learner each name builds: :data:`~isodream_rl.trainers.world_model_config.ISODREAM_ALGOS`.
 ALGO_BRANCHES: dict[str, dict[str, bool]] = {
     "isodream": _ALL_BRANCHES,
     "isodream_v2": _ALL_BRANCHES,
@@ -55,7 +55,7 @@ RENAMED_ALGOS: dict[str, tuple[str, str]] = {
     ),
 }
 #: ``name -> settings``: the ``algo`` names that were Iso-Dream on the DreamerV2-style learner until they became
-#: Iso-Dream on DreamerV3's learner (:data:`~isodream_rl.trainers.world_model_config.DREAMER_V3_ISODREAM`), with the
+#: Iso-Dream on DreamerV3's learner (:data:`~isodream_rl.trainers.world_model_config.ISODREAM_ALGOS`), with the
 #: settings beside ``algo=isodream_v2`` that build the variant each was then (its branch switch or policy input;
 #: the ``algo`` fields of a configuration saved then hold the same values). A saved configuration does not tell
 #: such a run from a later one; its checkpoint's weights do (:mod:`isodream_rl.trainers.saved_models`), and
@@ -99,7 +99,7 @@ class _ModelSizes:
     """The behavior's widths and the world model's size preset (the rest of ``model`` is :data:`ModelConfig`)."""
 
     size: str = "small"
-    """A preset of ``WorldModelConfig``'s widths, a key of ``isodream_rl.modules.isodream_v2.config.SIZE_PRESETS``."""
+    """A preset of ``IsoDreamV2Config``'s widths, a key of ``isodream_rl.modules.isodream_v2.config.SIZE_PRESETS``."""
     actor_units: int = 400
     """Width of the actor MLP (4 layers in the paper)."""
     value_units: int = 400
@@ -108,29 +108,29 @@ class _ModelSizes:
     """Width of the future-state attention's Q/K/V projections (500 in the authors' code)."""
 
     def world_model_fields(self) -> dict[str, Any]:
-        """The ``WorldModelConfig`` fields this section sets (those not ``None``), as ``{field: value}``."""
+        """The ``IsoDreamV2Config`` fields this section sets (those not ``None``), as ``{field: value}``."""
         return {name: getattr(self, name) for name in WORLD_MODEL_FIELDS if getattr(self, name) is not None}
 
 
-#: The ``WorldModelConfig`` fields that ``model.<field>`` sets: all but ``action_dim`` (the env's).
-WORLD_MODEL_FIELDS = tuple(f.name for f in fields(WorldModelConfig) if f.name != "action_dim")
+#: The ``IsoDreamV2Config`` fields that ``model.<field>`` sets: all but ``action_dim`` (the env's).
+WORLD_MODEL_FIELDS = tuple(f.name for f in fields(IsoDreamV2Config) if f.name != "action_dim")
 
 
 def _world_model_section() -> list[tuple[str, Any, Any]]:
-    """``WorldModelConfig``'s fields as optional schema fields, default ``None``: "the preset's value"."""
-    hints = typing.get_type_hints(WorldModelConfig)
+    """``IsoDreamV2Config``'s fields as optional schema fields, default ``None``: "the preset's value"."""
+    hints = typing.get_type_hints(IsoDreamV2Config)
     return [(name, hints[name] | None, field(default=None)) for name in WORLD_MODEL_FIELDS]
 
 
 #: The ``model`` section: the size preset and behavior widths (``_ModelSizes``), then every field of
-#: :class:`~isodream_rl.modules.isodream_v2.config.WorldModelConfig` but ``action_dim``, typed as there and ``None`` by
+#: :class:`~isodream_rl.modules.isodream_v2.config.IsoDreamV2Config` but ``action_dim``, typed as there and ``None`` by
 #: default: ``None`` keeps the size preset's value, or the one the algo sets (``world_model_overrides``), and a
-#: value replaces it (``model.precision=bf16``, ``model.depth=8``). Derived from ``WorldModelConfig``, the one
+#: value replaces it (``model.precision=bf16``, ``model.depth=8``). Derived from ``IsoDreamV2Config``, the one
 #: home of the field list, so a field added there is a setting here with no change.
 ModelConfig = make_dataclass("ModelConfig", _world_model_section(), bases=(_ModelSizes,))
 ModelConfig.__module__ = __name__
 ModelConfig.__doc__ = (
-    "World-model and behavior sizes: ``size`` picks a preset of ``WorldModelConfig``, whose fields "
+    "World-model and behavior sizes: ``size`` picks a preset of ``IsoDreamV2Config``, whose fields "
     "``model.<field>`` may set (``None``: the preset's or the algo's value)."
 )
 
@@ -142,7 +142,7 @@ class AlgoConfig:
     name: str = "isodream"
     """Preset name, one of ``ALGO_NAMES``; it picks the learner (:mod:`isodream_rl.trainers.registry`):
     Iso-Dream on DreamerV3's learner for ``isodream`` and its ablations
-    (:data:`~isodream_rl.trainers.world_model_config.DREAMER_V3_ISODREAM`), the DreamerV2-style one for
+    (:data:`~isodream_rl.trainers.world_model_config.ISODREAM_ALGOS`), the DreamerV2-style one for
     ``isodream_v2``, ``isodream_paper``, ``dreamerv2`` and a name of your own; the other fields set the variant."""
     free_branch: bool | None = None
     """The action-free (noncontrollable) branch (``None``: the preset's, :data:`ALGO_BRANCHES`)."""
@@ -151,7 +151,7 @@ class AlgoConfig:
     inverse_dynamics: bool | None = None
     """The inverse-dynamics cell and its loss (``None``: the preset's)."""
     paper_exact: bool = False
-    """The paper's settings where the library's defaults depart from them (``WorldModelConfig.paper_exact``;
+    """The paper's settings where the library's defaults depart from them (``IsoDreamV2Config.paper_exact``;
     ``algo=isodream_paper``), and eq. 5's ``lambda_inverse`` when that is left ``None``."""
     free_branch_loss: str = "kl"
     """``"kl"`` (CARLA: the free branch has its KL term) or ``"recon_only"`` (DMC, paper §3.2)."""
@@ -172,7 +172,7 @@ class AlgoConfig:
     actor_entropy: float = 1e-4
     """Entropy bonus of the actor loss."""
     actor_loc_penalty: float = 0.1
-    """Weight of the squared pre-tanh action mean in the actor loss (``IsoDreamActorLoss(loc_penalty=...)``): keeps
+    """Weight of the squared pre-tanh action mean in the actor loss (``IsoDreamV2ActorLoss(loc_penalty=...)``): keeps
     the policy from locking in on an early model error; 0 is the paper's loss (``algo=isodream_paper``)."""
     exploration_noise: float = 0.0
     """Std of the Gaussian noise added to the acting policy's sampled actions during collection (clamped to
@@ -406,7 +406,7 @@ def validate_config(cfg: RunConfig) -> None:
         errors.append(f"train.seed={cfg.train.seed} must be in [0, 2**32 - 1]")
     if cfg.model.size in SIZE_PRESETS:
         try:  # the values, as the world model will check them when it is built
-            WorldModelConfig.from_preset(cfg.model.size, action_dim=1, **world_model_overrides(cfg))
+            IsoDreamV2Config.from_preset(cfg.model.size, action_dim=1, **world_model_overrides(cfg))
         except (TypeError, ValueError) as err:
             errors.append(f"model={cfg.model.world_model_fields()} with the algo's branches: {err}")
     if cfg.mode == "world_model":
@@ -566,7 +566,7 @@ def _saved_algo_name(name: str, *, mode: str) -> str:
     name, ``isodream_v2`` for a name that is now Iso-Dream on DreamerV3's learner (a run saved before
     ``algo=isodream`` became it; its branch switches were saved with it)."""
     name = RENAMED_ALGOS.get(name, (name,))[0]
-    return "isodream_v2" if mode == "world_model" and name in DREAMER_V3_ISODREAM else name
+    return "isodream_v2" if mode == "world_model" and name in ISODREAM_ALGOS else name
 
 
 def config_from_dict(data: dict) -> RunConfig:
@@ -595,7 +595,7 @@ def config_from_dict(data: dict) -> RunConfig:
 
 
 def world_model_overrides(cfg: RunConfig) -> dict[str, Any]:
-    """The ``WorldModelConfig`` fields set by the algorithm preset, merged with those ``model`` sets."""
+    """The ``IsoDreamV2Config`` fields set by the algorithm preset, merged with those ``model`` sets."""
     algo = cfg.algo
     fields_from_algo = {
         **(PAPER_EXACT if algo.paper_exact else {}),

@@ -1,7 +1,7 @@
 """The parts of an ``algo=isodream`` run (the default, and its ablations ``isodream_no_inverse``,
 ``isodream_no_attention``, ``isodream_no_static``): Iso-Dream's decomposition on DreamerV3's learner.
 
-The world model, actor and critic of :func:`~isodream_rl.objectives.isodream.make_isodream_v3`, one
+The world model, actor and critic of :func:`~isodream_rl.objectives.isodream.make_isodream`, one
 ``DreamerV3Optimizer`` per parameter group (:func:`~isodream_rl.trainers.dreamer_v3.make_dreamer_v3_optimizers`)
 and the DreamerV3 update (:class:`~isodream_rl.trainers.dreamer_v3.DreamerV3OptimizationStepper`), both shared with
 ``algo=torchrl_dreamer_v3``; the replay side is every run's.
@@ -32,8 +32,8 @@ from torch import nn
 
 from isodream_rl.modules.isodream_v2.config import SIZE_PRESETS
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings
-from isodream_rl.modules.isodream.world_model import IsoDreamV3Config
-from isodream_rl.objectives.isodream import IsoDreamV3Learner, make_isodream_v3
+from isodream_rl.modules.isodream.world_model import IsoDreamConfig
+from isodream_rl.objectives.isodream import IsoDreamLearner, make_isodream
 from isodream_rl.trainers.components import RunComponents, make_replay_parts
 from isodream_rl.trainers.config import ConfigError, RunConfig
 from isodream_rl.trainers.dreamer_v3 import dreamer_v3_checkpoint_modules, make_dreamer_v3_stepper
@@ -44,10 +44,10 @@ HIDDEN_PER_HIDDEN_DIM = 1.25
 FREE_HIDDEN_FRACTION = 0.5
 
 
-def isodream_v3_config(
+def isodream_config(
     cfg: RunConfig, *, action_dim: int, settings: DreamerV3Settings = DreamerV3Settings()
-) -> IsoDreamV3Config:
-    """The world model's :class:`~isodream_rl.modules.isodream.world_model.IsoDreamV3Config` for ``cfg``.
+) -> IsoDreamConfig:
+    """The world model's :class:`~isodream_rl.modules.isodream.world_model.IsoDreamConfig` for ``cfg``.
 
     Raises:
         ConfigError: an unknown size preset or a precision other than fp32.
@@ -64,7 +64,7 @@ def isodream_v3_config(
     hidden = 8 * max(1, round(HIDDEN_PER_HIDDEN_DIM * hidden_dim / 8))
     free_hidden = 8 * max(1, round(FREE_HIDDEN_FRACTION * hidden / 8))
     algo = cfg.algo
-    return IsoDreamV3Config(
+    return IsoDreamConfig(
         action_dim=action_dim,
         hidden=hidden,
         free_hidden=free_hidden,
@@ -79,7 +79,7 @@ def isodream_v3_config(
     )
 
 
-class IsoDreamV3Components(RunComponents):
+class IsoDreamComponents(RunComponents):
     """Models, losses, optimisers, stepper and replay buffer of an ``algo=isodream`` run or one of its ablations
     (module docstring).
 
@@ -92,7 +92,7 @@ class IsoDreamV3Components(RunComponents):
         settings: DreamerV3's settings. Defaults to TorchRL's reproduction's.
 
     Attributes:
-        learner (:class:`~isodream_rl.objectives.isodream.IsoDreamV3Learner`), model_loss, world_model,
+        learner (:class:`~isodream_rl.objectives.isodream.IsoDreamLearner`), model_loss, world_model,
         behavior (``policy``, ``actor_loss``, ``value_loss``), stepper, replay_buffer, preparation, returns.
     """
 
@@ -106,8 +106,8 @@ class IsoDreamV3Components(RunComponents):
     ) -> None:
         train, model = cfg.train, cfg.model
         self.algo = cfg.algo.name
-        config = isodream_v3_config(cfg, action_dim=action_dim, settings=settings)
-        self.learner: IsoDreamV3Learner = make_isodream_v3(
+        config = isodream_config(cfg, action_dim=action_dim, settings=settings)
+        self.learner: IsoDreamLearner = make_isodream(
             config,
             policy_input=cfg.algo.policy_input,
             attention_dim=model.attention_dim,

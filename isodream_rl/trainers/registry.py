@@ -1,8 +1,8 @@
 """The algorithms ``isodream-train`` can build, by ``algo.name``: a registry ``name -> components builder``.
 
 Iso-Dream (the default) and its ablations are Iso-Dream on DreamerV3's learner,
-:class:`~isodream_rl.trainers.isodream.IsoDreamV3Components`
-(:data:`~isodream_rl.trainers.world_model_config.DREAMER_V3_ISODREAM`); the DreamerV2-style learner
+:class:`~isodream_rl.trainers.isodream.IsoDreamComponents`
+(:data:`~isodream_rl.trainers.world_model_config.ISODREAM_ALGOS`); the DreamerV2-style learner
 (``isodream_v2``, ``isodream_paper``) and the DreamerV2 baseline are
 :class:`~isodream_rl.trainers.components.RunComponents`, registered here; so is any other name (``algo.name``
 is informational for them: the ``algo`` fields set the variant). An algorithm defined elsewhere registers its builder where it is defined, with
@@ -23,8 +23,8 @@ from typing import Protocol, TypeVar
 
 from isodream_rl.trainers.components import RunComponents
 from isodream_rl.trainers.config import ALGO_NAMES, ConfigError, RunConfig, renamed_algo_error
-from isodream_rl.trainers.isodream import IsoDreamV3Components
-from isodream_rl.trainers.world_model_config import DREAMER_V3_ISODREAM, TORCHRL_BASELINES
+from isodream_rl.trainers.isodream import IsoDreamComponents
+from isodream_rl.trainers.world_model_config import ISODREAM_ALGOS, TORCHRL_BASELINES
 
 
 class ComponentsBuilder(Protocol):
@@ -39,7 +39,7 @@ Builder = TypeVar("Builder", bound=ComponentsBuilder)
 #: ``algo.name -> builder`` of every algorithm registered so far
 ALGORITHMS: dict[str, ComponentsBuilder] = {
     **dict.fromkeys((name for name in ALGO_NAMES if name not in TORCHRL_BASELINES), RunComponents),
-    **dict.fromkeys(DREAMER_V3_ISODREAM, IsoDreamV3Components),
+    **dict.fromkeys(ISODREAM_ALGOS, IsoDreamComponents),
 }
 
 #: the module that registers each algorithm defined outside the trainers, named when it is not registered yet

@@ -27,7 +27,7 @@ from isodream_rl.trainers.config import FORMER_DREAMER_V2_ALGOS, RunConfig, conf
 #: hold, and the other's do not. The names of the models (``state["models"]``): the DreamerV2-style learner's
 #: (:meth:`~isodream_rl.trainers.components.RunComponents.modules`) has ``actor_loss``, DreamerV3's
 #: (:func:`~isodream_rl.trainers.dreamer_v3.dreamer_v3_checkpoint_modules`) ``actor`` and ``return_norm``; the
-#: world model's controllable branch: ``IsoDreamWorldModel``'s RSSM ``control_rssm``, ``IsoDreamV3WorldModel``'s
+#: world model's controllable branch: ``IsoDreamV2WorldModel``'s RSSM ``control_rssm``, ``IsoDreamWorldModel``'s
 #: prior ``control_prior`` (neither is in the other, nor in a TorchRL baseline's world model).
 LEARNER_SIGNATURES: dict[str, tuple[frozenset[str], str]] = {
     "isodream_v2": (frozenset({"world_model", "actor_loss", "value_loss"}), "control_rssm."),

@@ -18,19 +18,19 @@ from isodream_rl.objectives.isodream_v2.world_model import FREE_BRANCH_MODES
 MODES = ("rl", "world_model")
 #: The algorithms built from TorchRL's own Dreamer pieces (``isodream_rl.baselines``): no Iso-Dream world model.
 TORCHRL_BASELINES = ("torchrl_dreamer", "torchrl_dreamer_v3")
-#: Iso-Dream on DreamerV3's learner (:class:`~isodream_rl.trainers.isodream.IsoDreamV3Components`): the default
+#: Iso-Dream on DreamerV3's learner (:class:`~isodream_rl.trainers.isodream.IsoDreamComponents`): the default
 #: and its ablations. Every other Iso-Dream name (``isodream_v2``, ``isodream_paper``, ``dreamerv2``, a name of your
 #: own) is the DreamerV2-style learner (:class:`~isodream_rl.trainers.components.RunComponents`).
-DREAMER_V3_ISODREAM = ("isodream", "isodream_no_inverse", "isodream_no_attention", "isodream_no_static")
+ISODREAM_ALGOS = ("isodream", "isodream_no_inverse", "isodream_no_attention", "isodream_no_static")
 #: The algorithms trained by DreamerV3's update (:class:`~isodream_rl.trainers.dreamer_v3.DreamerV3OptimizationStepper`):
 #: Iso-Dream on DreamerV3's learner and TorchRL's DreamerV3 (``train.lr_warmup`` is theirs).
-DREAMER_V3_LEARNERS = (*DREAMER_V3_ISODREAM, "torchrl_dreamer_v3")
-#: The algorithms whose world model is not :class:`~isodream_rl.modules.IsoDreamWorldModel` (TorchRL's baselines and
+DREAMER_V3_LEARNERS = (*ISODREAM_ALGOS, "torchrl_dreamer_v3")
+#: The algorithms whose world model is not :class:`~isodream_rl.modules.IsoDreamV2WorldModel` (TorchRL's baselines and
 #: Iso-Dream on DreamerV3's learner): no ``mode=world_model`` nor its probes.
-OTHER_WORLD_MODELS = (*TORCHRL_BASELINES, *DREAMER_V3_ISODREAM)
+OTHER_WORLD_MODELS = (*TORCHRL_BASELINES, *ISODREAM_ALGOS)
 #: The algorithms whose world model ``mode=world_model`` trains (the DreamerV2-style one), named where another is
 #: refused.
-WORLD_MODEL_ALGOS = ("isodream_v2", "isodream_paper", "dreamerv2")
+ISODREAM_V2_ALGOS = ("isodream_v2", "isodream_paper", "dreamerv2")
 
 
 @dataclass
@@ -71,7 +71,7 @@ def world_model_mode_errors(cfg: Any) -> list[str]:
     if algo.name in OTHER_WORLD_MODELS:
         errors.append(
             f"mode=world_model trains the DreamerV2-style Iso-Dream world model, not algo={algo.name}'s: pick "
-            f"{', '.join(f'algo={name}' for name in WORLD_MODEL_ALGOS)} (exp=world_model and exp=decomposition "
+            f"{', '.join(f'algo={name}' for name in ISODREAM_V2_ALGOS)} (exp=world_model and exp=decomposition "
             "pick algo=isodream_v2)"
         )
     for name, value, minimum in (

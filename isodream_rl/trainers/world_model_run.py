@@ -2,7 +2,7 @@
 
 ``isodream-train exp=world_model`` (or its alias ``isodream-demo``) collects random-action episodes with held
 actions (the sprites scene by default; any env of the ``env`` group), trains
-:class:`~isodream_rl.modules.IsoDreamWorldModel` with :class:`~isodream_rl.objectives.IsoDreamModelLoss`
+:class:`~isodream_rl.modules.IsoDreamV2WorldModel` with :class:`~isodream_rl.objectives.IsoDreamV2ModelLoss`
 through the trainer's :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` (no actor, no value),
 and every ``logging.eval_every`` updates scores it on held-out episodes
 (:func:`~isodream_rl.evaluation.branches.score_branches`: on every env with ground-truth masks (sprites,
@@ -44,7 +44,7 @@ from isodream_rl.data.sprites_episodes import (
 from isodream_rl.envs.builder import ground_truth_mask_keys
 from isodream_rl.evaluation.branches import branch_grid, save_png, score_branches
 from isodream_rl.evaluation.decomposition import TRUTH_KEYS
-from isodream_rl.modules import IsoDreamWorldModel
+from isodream_rl.modules import IsoDreamV2WorldModel
 from isodream_rl.trainers.builders import (
     REPLAY_KEYS,
     action_dim_of,
@@ -81,7 +81,7 @@ class LatentProbe(Protocol):
     (:func:`isodream_rl.evaluation.latent_probe.probe` is one)."""
 
     def __call__(
-        self, world_model: IsoDreamWorldModel, *, episodes: int, seed: int, encoder: bool, **scene: Any
+        self, world_model: IsoDreamV2WorldModel, *, episodes: int, seed: int, encoder: bool, **scene: Any
     ) -> dict[str, float]: ...
 
 
@@ -165,7 +165,7 @@ def probe_scene(cfg: RunConfig, *, window: int | None = None) -> dict:
     }
 
 
-def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDreamWorldModel, RunConfig]:
+def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDreamV2WorldModel, RunConfig]:
     """The world model (in fp32) and configuration of a checkpoint of ``isodream-train``, either mode.
 
     Args:
@@ -202,7 +202,7 @@ def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDream
             f"{path} holds the world model of algo={cfg.algo.name}, not the DreamerV2-style Iso-Dream's"
         )
     cfg.model.precision = "fp32"
-    model = IsoDreamWorldModel(make_world_model_config(cfg, action_dim=probe_action_dim(cfg)), device=device)
+    model = IsoDreamV2WorldModel(make_world_model_config(cfg, action_dim=probe_action_dim(cfg)), device=device)
     load_saved_models({"world_model": model}, state, algo=cfg.algo.name, checkpoint=path)
     return model, cfg
 
@@ -262,7 +262,7 @@ class BranchEvaluation:
     def __init__(
         self,
         *,
-        world_model: IsoDreamWorldModel,
+        world_model: IsoDreamV2WorldModel,
         held_out: TensorDict,
         seen: TensorDict,
         window: int,

@@ -1,6 +1,6 @@
 """The actor, the critic and the acting policy of Iso-Dream's DreamerV3 learner (paper eqs. 6-7, Algorithm 1).
 
-Both read ``e_t`` (eq. 7) from the packed latent of :class:`~isodream_rl.modules.isodream.world_model.IsoDreamV3WorldModel`
+Both read ``e_t`` (eq. 7) from the packed latent of :class:`~isodream_rl.modules.isodream.world_model.IsoDreamWorldModel`
 (``state = [s, z]``, ``belief = [h, h']``) and, in ``"attention"`` mode, the window ``free_window`` ``[*N, tau, F]``
 of ``z`` rolled ``tau - 1`` steps ahead: ``e = Attention([s, h], window)`` (eq. 6,
 :class:`~isodream_rl.modules.FutureStateAttention`). On ``e`` sit DreamerV3's heads: the bounded-normal actor
@@ -30,10 +30,10 @@ from isodream_rl.modules.dreamer_v3 import (
     two_hot_value,
 )
 from isodream_rl.modules.fast_paths import use_fast_rms_norms
-from isodream_rl.modules.isodream.world_model import FREE_ACTION_DIM, IsoDreamV3Config, IsoDreamV3WorldModel
+from isodream_rl.modules.isodream.world_model import FREE_ACTION_DIM, IsoDreamConfig, IsoDreamWorldModel
 
 
-class PolicyFeaturesV3(nn.Module):
+class PolicyFeatures(nn.Module):
     """``e_t`` (eq. 7) from the packed latent.
 
     In ``"attention"`` mode the query is the controllable features ``[s, h]`` and the keys and values are the
@@ -42,7 +42,7 @@ class PolicyFeaturesV3(nn.Module):
     out, as it would multiply the attention's cost by about ``(S_z + D_z) / S_z``.
 
     Args:
-        config: the world model's :class:`~isodream_rl.modules.isodream.world_model.IsoDreamV3Config`.
+        config: the world model's :class:`~isodream_rl.modules.isodream.world_model.IsoDreamConfig`.
         mode: ``"attention"`` (eq. 6), ``"controllable"`` (``[h, s]``, the DMC setting) or ``"concat"``
             (``[h, s, h', z]``).
         attention_dim: width of the attention's projections.
@@ -54,7 +54,7 @@ class PolicyFeaturesV3(nn.Module):
     """
 
     def __init__(
-        self, config: IsoDreamV3Config, *, mode: str = "attention", attention_dim: int = 64, device=None
+        self, config: IsoDreamConfig, *, mode: str = "attention", attention_dim: int = 64, device=None
     ) -> None:
         super().__init__()
         if mode not in POLICY_INPUTS:
@@ -94,7 +94,7 @@ class PolicyFeaturesV3(nn.Module):
 class _OnFeatures(nn.Module):
     """``head(features(state, belief[, window]))``."""
 
-    def __init__(self, features: PolicyFeaturesV3, head: nn.Module) -> None:
+    def __init__(self, features: PolicyFeatures, head: nn.Module) -> None:
         super().__init__()
         self.features, self.head = features, head
 
@@ -102,13 +102,13 @@ class _OnFeatures(nn.Module):
         return self.head(self.features(*inputs))
 
 
-def make_actor_v3(
-    config: IsoDreamV3Config, *, mode: str, attention_dim: int, units: int, device=None
+def make_actor(
+    config: IsoDreamConfig, *, mode: str, attention_dim: int, units: int, device=None
 ) -> ProbabilisticTensorDictSequential:
     """The actor ``pi(a | e_t)``: features, DreamerV3's bounded-normal head (3 hidden layers of ``units``)
     (:func:`~isodream_rl.modules.dreamer_v3.bounded_normal_actor`)."""
     settings = config.settings
-    features = PolicyFeaturesV3(config, mode=mode, attention_dim=attention_dim, device=device)
+    features = PolicyFeatures(config, mode=mode, attention_dim=attention_dim, device=device)
     head = DreamerV3ContinuousActor(
         features.feature_dim,
         config.action_dim,
@@ -123,20 +123,20 @@ def make_actor_v3(
     return bounded_normal_actor(net)
 
 
-def make_value_v3(
-    config: IsoDreamV3Config, *, mode: str, attention_dim: int, units: int, device=None
+def make_value(
+    config: IsoDreamConfig, *, mode: str, attention_dim: int, units: int, device=None
 ) -> TensorDictSequential:
     """The critic ``v(e_t)``: features, a two-hot ``DreamerV3MLP`` (3 hidden layers, output initialised to zero)
     (:func:`~isodream_rl.modules.dreamer_v3.two_hot_value`)."""
     bins = config.settings.num_bins
-    features = PolicyFeaturesV3(config, mode=mode, attention_dim=attention_dim, device=device)
+    features = PolicyFeatures(config, mode=mode, attention_dim=attention_dim, device=device)
     head = DreamerV3MLP(features.feature_dim, bins, depth=3, num_cells=units, outscale=0.0, device=device)
     return two_hot_value(
         use_fast_rms_norms(_OnFeatures(features, head)), in_keys=features.in_keys, num_bins=bins
     )
 
 
-class IsoDreamV3StateEstimator(TensorDictModuleBase):
+class IsoDreamStateEstimator(TensorDictModuleBase):
     """The acting filter of both branches (eqs. 2-3) and the look-ahead window (Algorithm 1, line 3).
 
     Reads ``"state"``/``"belief"`` (packed, the previous step's), ``"previous_action"``, ``"encoded_latents"``
@@ -147,10 +147,10 @@ class IsoDreamV3StateEstimator(TensorDictModuleBase):
     at a time.
 
     Args:
-        world_model: the trained :class:`~isodream_rl.modules.isodream.world_model.IsoDreamV3WorldModel` (shared).
+        world_model: the trained :class:`~isodream_rl.modules.isodream.world_model.IsoDreamWorldModel` (shared).
     """
 
-    def __init__(self, world_model: IsoDreamV3WorldModel) -> None:
+    def __init__(self, world_model: IsoDreamWorldModel) -> None:
         super().__init__()
         self.world_model = world_model
         self.in_keys = ["state", "belief", "previous_action", "encoded_latents", "is_init"]
@@ -178,21 +178,21 @@ class IsoDreamV3StateEstimator(TensorDictModuleBase):
         return tensordict
 
 
-class IsoDreamV3Policy(SequenceActingPolicy):
-    """Iso-Dream's acting policy on the DreamerV3 learner: encoder, :class:`IsoDreamV3StateEstimator`, actor, as a
+class IsoDreamPolicy(SequenceActingPolicy):
+    """Iso-Dream's acting policy on the DreamerV3 learner: encoder, :class:`IsoDreamStateEstimator`, actor, as a
     :class:`~isodream_rl.modules.dreamer_v3.SequenceActingPolicy` carrying the packed ``state``, ``belief`` and
     ``previous_action``.
 
     Args:
         world_model: the trained world model (shared).
-        actor: the actor of :func:`make_actor_v3` (shared).
+        actor: the actor of :func:`make_actor` (shared).
     """
 
-    def __init__(self, world_model: IsoDreamV3WorldModel, actor: ProbabilisticTensorDictSequential) -> None:
+    def __init__(self, world_model: IsoDreamWorldModel, actor: ProbabilisticTensorDictSequential) -> None:
         cfg = world_model.config
         module = TensorDictSequential(
             TensorDictModule(world_model.encoder, in_keys=["pixels"], out_keys=["encoded_latents"]),
-            IsoDreamV3StateEstimator(world_model),
+            IsoDreamStateEstimator(world_model),
             actor,
         )
         super().__init__(
@@ -204,9 +204,9 @@ class IsoDreamV3Policy(SequenceActingPolicy):
 
 
 __all__ = [
-    "IsoDreamV3Policy",
-    "IsoDreamV3StateEstimator",
-    "PolicyFeaturesV3",
-    "make_actor_v3",
-    "make_value_v3",
+    "IsoDreamPolicy",
+    "IsoDreamStateEstimator",
+    "PolicyFeatures",
+    "make_actor",
+    "make_value",
 ]

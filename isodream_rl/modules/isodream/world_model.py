@@ -1,6 +1,6 @@
 """Iso-Dream's decoupled world model (paper eqs. 2-5) built from TorchRL's DreamerV3 pieces.
 
-The same decomposition as :class:`~isodream_rl.modules.IsoDreamWorldModel` (an action-conditioned RSSM for the
+The same decomposition as :class:`~isodream_rl.modules.IsoDreamV2WorldModel` (an action-conditioned RSSM for the
 controllable state ``s``, an action-free RSSM for the noncontrollable state ``z``, a static background, three
 decoders composed by softmax masks, an inverse-dynamics cell), with DreamerV3's parts in place of DreamerV2's:
 ``DreamerV3ImageEncoder`` (RMS norm, SiLU), two block-GRU RSSMs with categorical latents and 1 % unimix
@@ -15,7 +15,7 @@ Packed keys. Everything downstream (``DreamerV3ModelLoss``, ``DreamerV3Loss``, t
 the critic) sees one latent: ``state = [s, z]`` and ``belief = [h, h']`` (controllable first), and the prior /
 posterior logits of both branches concatenated along the categoricals (``[*B, T, 2K, C]``), so that the KL terms of
 ``DreamerV3ModelLoss`` are the sum of both branches' (eq. 5's two KL terms, with one free-bits floor on their sum).
-:meth:`IsoDreamV3WorldModel.split_state` / :meth:`IsoDreamV3WorldModel.split_belief` undo the packing.
+:meth:`IsoDreamWorldModel.split_state` / :meth:`IsoDreamWorldModel.split_belief` undo the packing.
 
 The action-free prior (eq. 3) is ``RSSMPriorV3`` fed a constant zero action of width 1: its block GRU then sees
 the bias of its action projection only, so its dynamics do not depend on the actions (``RSSMPriorV3`` needs an
@@ -47,7 +47,7 @@ from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
 PIXELS = ("next", "pixels")
 #: Width of the constant zero action of the action-free prior.
 FREE_ACTION_DIM = 1
-#: What the action-free decoder may draw from (:attr:`IsoDreamV3Config.free_decodes`).
+#: What the action-free decoder may draw from (:attr:`IsoDreamConfig.free_decodes`).
 FREE_DECODER_INPUTS = ("prior", "posterior")
 
 
@@ -89,8 +89,8 @@ class BranchWidths:
 
 
 @dataclass(frozen=True)
-class IsoDreamV3Config:
-    """Widths and switches of :class:`IsoDreamV3WorldModel`."""
+class IsoDreamConfig:
+    """Widths and switches of :class:`IsoDreamWorldModel`."""
 
     action_dim: int
     """Width of the action."""
@@ -206,7 +206,7 @@ def branch_rollout(prior: RSSMPriorV3, posterior: RSSMPosteriorV3) -> RSSMRollou
     )
 
 
-class IsoDreamV3WorldModel(TensorDictModuleBase):
+class IsoDreamWorldModel(TensorDictModuleBase):
     """The decoupled world model on DreamerV3's parts (paper eqs. 2-5; see the module docstring).
 
     Reads ``("next", "pixels")`` uint8 ``[B, T, 3, 64, 64]`` (or floats in [0, 1]), ``"action"`` ``[B, T, A]``,
@@ -223,12 +223,12 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
     for the critic on replayed states); and root ``background`` ``[B, T, 3, 64, 64]`` with the static branch.
 
     Args:
-        config: widths and switches (:class:`IsoDreamV3Config`).
+        config: widths and switches (:class:`IsoDreamConfig`).
         device: where the parameters live.
 
     Examples:
-        >>> config = IsoDreamV3Config(action_dim=2, hidden=16, image_depth=2, units=16)
-        >>> model = IsoDreamV3WorldModel(config)
+        >>> config = IsoDreamConfig(action_dim=2, hidden=16, image_depth=2, units=16)
+        >>> model = IsoDreamWorldModel(config)
         >>> td = TensorDict({
         ...     ("next", "pixels"): torch.zeros(2, 3, 3, 64, 64, dtype=torch.uint8),
         ...     "action": torch.zeros(2, 3, 2), "is_init": torch.zeros(2, 3, 1, dtype=torch.bool),
@@ -238,7 +238,7 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
         torch.Size([2, 3, 3, 64, 64])
     """
 
-    def __init__(self, config: IsoDreamV3Config, *, device: torch.device | str | None = None) -> None:
+    def __init__(self, config: IsoDreamConfig, *, device: torch.device | str | None = None) -> None:
         super().__init__()
         self.config = cfg = config
         settings = cfg.settings
@@ -502,7 +502,7 @@ class IsoDreamV3WorldModel(TensorDictModuleBase):
     def _free_drawn(
         self, posterior: torch.Tensor, prior_logits: torch.Tensor, is_init: torch.Tensor
     ) -> torch.Tensor:
-        """The state the action-free decoder draws at each step (:attr:`IsoDreamV3Config.free_decodes`).
+        """The state the action-free decoder draws at each step (:attr:`IsoDreamConfig.free_decodes`).
 
         Args:
             posterior: the posterior ``z_t`` ``[B, T, S_z]``.

@@ -16,7 +16,7 @@ from torchrl.modules import MLP, TanhNormal
 from isodream_rl.modules.isodream_v2.rssm import sigmoid2_std
 
 
-class IsoDreamActor(nn.Module):
+class IsoDreamV2Actor(nn.Module):
     """MLP from ``e_t`` to a ``TanhNormal`` over actions in ``(-1, 1)``.
 
     Args:
@@ -35,7 +35,7 @@ class IsoDreamActor(nn.Module):
 
     Examples:
         >>> import torch
-        >>> actor = IsoDreamActor(in_features=6, action_dim=2, num_cells=8, depth=2)
+        >>> actor = IsoDreamV2Actor(in_features=6, action_dim=2, num_cells=8, depth=2)
         >>> action, log_prob = actor.distribution(torch.randn(3, 6)).rsample_and_log_prob()
         >>> action.shape, log_prob.shape
         (torch.Size([3, 2]), torch.Size([3]))

@@ -29,7 +29,7 @@ PAPER_EXACT = {
     "clamp_gradient": "zero",
     "static_mask_bias": 0.0,
 }
-#: The single-branch DreamerV2 baseline's switches, defined here only: ``WorldModelConfig.dreamerv2`` builds it
+#: The single-branch DreamerV2 baseline's switches, defined here only: ``IsoDreamV2Config.dreamerv2`` builds it
 #: from this, and the trainer's ``ALGO_BRANCHES`` (``isodream_rl/trainers/config.py``) gives them to
 #: ``algo=dreamerv2`` (both modes of ``isodream-train``) and to the TorchRL baselines.
 DREAMERV2 = {"free_branch": False, "static_branch": False, "inverse_dynamics": False}
@@ -38,8 +38,8 @@ PRECISIONS = ("fp32", "bf16")
 
 
 @dataclass
-class WorldModelConfig:
-    """Everything that shapes an :class:`~isodream_rl.modules.isodream_v2.world_model.IsoDreamWorldModel`."""
+class IsoDreamV2Config:
+    """Everything that shapes an :class:`~isodream_rl.modules.isodream_v2.world_model.IsoDreamV2WorldModel`."""
 
     action_dim: int
     """Width of the action vector."""
@@ -126,24 +126,24 @@ class WorldModelConfig:
             raise ValueError(f"static_frames must be >= 1, got {self.static_frames}")
 
     @classmethod
-    def from_preset(cls, size: str, *, action_dim: int, **overrides) -> WorldModelConfig:
+    def from_preset(cls, size: str, *, action_dim: int, **overrides) -> IsoDreamV2Config:
         """A config of the named size (a key of :data:`SIZE_PRESETS`) with ``overrides`` applied."""
         if size not in SIZE_PRESETS:
             raise ValueError(f"unknown size preset {size!r}; valid: {sorted(SIZE_PRESETS)}")
         known = {f.name for f in fields(cls)}
         unknown = set(overrides) - known
         if unknown:
-            raise TypeError(f"unknown WorldModelConfig fields {sorted(unknown)}")
+            raise TypeError(f"unknown IsoDreamV2Config fields {sorted(unknown)}")
         return cls(action_dim=action_dim, **{**SIZE_PRESETS[size], **overrides})
 
     @classmethod
-    def paper_exact(cls, size: str = "paper", *, action_dim: int, **overrides) -> WorldModelConfig:
+    def paper_exact(cls, size: str = "paper", *, action_dim: int, **overrides) -> IsoDreamV2Config:
         """The paper's choices where the defaults depart from them (:data:`PAPER_EXACT`; docs/concepts.md,
-        "Where we depart from the paper"). Train it with ``IsoDreamModelLoss.paper_exact`` (``alpha = 1``)."""
+        "Where we depart from the paper"). Train it with ``IsoDreamV2ModelLoss.paper_exact`` (``alpha = 1``)."""
         return cls.from_preset(size, action_dim=action_dim, **{**PAPER_EXACT, **overrides})
 
     @classmethod
-    def dreamerv2(cls, size: str = "paper", *, action_dim: int, **overrides) -> WorldModelConfig:
+    def dreamerv2(cls, size: str = "paper", *, action_dim: int, **overrides) -> IsoDreamV2Config:
         """The single-branch DreamerV2 baseline (:data:`DREAMERV2`): no action-free branch, no static
         branch, no inverse cell."""
         return cls.from_preset(size, action_dim=action_dim, **{**DREAMERV2, **overrides})

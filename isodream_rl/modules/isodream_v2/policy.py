@@ -1,6 +1,6 @@
 """Policy deployment by rolling out noncontrollable dynamics (paper §3.4, Algorithm 1 lines 19-22).
 
-:class:`IsoDreamPolicy` acts for Iso-Dream; :class:`CarriedStatePolicy` is the base of the acting policies around a
+:class:`IsoDreamV2Policy` acts for Iso-Dream; :class:`CarriedStatePolicy` is the base of the acting policies around a
 TorchRL acting sequence (the baselines', Iso-Dream's DreamerV3 learner's): the recurrent state carried under
 TorchRL's ``("next", ...)`` convention, through a primer.
 """
@@ -14,11 +14,11 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs import TensorDictPrimer
 from torchrl.envs.utils import ExplorationType, exploration_type
 
-from isodream_rl.modules.isodream_v2.actor import IsoDreamActor
+from isodream_rl.modules.isodream_v2.actor import IsoDreamV2Actor
 from isodream_rl.modules.attention import PolicyInput
 from isodream_rl.modules.isodream_v2.encoder import IMAGE_SHAPE, check_pixel_values, check_pixels
 from isodream_rl.modules.isodream_v2.rssm import filter_step
-from isodream_rl.modules.isodream_v2.world_model import IsoDreamWorldModel
+from isodream_rl.modules.isodream_v2.world_model import IsoDreamV2WorldModel
 
 _RANDOM = (None, ExplorationType.RANDOM)
 
@@ -145,7 +145,7 @@ class CarriedStatePolicy(TensorDictModuleBase):
         return tensordict
 
 
-class IsoDreamPolicy(TensorDictModuleBase):
+class IsoDreamV2Policy(TensorDictModuleBase):
     """Acting policy: filter the new observation, roll ``z`` ``tau - 1`` steps ahead, attend, act.
 
     At each environment step ``t``: both branches' posteriors ``(s_t, h_t)``, ``(z_t, h'_t)`` from the
@@ -164,8 +164,8 @@ class IsoDreamPolicy(TensorDictModuleBase):
     Runs without gradients; works for an unbatched env or any batch of envs.
 
     Args:
-        world_model: the trained :class:`~isodream_rl.modules.IsoDreamWorldModel`.
-        actor: the :class:`~isodream_rl.modules.IsoDreamActor`.
+        world_model: the trained :class:`~isodream_rl.modules.IsoDreamV2WorldModel`.
+        actor: the :class:`~isodream_rl.modules.IsoDreamV2Actor`.
         policy_input: the :class:`~isodream_rl.modules.PolicyInput` (its ``window`` is ``tau``).
         exploration_noise: std of Gaussian noise added to sampled actions (0, as the authors).
         pixels_key: observation key (uint8 ``[*B, 3, 64, 64]``). Defaults to ``"pixels"``.
@@ -174,10 +174,10 @@ class IsoDreamPolicy(TensorDictModuleBase):
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> from isodream_rl.modules import IsoDreamActor, IsoDreamWorldModel, PolicyInput, WorldModelConfig
-        >>> wm = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
+        >>> from isodream_rl.modules import IsoDreamV2Actor, IsoDreamV2WorldModel, PolicyInput, IsoDreamV2Config
+        >>> wm = IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=2))
         >>> pin = PolicyInput.for_world_model(wm, mode="attention", window=3, width=8)
-        >>> policy = IsoDreamPolicy(wm, IsoDreamActor(in_features=pin.out_features, action_dim=2, num_cells=8), pin)
+        >>> policy = IsoDreamV2Policy(wm, IsoDreamV2Actor(in_features=pin.out_features, action_dim=2, num_cells=8), pin)
         >>> td = policy.make_tensordict_primer().primers.zero().expand(4).clone()
         >>> td.update({"pixels": torch.zeros(4, 3, 64, 64, dtype=torch.uint8), "is_init": torch.ones(4, 1, dtype=torch.bool)})
         TensorDict(...)
@@ -187,8 +187,8 @@ class IsoDreamPolicy(TensorDictModuleBase):
 
     def __init__(
         self,
-        world_model: IsoDreamWorldModel,
-        actor: IsoDreamActor,
+        world_model: IsoDreamV2WorldModel,
+        actor: IsoDreamV2Actor,
         policy_input: PolicyInput,
         *,
         exploration_noise: float = 0.0,
@@ -243,7 +243,7 @@ class IsoDreamPolicy(TensorDictModuleBase):
         device = next(wm.parameters()).device
         pixels, previous, reset = read_acting_inputs(
             tensordict,
-            owner="IsoDreamPolicy",
+            owner="IsoDreamV2Policy",
             pixels_key=self.pixels_key,
             carried_keys=[*self.recurrent_keys, "previous_action"],
             device=device,

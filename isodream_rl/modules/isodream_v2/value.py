@@ -7,7 +7,7 @@ from torch import nn
 from torchrl.modules import MLP
 
 
-class IsoDreamValue(nn.Module):
+class IsoDreamV2Value(nn.Module):
     """MLP ``[*N, in_features] -> [*N, 1]``, 3 x 400 ELU by default (the authors' critic).
 
     Args:
@@ -18,7 +18,7 @@ class IsoDreamValue(nn.Module):
 
     Examples:
         >>> import torch
-        >>> IsoDreamValue(in_features=6, num_cells=8)(torch.randn(3, 6)).shape
+        >>> IsoDreamV2Value(in_features=6, num_cells=8)(torch.randn(3, 6)).shape
         torch.Size([3, 1])
     """
 

@@ -15,7 +15,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from isodream_rl.modules.isodream_v2.composition import MaskComposition
-from isodream_rl.modules.isodream_v2.config import WorldModelConfig
+from isodream_rl.modules.isodream_v2.config import IsoDreamV2Config
 from isodream_rl.modules.isodream_v2.decoder import ConvDecoder
 from isodream_rl.modules.isodream_v2.encoder import IMAGE_SHAPE, BranchedEncoder, check_pixel_values, check_pixels
 from isodream_rl.modules.fast_paths import FastConvDecoder, FusedMaskComposition, fast_filter_window
@@ -28,11 +28,11 @@ def _next(key: str) -> tuple[str, str]:
     return ("next", key)
 
 
-class IsoDreamWorldModel(TensorDictModuleBase):
+class IsoDreamV2WorldModel(TensorDictModuleBase):
     """Encoder, decoupled RSSM, masked decoders, inverse-dynamics cell and reward/discount heads.
 
     Args:
-        config: a :class:`~isodream_rl.modules.isodream_v2.config.WorldModelConfig`.
+        config: a :class:`~isodream_rl.modules.isodream_v2.config.IsoDreamV2Config`.
         device: where to create the parameters.
         check_inputs: check every batch at the boundary (one min/max of the pixels, a finiteness check of the
             actions): float pixels outside ``[0, 1]``, NaN/inf pixels or actions, a missing ``"is_init"`` and
@@ -65,8 +65,8 @@ class IsoDreamWorldModel(TensorDictModuleBase):
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
-        >>> wm = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
+        >>> from isodream_rl.modules import IsoDreamV2WorldModel, IsoDreamV2Config
+        >>> wm = IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=2))
         >>> td = TensorDict({"action": torch.zeros(2, 5, 2), "is_init": torch.zeros(2, 5, 1, dtype=torch.bool),
         ...                  ("next", "pixels"): torch.zeros(2, 5, 3, 64, 64, dtype=torch.uint8)}, [2, 5])
         >>> wm(td)["next", "reco_pixels"].shape
@@ -74,7 +74,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
     """
 
     def __init__(
-        self, config: WorldModelConfig, *, device: torch.device | str | None = None, check_inputs: bool = True
+        self, config: IsoDreamV2Config, *, device: torch.device | str | None = None, check_inputs: bool = True
     ):
         super().__init__()
         self.config = cfg = config
@@ -223,7 +223,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         value = tensordict.get(key, None)
         if value is None:
             raise KeyError(
-                f"IsoDreamWorldModel needs the key {key!r} in its input tensordict; "
+                f"IsoDreamV2WorldModel needs the key {key!r} in its input tensordict; "
                 f"found {sorted(map(str, tensordict.keys(True, True)))}"
             )
         return value
@@ -231,7 +231,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
     def _check_inputs(self, tensordict: TensorDictBase):
         if tensordict.batch_dims != 2:
             raise ValueError(
-                f"IsoDreamWorldModel expects a [B, T] tensordict (replay windows), got batch_size "
+                f"IsoDreamV2WorldModel expects a [B, T] tensordict (replay windows), got batch_size "
                 f"{tuple(tensordict.batch_size)}; reshape flat samples with td.reshape(-1, T)"
             )
         pixels = self._get(tensordict, _next("pixels"))
@@ -248,12 +248,12 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         if self.check_inputs:
             if tensordict.batch_size[1] < 2:
                 raise ValueError(
-                    f"IsoDreamWorldModel needs windows of at least 2 steps (the inverse-dynamics cell reads step "
+                    f"IsoDreamV2WorldModel needs windows of at least 2 steps (the inverse-dynamics cell reads step "
                     f"pairs; one step teaches no dynamics), got T={tensordict.batch_size[1]}: sample longer windows"
                 )
             if is_init is None:
                 raise ValueError(
-                    "IsoDreamWorldModel needs 'is_init' [B, T, 1] bool (True where an episode starts; TorchRL's "
+                    "IsoDreamV2WorldModel needs 'is_init' [B, T, 1] bool (True where an episode starts; TorchRL's "
                     "InitTracker writes it): without it windows never reset. Pass torch.zeros(B, T, 1, "
                     "dtype=torch.bool) for windows inside one episode"
                 )

@@ -13,9 +13,9 @@ from torchrl.objectives import LossModule
 from torchrl.objectives.utils import hold_out_net
 from torchrl.objectives.value.functional import td_lambda_return_estimate, vec_td_lambda_return_estimate
 
-from isodream_rl.modules.isodream_v2.actor import IsoDreamActor
-from isodream_rl.objectives.isodream_v2.imagination import IsoDreamImagination, policy_features
-from isodream_rl.objectives.isodream_v2.value import IsoDreamValueLoss
+from isodream_rl.modules.isodream_v2.actor import IsoDreamV2Actor
+from isodream_rl.objectives.isodream_v2.imagination import IsoDreamV2Imagination, policy_features
+from isodream_rl.objectives.isodream_v2.value import IsoDreamV2ValueLoss
 
 ACTOR_GRADIENTS = ("dynamics", "reinforce")
 
@@ -41,7 +41,7 @@ def lambda_returns(
     return vec_td_lambda_return_estimate(gamma, lmbda, next_value, reward, never, never)
 
 
-class IsoDreamActorLoss(LossModule):
+class IsoDreamV2ActorLoss(LossModule):
     """Imagines from the batch's posteriors and maximises the lambda-returns (eq. 7, DreamerV2).
 
     ``L_actor = -mean_{N, j} w_j * (G^lambda_j + eta * H_j)`` by dynamics backpropagation (pathwise through
@@ -65,9 +65,9 @@ class IsoDreamActorLoss(LossModule):
     parameter group; :meth:`parameter_groups` gives all three.
 
     Args:
-        actor: an :class:`~isodream_rl.modules.IsoDreamActor`.
-        imagination: an :class:`~isodream_rl.objectives.IsoDreamImagination`.
-        value_loss: the :class:`~isodream_rl.objectives.IsoDreamValueLoss` owning the slow value target.
+        actor: an :class:`~isodream_rl.modules.IsoDreamV2Actor`.
+        imagination: an :class:`~isodream_rl.objectives.IsoDreamV2Imagination`.
+        value_loss: the :class:`~isodream_rl.objectives.IsoDreamV2ValueLoss` owning the slow value target.
         gamma: discount (0.99).
         lmbda: TD(lambda) parameter (0.95).
         entropy_bonus: ``eta`` (1e-4).
@@ -88,15 +88,15 @@ class IsoDreamActorLoss(LossModule):
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> from isodream_rl.modules import (IsoDreamActor, IsoDreamValue, IsoDreamWorldModel, PolicyInput,
-        ...                                  WorldModelConfig)
-        >>> from isodream_rl.objectives import IsoDreamActorLoss, IsoDreamImagination, IsoDreamValueLoss
-        >>> wm = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
+        >>> from isodream_rl.modules import (IsoDreamV2Actor, IsoDreamV2Value, IsoDreamV2WorldModel, PolicyInput,
+        ...                                  IsoDreamV2Config)
+        >>> from isodream_rl.objectives import IsoDreamV2ActorLoss, IsoDreamV2Imagination, IsoDreamV2ValueLoss
+        >>> wm = IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=2))
         >>> pin = PolicyInput.for_world_model(wm, mode="attention", window=3, width=8)
-        >>> imagination = IsoDreamImagination(wm, pin, horizon=4)
-        >>> value_loss = IsoDreamValueLoss(IsoDreamValue(in_features=pin.out_features, num_cells=8), imagination)
-        >>> actor = IsoDreamActor(in_features=pin.out_features, action_dim=2, num_cells=8)
-        >>> actor_loss = IsoDreamActorLoss(actor, imagination, value_loss)
+        >>> imagination = IsoDreamV2Imagination(wm, pin, horizon=4)
+        >>> value_loss = IsoDreamV2ValueLoss(IsoDreamV2Value(in_features=pin.out_features, num_cells=8), imagination)
+        >>> actor = IsoDreamV2Actor(in_features=pin.out_features, action_dim=2, num_cells=8)
+        >>> actor_loss = IsoDreamV2ActorLoss(actor, imagination, value_loss)
         >>> start = wm.initial_state((6,))
         >>> losses, imagined = actor_loss(TensorDict({("next", k): v for k, v in start.items()}, [6]))
         >>> imagined.batch_size, value_loss(imagined)[0]["loss_value"].shape
@@ -128,9 +128,9 @@ class IsoDreamActorLoss(LossModule):
 
     def __init__(
         self,
-        actor: IsoDreamActor,
-        imagination: IsoDreamImagination,
-        value_loss: IsoDreamValueLoss,
+        actor: IsoDreamV2Actor,
+        imagination: IsoDreamV2Imagination,
+        value_loss: IsoDreamV2ValueLoss,
         *,
         gamma: float = 0.99,
         lmbda: float = 0.95,
@@ -185,7 +185,7 @@ class IsoDreamActorLoss(LossModule):
             value = tensordict.get(key, None)
             if value is None:
                 raise KeyError(
-                    f"IsoDreamActorLoss needs the start {name} at key {key!r} (remap with set_keys); found "
+                    f"IsoDreamV2ActorLoss needs the start {name} at key {key!r} (remap with set_keys); found "
                     f"{sorted(map(str, tensordict.keys(True, True)))}"
                 )
             out[i] = value.detach().reshape(-1, value.shape[-1])

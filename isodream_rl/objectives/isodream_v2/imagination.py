@@ -21,9 +21,9 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import nn
 
-from isodream_rl.modules.isodream_v2.actor import IsoDreamActor
+from isodream_rl.modules.isodream_v2.actor import IsoDreamV2Actor
 from isodream_rl.modules.attention import PolicyInput
-from isodream_rl.modules.isodream_v2.world_model import IsoDreamWorldModel
+from isodream_rl.modules.isodream_v2.world_model import IsoDreamV2WorldModel
 
 ATTENTION_WINDOWS = ("start", "per_step")
 
@@ -43,11 +43,11 @@ def policy_features(
     return policy_input(control, free, window)
 
 
-class IsoDreamImagination(nn.Module):
+class IsoDreamV2Imagination(nn.Module):
     """Imagined rollouts of length ``L`` from a batch of posterior states (Algorithm 1, lines 7-12).
 
     Args:
-        world_model: the trained :class:`~isodream_rl.modules.IsoDreamWorldModel` (its parameters are not
+        world_model: the trained :class:`~isodream_rl.modules.IsoDreamV2WorldModel` (its parameters are not
             trained by the behavior losses).
         policy_input: the :class:`~isodream_rl.modules.PolicyInput` giving ``e_j``; its ``window`` is ``tau``.
         horizon: ``L`` (15).
@@ -73,7 +73,7 @@ class IsoDreamImagination(nn.Module):
 
     def __init__(
         self,
-        world_model: IsoDreamWorldModel,
+        world_model: IsoDreamV2WorldModel,
         policy_input: PolicyInput,
         *,
         horizon: int = 15,
@@ -149,7 +149,7 @@ class IsoDreamImagination(nn.Module):
         free_state: torch.Tensor | None = None,
         free_belief: torch.Tensor | None = None,
         *,
-        actor: IsoDreamActor,
+        actor: IsoDreamV2Actor,
         actor_input_grad: bool = False,
     ) -> TensorDict:
         wm = self.world_model

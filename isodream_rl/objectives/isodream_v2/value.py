@@ -10,16 +10,16 @@ from tensordict.utils import NestedKey
 from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 from torchrl.objectives.utils import TargetNetUpdater
 
-from isodream_rl.modules.isodream_v2.value import IsoDreamValue
-from isodream_rl.objectives.isodream_v2.imagination import IsoDreamImagination, policy_features
+from isodream_rl.modules.isodream_v2.value import IsoDreamV2Value
+from isodream_rl.objectives.isodream_v2.imagination import IsoDreamV2Imagination, policy_features
 
 
-class IsoDreamValueLoss(LossModule):
+class IsoDreamV2ValueLoss(LossModule):
     """Regresses ``v_xi(e_j)`` on the detached lambda-returns of an imagined rollout (eq. 7).
 
     ``L_value = mean_{N, j} w_j * 0.5 * (v_xi(e_j) - sg(G^lambda_j))^2``, i.e. ``-log N(G; v, 1)`` up to a
     constant, with ``w_j`` the detached ``cumprod(gamma * continuation)`` weights. ``G^lambda_j`` and ``w_j``
-    come from :class:`~isodream_rl.objectives.IsoDreamActorLoss`, which writes them into the imagined rollout,
+    come from :class:`~isodream_rl.objectives.IsoDreamV2ActorLoss`, which writes them into the imagined rollout,
     and are aligned with the state they value: ``G_j`` is the return from ``s~_j`` (TorchRL's convention; the
     authors' code regresses on time-reversed targets).
 
@@ -32,8 +32,8 @@ class IsoDreamValueLoss(LossModule):
     default).
 
     Args:
-        value_network: an :class:`~isodream_rl.modules.IsoDreamValue`.
-        imagination: the :class:`~isodream_rl.objectives.IsoDreamImagination` whose rollouts are regressed;
+        value_network: an :class:`~isodream_rl.modules.IsoDreamV2Value`.
+        imagination: the :class:`~isodream_rl.objectives.IsoDreamV2Imagination` whose rollouts are regressed;
             its policy input is registered here (trained by this loss), its world model is not.
     """
 
@@ -54,11 +54,11 @@ class IsoDreamValueLoss(LossModule):
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
 
-    value_network: IsoDreamValue
+    value_network: IsoDreamV2Value
     value_network_params: TensorDictParams
     target_value_network_params: TensorDictParams
 
-    def __init__(self, value_network: IsoDreamValue, imagination: IsoDreamImagination):
+    def __init__(self, value_network: IsoDreamV2Value, imagination: IsoDreamV2Imagination):
         super().__init__()
         policy_input = imagination.policy_input
         if value_network.in_features != policy_input.out_features:
@@ -85,8 +85,8 @@ class IsoDreamValueLoss(LossModule):
         weight = tensordict.get(keys.discount_weight, None)
         if target is None or weight is None:
             raise KeyError(
-                f"IsoDreamValueLoss reads {keys.lambda_target!r} and {keys.discount_weight!r}, written by "
-                "IsoDreamActorLoss into the imagined rollout it returns; pass that rollout"
+                f"IsoDreamV2ValueLoss reads {keys.lambda_target!r} and {keys.discount_weight!r}, written by "
+                "IsoDreamV2ActorLoss into the imagined rollout it returns; pass that rollout"
             )
         with self.imagination.autocast(target.device.type):
             value = self.value_network(policy_features(self.policy_input, tensordict, detach_control=True))
@@ -97,7 +97,7 @@ class IsoDreamValueLoss(LossModule):
 
 
 def make_target_updater(
-    value_loss: IsoDreamValueLoss, *, period: int = 100, tau: float | None = None
+    value_loss: IsoDreamV2ValueLoss, *, period: int = 100, tau: float | None = None
 ) -> TargetNetUpdater:
     """TorchRL target updater for the slow value network of ``value_loss``.
 

@@ -13,13 +13,13 @@ from torch.nn import functional as F
 from torchrl.objectives import LossModule
 
 from isodream_rl.modules.isodream_v2.encoder import preprocess_pixels
-from isodream_rl.modules.isodream_v2.world_model import IsoDreamWorldModel
+from isodream_rl.modules.isodream_v2.world_model import IsoDreamV2WorldModel
 from isodream_rl.objectives.inverse_dynamics import InverseDynamicsLoss
 from isodream_rl.objectives.isodream_v2.kl import balanced_kl
 
 FREE_BRANCH_MODES = ("kl", "recon_only")
 #: The weights of eq. 5's terms: the one table of their defaults (as DreamerV3's ``loss_scales``), read by
-#: :class:`IsoDreamModelLoss` and by the training config (``AlgoConfig``). ``lambda_inverse`` (``alpha``) departs
+#: :class:`IsoDreamV2ModelLoss` and by the training config (``AlgoConfig``). ``lambda_inverse`` (``alpha``) departs
 #: from eq. 5's 1: with the default ``inverse_input="embedding"`` the embedding differences are small and at 1
 #: the inverse cell does not learn against the pixel-sum image loss (:data:`PAPER_WEIGHTS` has the paper's).
 LOSS_WEIGHTS = {
@@ -30,12 +30,12 @@ LOSS_WEIGHTS = {
     "lambda_kl_control": 1.0,
     "lambda_kl_free": 1.0,
 }
-#: eq. 5's weights where :data:`LOSS_WEIGHTS` departs from them (:meth:`IsoDreamModelLoss.paper_exact`,
+#: eq. 5's weights where :data:`LOSS_WEIGHTS` departs from them (:meth:`IsoDreamV2ModelLoss.paper_exact`,
 #: ``algo=isodream_paper``).
 PAPER_WEIGHTS = {"lambda_inverse": 1.0}
 
 
-class IsoDreamModelLoss(LossModule):
+class IsoDreamV2ModelLoss(LossModule):
     """World-model loss of eq. 5 over ``[B, T]`` replay windows.
 
     ``L = lambda_reco * L_img + lambda_reward * L_rew + lambda_discount * L_gamma + alpha * L_inv
@@ -51,7 +51,7 @@ class IsoDreamModelLoss(LossModule):
     The ``lambda_*`` weights default to :data:`LOSS_WEIGHTS`.
 
     Args:
-        world_model: an :class:`~isodream_rl.modules.IsoDreamWorldModel`.
+        world_model: an :class:`~isodream_rl.modules.IsoDreamV2WorldModel`.
         lambda_reco: weight of the image log-loss.
         lambda_reward: weight of the reward log-loss (2 in the authors' DMC and CARLA configs).
         lambda_discount: weight of the discount log-loss (used only with a discount head).
@@ -70,9 +70,9 @@ class IsoDreamModelLoss(LossModule):
             and the target ``o``, both ``[B, T, 3, 64, 64]`` in the ``[-0.5, 0.5]`` range, and returning a
             mapping of ``loss_*`` scalars.
 
-    Inputs are checked at the world model's boundary (:class:`~isodream_rl.modules.IsoDreamWorldModel`,
+    Inputs are checked at the world model's boundary (:class:`~isodream_rl.modules.IsoDreamV2WorldModel`,
     ``check_inputs``): float pixels outside ``[0, 1]``, NaN/inf pixels or actions, a missing ``is_init`` and
-    windows shorter than 2 steps raise a ``ValueError``; ``IsoDreamWorldModel(..., check_inputs=False)`` skips
+    windows shorter than 2 steps raise a ``ValueError``; ``IsoDreamV2WorldModel(..., check_inputs=False)`` skips
     these checks.
 
     Returns:
@@ -87,9 +87,9 @@ class IsoDreamModelLoss(LossModule):
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
-        >>> from isodream_rl.objectives import IsoDreamModelLoss
-        >>> loss = IsoDreamModelLoss(IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2)))
+        >>> from isodream_rl.modules import IsoDreamV2WorldModel, IsoDreamV2Config
+        >>> from isodream_rl.objectives import IsoDreamV2ModelLoss
+        >>> loss = IsoDreamV2ModelLoss(IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=2)))
         >>> td = TensorDict({"action": torch.zeros(2, 5, 2), "is_init": torch.zeros(2, 5, 1, dtype=torch.bool),
         ...                  ("next", "pixels"): torch.zeros(2, 5, 3, 64, 64, dtype=torch.uint8),
         ...                  ("next", "reward"): torch.zeros(2, 5, 1)}, [2, 5])
@@ -152,7 +152,7 @@ class IsoDreamModelLoss(LossModule):
 
     def __init__(
         self,
-        world_model: IsoDreamWorldModel,
+        world_model: IsoDreamV2WorldModel,
         *,
         lambda_reco: float = LOSS_WEIGHTS["lambda_reco"],
         lambda_reward: float = LOSS_WEIGHTS["lambda_reward"],
@@ -185,9 +185,9 @@ class IsoDreamModelLoss(LossModule):
         self.extra_terms = tuple(extra_terms)
 
     @classmethod
-    def paper_exact(cls, world_model: IsoDreamWorldModel, **overrides) -> IsoDreamModelLoss:
+    def paper_exact(cls, world_model: IsoDreamV2WorldModel, **overrides) -> IsoDreamV2ModelLoss:
         """The loss with eq. 5's weights (``alpha = 1``), the partner of
-        :meth:`WorldModelConfig.paper_exact <isodream_rl.modules.isodream_v2.config.WorldModelConfig.paper_exact>`."""
+        :meth:`IsoDreamV2Config.paper_exact <isodream_rl.modules.isodream_v2.config.IsoDreamV2Config.paper_exact>`."""
         return cls(world_model, **{**PAPER_WEIGHTS, **overrides})
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
@@ -197,7 +197,7 @@ class IsoDreamModelLoss(LossModule):
         value = tensordict.get(key, None)
         if value is None and required:
             raise KeyError(
-                f"IsoDreamModelLoss: no key {key!r} in the input or the world model's output; remap it with "
+                f"IsoDreamV2ModelLoss: no key {key!r} in the input or the world model's output; remap it with "
                 f"loss.set_keys(...) (accepted keys: {self.tensor_keys})"
             )
         return value
