@@ -1,8 +1,8 @@
 """One actor + value update of Iso-Dream against TorchRL's Dreamer, and Iso-Dream's acting latency.
 
-Update. Ours: :class:`~isodream_rl.objectives.IsoDreamV2ActorLoss` + :class:`~isodream_rl.objectives.IsoDreamV2ValueLoss`
-over :class:`~isodream_rl.objectives.IsoDreamV2Imagination` (horizon ``L``, attention window ``tau``) of the
-three-branch :class:`~isodream_rl.modules.IsoDreamV2WorldModel`. TorchRL: ``DreamerActorLoss`` (TD(lambda)
+Update. Ours: :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2ActorLoss` + :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2ValueLoss`
+over :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2Imagination` (horizon ``L``, attention window ``tau``) of the
+three-branch :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel`. TorchRL: ``DreamerActorLoss`` (TD(lambda)
 value estimator) + ``DreamerValueLoss`` over a ``DreamerEnv`` built from ``RSSMPrior`` and an MLP reward
 head, with ``DreamerActor`` and an MLP value. Both at equal sizes: the same RSSM (stoch, deter, hidden) and
 MLP/head widths (``units``; actor 4 layers, value 3, reward 2, as the authors and TorchRL). An update is
@@ -16,7 +16,7 @@ median over ``--steps`` updates after ``--warmup`` is reported. Variants: precis
 sides (ours: ``IsoDreamV2Config(precision=...)``, whose autocast covers every behavior MLP; TorchRL: an
 outer CPU bf16 autocast around the losses).
 
-Acting: one env step of :class:`~isodream_rl.modules.IsoDreamV2Policy` (encode a 64x64 frame, filter both
+Acting: one env step of :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2Policy` (encode a 64x64 frame, filter both
 branches, imagine the ``tau - 1`` future noncontrollable states, attention, actor sample) on the fp32
 model, at batch 1 and 8, median wall-clock ms over ``--acting-steps`` calls (process CPU ms also given).
 
@@ -46,16 +46,15 @@ from torchrl.modules import MLP, DreamerActor, RSSMPrior, SafeSequential, TanhNo
 from torchrl.objectives import DreamerActorLoss, DreamerValueLoss
 from torchrl.objectives.utils import ValueEstimators
 
-from isodream_rl.modules import (
-    SIZE_PRESETS,
+from isodream_rl.modules import SIZE_PRESETS, PolicyInput
+from isodream_rl.modules.isodream_v2 import (
     IsoDreamV2Actor,
+    IsoDreamV2Config,
     IsoDreamV2Policy,
     IsoDreamV2Value,
     IsoDreamV2WorldModel,
-    PolicyInput,
-    IsoDreamV2Config,
 )
-from isodream_rl.objectives import IsoDreamV2ActorLoss, IsoDreamV2Imagination, IsoDreamV2ValueLoss
+from isodream_rl.objectives.isodream_v2 import IsoDreamV2ActorLoss, IsoDreamV2Imagination, IsoDreamV2ValueLoss
 
 LR = 8e-5
 GAMMA, LMBDA = 0.99, 0.95

@@ -75,7 +75,7 @@ from common import cpu_name, git_commit  # noqa: E402
 
 import isodream_rl.baselines  # noqa: F401  (registers algo=torchrl_dreamer and torchrl_dreamer_v3)
 from isodream_rl.envs import make_env
-from isodream_rl.objectives import lambda_returns
+from isodream_rl.objectives.isodream_v2 import lambda_returns
 from isodream_rl.objectives.isodream_v2.imagination import policy_features
 from isodream_rl.run_utils.checkpoint import CheckpointManager
 from isodream_rl.trainers.registry import make_components

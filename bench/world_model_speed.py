@@ -1,7 +1,7 @@
 """One world-model update of Iso-Dream against TorchRL's Dreamer, interleaved in one process.
 
-Ours: :class:`~isodream_rl.objectives.IsoDreamV2ModelLoss` over the three-branch
-:class:`~isodream_rl.modules.IsoDreamV2WorldModel`. TorchRL: ``DreamerModelLoss`` over ``ObsEncoder``,
+Ours: :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2ModelLoss` over the three-branch
+:class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel`. TorchRL: ``DreamerModelLoss`` over ``ObsEncoder``,
 ``RSSMPrior``/``RSSMPosterior`` in ``RSSMRollout``, ``ObsDecoder`` and an MLP reward head, at equal sizes
 (same cnn depth, deter, stoch, hidden, MLP units; each of our branch encoders/decoders has TorchRL's
 channel widths). An update is forward + backward + gradient clipping + Adam step on a ``[B, T]`` batch of
@@ -51,8 +51,9 @@ from torchrl.modules import (
 )
 from torchrl.objectives import DreamerModelLoss
 
-from isodream_rl.modules import SIZE_PRESETS, IsoDreamV2WorldModel, IsoDreamV2Config
-from isodream_rl.objectives import IsoDreamV2ModelLoss
+from isodream_rl.modules import SIZE_PRESETS
+from isodream_rl.modules.isodream_v2 import IsoDreamV2Config, IsoDreamV2WorldModel
+from isodream_rl.objectives.isodream_v2 import IsoDreamV2ModelLoss
 
 
 def torchrl_dreamer(size: dict, action_dim: int, channels_last: bool) -> DreamerModelLoss:

@@ -26,15 +26,15 @@ from torchrl.record.loggers import get_logger
 from torchrl.trainers import ReplayBufferTrainer, Trainer
 
 from isodream_rl.envs import make_env
-from isodream_rl.modules import (
+from isodream_rl.modules import PolicyInput
+from isodream_rl.modules.isodream_v2 import (
     IsoDreamV2Actor,
+    IsoDreamV2Config,
     IsoDreamV2Value,
     IsoDreamV2WorldModel,
-    PolicyInput,
-    IsoDreamV2Config,
 )
 from isodream_rl.modules.isodream_v2.policy import IsoDreamV2Policy
-from isodream_rl.objectives import (
+from isodream_rl.objectives.isodream_v2 import (
     IsoDreamV2ActorLoss,
     IsoDreamV2Imagination,
     IsoDreamV2ModelLoss,
@@ -133,7 +133,9 @@ def main() -> None:
     value_loss = IsoDreamV2ValueLoss(
         IsoDreamV2Value(in_features=policy_input.out_features, num_cells=args.units), imagination
     )
-    actor = IsoDreamV2Actor(in_features=policy_input.out_features, action_dim=action_dim, num_cells=args.units)
+    actor = IsoDreamV2Actor(
+        in_features=policy_input.out_features, action_dim=action_dim, num_cells=args.units
+    )
     actor_loss = IsoDreamV2ActorLoss(actor, imagination, value_loss)
 
     # 4. Acting: filter o_t with both branches, act on [s, h]. The primer carries the recurrent states.

@@ -38,11 +38,11 @@ from isodream_rl.cli_overrides import check_overrides  # noqa: E402
 from isodream_rl.configs import register_dmc_envs  # noqa: E402
 from isodream_rl.envs.finite import NonFiniteEnvDataError  # noqa: E402
 from isodream_rl.evaluation.latent_probe import probe  # noqa: E402
+from isodream_rl.run_utils.checkpoint import CheckpointError  # noqa: E402
+from isodream_rl.run_utils.disk_space import DiskFullError  # noqa: E402
 from isodream_rl.run_utils.run_lock import RunDirBusyError  # noqa: E402
 from isodream_rl.trainers import run as run_module  # noqa: E402
-from isodream_rl.run_utils.checkpoint import CheckpointError  # noqa: E402
 from isodream_rl.trainers.config import ConfigError, RunConfig  # noqa: E402
-from isodream_rl.run_utils.disk_space import DiskFullError  # noqa: E402
 from isodream_rl.trainers.run_lifecycle import RunResult  # noqa: E402
 from isodream_rl.trainers.stepper import NonFiniteLossError  # noqa: E402
 from isodream_rl.trainers.world_model_run import load_world_model, probe_scene  # noqa: E402

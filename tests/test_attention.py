@@ -5,7 +5,8 @@ import math
 import pytest
 import torch
 
-from isodream_rl.modules import FutureStateAttention, IsoDreamV2WorldModel, PolicyInput, IsoDreamV2Config
+from isodream_rl.modules import FutureStateAttention, PolicyInput
+from isodream_rl.modules.isodream_v2 import IsoDreamV2Config, IsoDreamV2WorldModel
 
 
 class TestFutureStateAttention:

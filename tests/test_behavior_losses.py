@@ -7,14 +7,14 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from isodream_rl.modules import (
+from isodream_rl.modules import PolicyInput
+from isodream_rl.modules.isodream_v2 import (
     IsoDreamV2Actor,
+    IsoDreamV2Config,
     IsoDreamV2Value,
     IsoDreamV2WorldModel,
-    PolicyInput,
-    IsoDreamV2Config,
 )
-from isodream_rl.objectives import (
+from isodream_rl.objectives.isodream_v2 import (
     IsoDreamV2ActorLoss,
     IsoDreamV2Imagination,
     IsoDreamV2ValueLoss,

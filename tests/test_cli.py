@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 import isodream_rl.cli  # noqa: F401  (registers the config schema)
 from isodream_rl.trainers import ConfigError, RunConfig, validate_config
 from isodream_rl.trainers.config import ALGO_NAMES
-from isodream_rl.trainers.world_model_config import TORCHRL_BASELINES, ISODREAM_V2_ALGOS
+from isodream_rl.trainers.world_model_config import ISODREAM_V2_ALGOS, TORCHRL_BASELINES
 
 CONFIGS = Path(isodream_rl.cli.__file__).parent / "configs"
 ENVS = sorted(p.stem for p in (CONFIGS / "env").glob("*.yaml"))
@@ -139,7 +139,7 @@ def test_domain_presets_follow_the_paper():
 def test_sprites_trains_with_the_library_defaults_and_the_paper_preset_with_the_papers_settings():
     """The DreamerV2-style learner: ``algo=isodream_v2`` at the library's settings, ``isodream_paper`` at the
     paper's."""
-    from isodream_rl.modules import IsoDreamV2Config
+    from isodream_rl.modules.isodream_v2 import IsoDreamV2Config
     from isodream_rl.modules.isodream_v2.config import PAPER_EXACT
     from isodream_rl.objectives.isodream_v2.world_model import PAPER_WEIGHTS
     from isodream_rl.trainers.builders import make_world_model_loss
@@ -156,7 +156,7 @@ def test_sprites_trains_with_the_library_defaults_and_the_paper_preset_with_the_
 
 
 def test_dreamerv2_preset_is_the_libraries_baseline():
-    from isodream_rl.modules import IsoDreamV2Config
+    from isodream_rl.modules.isodream_v2 import IsoDreamV2Config
     from isodream_rl.trainers.builders import make_world_model_config
 
     trained = make_world_model_config(composed("algo=dreamerv2", "size=tiny"), action_dim=2)

@@ -9,7 +9,7 @@ from torch import nn
 
 from isodream_rl.data.sprites_episodes import collect_sprites_episodes, episode_windows
 from isodream_rl.evaluation import BRANCHES, CLASSES, branch_assignment, decomposition_scores
-from isodream_rl.modules import IsoDreamV2WorldModel, IsoDreamV2Config
+from isodream_rl.modules.isodream_v2 import IsoDreamV2Config, IsoDreamV2WorldModel
 
 # one 4 x 4 frame: the agent in the top-left 2 pixels, two distractor pixels bottom-right, 12 of background
 AGENT = torch.zeros(4, 4, dtype=torch.bool)

@@ -24,8 +24,8 @@ from isodream_rl.envs.sprites import SpritesEnv
 from isodream_rl.evaluation import ExactSpritesModel
 from isodream_rl.evaluation.exact_sprites_behavior import make_exact_model_behavior
 from isodream_rl.modules.isodream.world_model import IsoDreamConfig
-from isodream_rl.objectives import IsoDreamV2ActorLoss
 from isodream_rl.objectives.isodream import make_isodream
+from isodream_rl.objectives.isodream_v2 import IsoDreamV2ActorLoss
 from isodream_rl.trainers import RunConfig
 from isodream_rl.trainers.exact_model import exact_model_learner, train_behavior_on_exact_model
 from isodream_rl.trainers.world_model_config import ISODREAM_ALGOS

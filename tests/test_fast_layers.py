@@ -8,14 +8,13 @@ import torch
 from tensordict import TensorDict
 from torch import nn
 
-from isodream_rl.modules import IsoDreamV2WorldModel, IsoDreamV2Config
-from isodream_rl.modules.isodream_v2.composition import MaskComposition
+from isodream_rl.modules.composition import MaskComposition
+from isodream_rl.modules.fast_paths import FusedMaskComposition, fused_compose_decoded
+from isodream_rl.modules.isodream_v2 import IsoDreamV2Config, IsoDreamV2WorldModel
 from isodream_rl.modules.isodream_v2.decoder import ConvDecoder
-from isodream_rl.modules.fast_paths import (
+from isodream_rl.modules.isodream_v2.fast_paths import (
     FastConvDecoder,
-    FusedMaskComposition,
     fast_filter_window,
-    fused_compose_decoded,
     paired_filter_window,
 )
 from isodream_rl.modules.isodream_v2.rssm import filter_window
@@ -283,7 +282,7 @@ def test_fused_composition_reads_bf16_decoder_outputs_and_composes_in_float32(ch
 
 
 def test_inward_clamp_passes_only_the_gradients_that_point_back_into_the_range():
-    from isodream_rl.modules.isodream_v2.composition import inward_pass
+    from isodream_rl.modules.composition import inward_pass
 
     value = torch.tensor([-0.9, -0.5, -0.5, 0.0, 0.5, 0.5, 0.9, 0.9])
     grad = torch.tensor([-1.0, -1.0, 1.0, 1.0, 1.0, -1.0, 1.0, -1.0])
@@ -344,7 +343,7 @@ def test_a_world_model_gives_the_same_losses_and_gradients_with_and_without_fast
     """Two world models with the same weights, fast_paths=True (the default) and False (the reference forms):
     the same modules and state dict, and the same losses and gradients for every parameter on one batch with
     a reset inside the window, under the same seed."""
-    from isodream_rl.objectives import IsoDreamV2ModelLoss
+    from isodream_rl.objectives.isodream_v2 import IsoDreamV2ModelLoss
 
     torch.manual_seed(0)
     fast = IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=2, **overrides))

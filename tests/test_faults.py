@@ -41,8 +41,10 @@ from torchrl.envs.transforms import DTypeCastTransform, ObservationNorm, Transfo
 
 from isodream_rl.data import write_tiny_bair
 from isodream_rl.envs import make_env
-from isodream_rl.modules import IsoDreamV2WorldModel, IsoDreamV2Config
-from isodream_rl.objectives import IsoDreamV2ModelLoss
+from isodream_rl.modules.isodream_v2 import IsoDreamV2Config, IsoDreamV2WorldModel
+from isodream_rl.objectives.isodream_v2 import IsoDreamV2ModelLoss
+from isodream_rl.run_utils import checkpoint as checkpoint_module
+from isodream_rl.run_utils.checkpoint import set_rng_state, write_manifest
 from isodream_rl.run_utils.run_lock import LOCK_FILE, lock_owner
 from isodream_rl.trainers import (
     CheckpointError,
@@ -54,8 +56,6 @@ from isodream_rl.trainers import (
     evaluate_checkpoint,
     train,
 )
-from isodream_rl.run_utils import checkpoint as checkpoint_module
-from isodream_rl.run_utils.checkpoint import set_rng_state, write_manifest
 from isodream_rl.trainers.config import config_from_dict
 from isodream_rl.trainers.hooks import ReplayPreparation
 from isodream_rl.trainers.run_dir import existing_run_files
@@ -656,7 +656,9 @@ def test_nan_or_inf_env_data_stops_the_run_in_one_line(case, num_envs, tmp_path,
     line = user_error(out)
     state, checkpoint = CheckpointManager(tmp_path / "run" / "checkpoints").load_latest()
     found = {"nan": "NaN", "inf": "inf", "-inf": "inf"}[value]
-    which = " (collector env 1 of 2)" if num_envs == 2 else ""  # both go bad at their 80th step; the first named
+    which = (
+        " (collector env 1 of 2)" if num_envs == 2 else ""
+    )  # both go bad at their 80th step; the first named
     assert line == (
         f"isodream-train: env.factory=tests.test_faults:bad_data_sprites{which} gave {key!r} holding {found} at "
         f"env step 80; the last checkpoint, run/checkpoints/{checkpoint.name}, is intact: fix the env, then "

@@ -4,8 +4,9 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from isodream_rl.modules import IsoDreamV2Actor, IsoDreamV2WorldModel, PolicyInput, IsoDreamV2Config
-from isodream_rl.objectives import IsoDreamV2Imagination, IsoDreamV2ModelLoss
+from isodream_rl.modules import PolicyInput
+from isodream_rl.modules.isodream_v2 import IsoDreamV2Actor, IsoDreamV2Config, IsoDreamV2WorldModel
+from isodream_rl.objectives.isodream_v2 import IsoDreamV2Imagination, IsoDreamV2ModelLoss
 
 A, L, TAU, N = 2, 4, 3, 5
 

@@ -7,7 +7,7 @@ from tensordict import TensorDict
 
 from isodream_rl.cli import probe_run
 from isodream_rl.evaluation.latent_probe import probe, ridge_cv, ridge_r2, sprite_centres
-from isodream_rl.modules import IsoDreamV2WorldModel, IsoDreamV2Config
+from isodream_rl.modules.isodream_v2 import IsoDreamV2Config, IsoDreamV2WorldModel
 from isodream_rl.trainers import CheckpointError, train
 from isodream_rl.trainers.world_model_run import load_world_model, probe_scene
 from tests.test_cli import composed

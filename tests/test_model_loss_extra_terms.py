@@ -3,8 +3,8 @@
 import pytest
 import torch
 
-from isodream_rl.modules import IsoDreamV2WorldModel, IsoDreamV2Config
-from isodream_rl.objectives import IsoDreamV2ModelLoss
+from isodream_rl.modules.isodream_v2 import IsoDreamV2Config, IsoDreamV2WorldModel
+from isodream_rl.objectives.isodream_v2 import IsoDreamV2ModelLoss
 from tests.test_world_model import make_batch
 
 
@@ -18,7 +18,8 @@ class _SquaredError(torch.nn.Module):
 def test_model_loss_adds_the_term_on_the_composite():
     torch.manual_seed(0)
     loss = IsoDreamV2ModelLoss(
-        IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=2)), extra_terms=[_SquaredError()]
+        IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=2)),
+        extra_terms=[_SquaredError()],
     )
     td = make_batch()
     losses, out = loss(td)

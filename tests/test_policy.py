@@ -11,15 +11,15 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules.utils import get_primers_from_module
 
 from isodream_rl.envs import make_env
-from isodream_rl.modules import (
+from isodream_rl.modules import PolicyInput
+from isodream_rl.modules.isodream_v2 import (
     IsoDreamV2Actor,
+    IsoDreamV2Config,
     IsoDreamV2Value,
     IsoDreamV2WorldModel,
-    PolicyInput,
-    IsoDreamV2Config,
 )
 from isodream_rl.modules.isodream_v2.policy import IsoDreamV2Policy
-from isodream_rl.objectives import (
+from isodream_rl.objectives.isodream_v2 import (
     IsoDreamV2ActorLoss,
     IsoDreamV2Imagination,
     IsoDreamV2ModelLoss,

@@ -2,7 +2,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from isodream_rl.modules import IsoDreamV2WorldModel, IsoDreamV2Config
+from isodream_rl.modules.isodream_v2 import IsoDreamV2Config, IsoDreamV2WorldModel
 
 
 def _masks(bias: float) -> dict[str, float]:

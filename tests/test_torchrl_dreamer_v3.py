@@ -20,9 +20,9 @@ import isodream_rl.cli  # noqa: F401  (registers the config schema)
 from isodream_rl.baselines import DreamerV3Widths, TorchRLDreamerV3Components
 from isodream_rl.baselines.torchrl_dreamer_v3 import dreamer_v3_model_loss, make_torchrl_dreamer_v3
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings
+from isodream_rl.run_utils.checkpoint import set_rng_state
 from isodream_rl.trainers import CheckpointManager, ConfigError, RunConfig, validate_config
 from isodream_rl.trainers.builders import make_world_model_loss
-from isodream_rl.run_utils.checkpoint import set_rng_state
 from isodream_rl.trainers.hooks import ReplayPreparation
 from tests.test_torchrl_dreamer import A, B, T, env_batch, replay_batch, tiny_config
 

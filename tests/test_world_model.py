@@ -7,15 +7,16 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from isodream_rl.modules import (
+from isodream_rl.modules import MaskComposition
+from isodream_rl.modules.isodream_v2 import (
     ActionFreeRSSM,
     BranchedEncoder,
-    IsoDreamV2WorldModel,
-    MaskComposition,
     IsoDreamV2Config,
+    IsoDreamV2WorldModel,
 )
 from isodream_rl.modules.isodream_v2.config import DREAMERV2, PAPER_EXACT
-from isodream_rl.objectives import InverseDynamicsLoss, IsoDreamV2ModelLoss, balanced_kl, gaussian_kl
+from isodream_rl.objectives import InverseDynamicsLoss
+from isodream_rl.objectives.isodream_v2 import IsoDreamV2ModelLoss, balanced_kl, gaussian_kl
 
 B, T, A = 2, 6, 2
 
@@ -470,7 +471,7 @@ def test_total_loss_falls_when_overfitting_one_batch(precision, steps, lr):
 
 
 def test_decoder_matmul_first_layer_equals_the_transposed_convolution():
-    from isodream_rl.modules.fast_paths import FastConvDecoder
+    from isodream_rl.modules.isodream_v2.fast_paths import FastConvDecoder
 
     decoder = FastConvDecoder(in_features=20, out_channels=4, depth=4)
     latent = torch.randn(3, 20)

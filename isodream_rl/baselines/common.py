@@ -19,7 +19,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import ClassVar
 
-from isodream_rl.modules.isodream_v2.config import SIZE_PRESETS
+from isodream_rl.modules.sizes import SIZE_PRESETS
 from isodream_rl.trainers.components import RunComponents, make_replay_parts
 from isodream_rl.trainers.config import RunConfig
 

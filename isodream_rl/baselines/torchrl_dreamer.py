@@ -61,7 +61,7 @@ from torchrl.objectives import DreamerActorLoss, DreamerModelLoss, DreamerValueL
 from torchrl.objectives.utils import ValueEstimators
 
 from isodream_rl.baselines.common import BaselineComponents, preset_widths
-from isodream_rl.modules.isodream_v2.policy import CarriedStatePolicy
+from isodream_rl.modules.carried_state import CarriedStatePolicy
 from isodream_rl.objectives.imagination_env import latent_dreamer_env
 from isodream_rl.trainers.builders import make_adam
 from isodream_rl.trainers.config import RunConfig

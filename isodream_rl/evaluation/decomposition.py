@@ -157,13 +157,13 @@ def decomposition_scores(
     largest mask, by default).
 
     The single-branch DreamerV2 baseline (``algo=dreamerv2``: the same
-    :class:`~isodream_rl.modules.IsoDreamV2WorldModel` with the other branches off) is scored the same way:
+    :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel` with the other branches off) is scored the same way:
     its one image is the ``control`` branch, which holds every pixel, so ``iou_control_vs_agent`` is the
     agent's share of the frame, and the branches it lacks hold none (``iou_free_vs_distractors = 0``,
     ``background_share_static = 0``).
 
     Args:
-        world_model: an :class:`~isodream_rl.modules.IsoDreamV2WorldModel` (or a module with its output keys).
+        world_model: an :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel` (or a module with its output keys).
         windows: ``[N, T]``: ``"action"`` ``[N, T, A]``, ``"is_init"`` ``[N, T, 1]``, ``("next", "pixels")``
             uint8 ``[N, T, 3, H, W]`` and the ground truth ``("next", "mask_agent")``,
             ``("next", "mask_distractors")`` bool ``[N, T, H, W]``; any other key is ignored.

@@ -25,8 +25,8 @@ from torchrl.envs.model_based.dreamer import DreamerEnv
 from torchrl.modules import WorldModelWrapper
 
 from isodream_rl.evaluation.exact_sprites import ExactSpritesModel
-from isodream_rl.modules.isodream.behavior import make_actor, make_value
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings
+from isodream_rl.modules.isodream.behavior import make_actor, make_value
 from isodream_rl.objectives.dreamer_v3_behavior import DreamerV3Behavior, make_dreamer_v3_behavior
 from isodream_rl.objectives.imagination_env import latent_dreamer_env
 

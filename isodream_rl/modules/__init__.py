@@ -1,36 +1,30 @@
-"""Iso-Dream modules: encoder, decoupled RSSM, masked decoders, inverse dynamics, heads, world model."""
+"""Iso-Dream's modules. The default learner's (``algo=isodream``, :mod:`isodream_rl.modules.isodream`): the
+decoupled world model on TorchRL's DreamerV3 parts, its configuration, actor, critic and acting policy; and the
+pieces both learners build on: the future-state attention (eq. 6), the inverse-dynamics cell, the mask
+composition (eq. 4), the size presets.
 
-from isodream_rl.modules.isodream_v2.actor import IsoDreamV2Actor
+The DreamerV2-style learner's modules (``algo=isodream_v2``, ``isodream_paper``, ``dreamerv2``) are exported by
+:mod:`isodream_rl.modules.isodream_v2`.
+"""
+
 from isodream_rl.modules.attention import POLICY_INPUTS, FutureStateAttention, PolicyInput
-from isodream_rl.modules.isodream_v2.composition import MaskComposition
-from isodream_rl.modules.isodream_v2.config import SIZE_PRESETS, IsoDreamV2Config
-from isodream_rl.modules.isodream_v2.decoder import ConvDecoder
-from isodream_rl.modules.isodream_v2.encoder import BranchedEncoder
-from isodream_rl.modules.isodream_v2.heads import make_discount_head, make_reward_head
+from isodream_rl.modules.composition import MaskComposition
 from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
-from isodream_rl.modules.isodream_v2.policy import IsoDreamV2Policy
-from isodream_rl.modules.isodream_v2.rssm import ActionConditionedRSSM, ActionFreeRSSM, LayerNormGRUCell, RSSMCell
-from isodream_rl.modules.isodream_v2.value import IsoDreamV2Value
-from isodream_rl.modules.isodream_v2.world_model import IsoDreamV2WorldModel
+from isodream_rl.modules.isodream.behavior import IsoDreamPolicy, PolicyFeatures, make_actor, make_value
+from isodream_rl.modules.isodream.world_model import IsoDreamConfig, IsoDreamWorldModel
+from isodream_rl.modules.sizes import SIZE_PRESETS
 
 __all__ = [
-    "ActionConditionedRSSM",
-    "ActionFreeRSSM",
-    "BranchedEncoder",
-    "ConvDecoder",
+    "POLICY_INPUTS",
+    "SIZE_PRESETS",
     "FutureStateAttention",
     "InverseDynamicsCell",
-    "IsoDreamV2Actor",
-    "IsoDreamV2Policy",
-    "IsoDreamV2Value",
-    "IsoDreamV2WorldModel",
-    "LayerNormGRUCell",
+    "IsoDreamConfig",
+    "IsoDreamPolicy",
+    "IsoDreamWorldModel",
     "MaskComposition",
-    "POLICY_INPUTS",
+    "PolicyFeatures",
     "PolicyInput",
-    "RSSMCell",
-    "SIZE_PRESETS",
-    "IsoDreamV2Config",
-    "make_discount_head",
-    "make_reward_head",
+    "make_actor",
+    "make_value",
 ]

@@ -31,8 +31,8 @@ from tensordict.nn import (
 from torch import nn
 from torchrl.modules import DreamerV3MLP, IndependentNormal, SymExpTwoHot
 
-from isodream_rl.modules.isodream_v2.encoder import check_pixel_values, check_pixels
-from isodream_rl.modules.isodream_v2.policy import CarriedStatePolicy
+from isodream_rl.modules.carried_state import CarriedStatePolicy
+from isodream_rl.modules.pixels import check_pixel_values, check_pixels
 
 #: The observation key of the world model (uint8 pixels of the step's outcome).
 PIXELS = ("next", "pixels")

@@ -1,20 +1,30 @@
-"""Iso-Dream objectives: world-model loss (eq. 5), inverse-dynamics loss, KL balancing."""
+"""Iso-Dream's objectives. The default learner's (``algo=isodream``, :mod:`isodream_rl.objectives.isodream`):
+eq. 5 as TorchRL's ``DreamerV3ModelLoss`` plus the inverse-dynamics term, imagination with the sliding action-free
+window, and the learner that composes them with TorchRL's DreamerV3 behaviour losses; and what both learners use:
+the inverse-dynamics loss, imagination as a TorchRL ``DreamerEnv``.
 
-from isodream_rl.objectives.isodream_v2.actor import IsoDreamV2ActorLoss, lambda_returns
-from isodream_rl.objectives.isodream_v2.imagination import IsoDreamV2Imagination
+The DreamerV2-style learner's objectives (``algo=isodream_v2``, ``isodream_paper``, ``dreamerv2``) are exported by
+:mod:`isodream_rl.objectives.isodream_v2`.
+"""
+
+from isodream_rl.objectives.imagination_env import latent_dreamer_env
 from isodream_rl.objectives.inverse_dynamics import InverseDynamicsLoss
-from isodream_rl.objectives.isodream_v2.kl import balanced_kl, gaussian_kl
-from isodream_rl.objectives.isodream_v2.value import IsoDreamV2ValueLoss, make_target_updater
-from isodream_rl.objectives.isodream_v2.world_model import IsoDreamV2ModelLoss
+from isodream_rl.objectives.isodream import (
+    IsoDreamImaginationEnv,
+    IsoDreamLearner,
+    IsoDreamModelLoss,
+    IsoDreamTransition,
+    isodream_imagination_env,
+    make_isodream,
+)
 
 __all__ = [
     "InverseDynamicsLoss",
-    "IsoDreamV2ActorLoss",
-    "IsoDreamV2Imagination",
-    "IsoDreamV2ModelLoss",
-    "IsoDreamV2ValueLoss",
-    "balanced_kl",
-    "gaussian_kl",
-    "lambda_returns",
-    "make_target_updater",
+    "IsoDreamImaginationEnv",
+    "IsoDreamLearner",
+    "IsoDreamModelLoss",
+    "IsoDreamTransition",
+    "isodream_imagination_env",
+    "latent_dreamer_env",
+    "make_isodream",
 ]

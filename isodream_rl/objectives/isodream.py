@@ -28,8 +28,8 @@ from torchrl.modules import WorldModelWrapper
 from torchrl.objectives import DreamerV3ActorLoss, DreamerV3Loss, DreamerV3ModelLoss, DreamerV3ValueLoss
 from torchrl.objectives.utils import SoftUpdate
 
-from isodream_rl.modules.isodream.behavior import IsoDreamPolicy, make_actor, make_value
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings, continuation_probability
+from isodream_rl.modules.isodream.behavior import IsoDreamPolicy, make_actor, make_value
 from isodream_rl.modules.isodream.world_model import IsoDreamConfig, IsoDreamWorldModel
 from isodream_rl.objectives.dreamer_v3_behavior import (
     dreamer_v3_model_loss_settings,

@@ -15,15 +15,15 @@ from torchrl.record.loggers import Logger, get_logger
 
 from isodream_rl.envs import make_env
 from isodream_rl.envs.finite import FiniteEnvData
-from isodream_rl.modules import (
+from isodream_rl.modules import PolicyInput
+from isodream_rl.modules.isodream_v2 import (
     IsoDreamV2Actor,
+    IsoDreamV2Config,
     IsoDreamV2Value,
     IsoDreamV2WorldModel,
-    PolicyInput,
-    IsoDreamV2Config,
 )
 from isodream_rl.modules.isodream_v2.policy import IsoDreamV2Policy
-from isodream_rl.objectives import (
+from isodream_rl.objectives.isodream_v2 import (
     IsoDreamV2ActorLoss,
     IsoDreamV2Imagination,
     IsoDreamV2ModelLoss,
@@ -128,7 +128,7 @@ def make_world_model_config(cfg: RunConfig, *, action_dim: int) -> IsoDreamV2Con
 
 def make_world_model_loss(cfg: RunConfig, *, action_dim: int, extra_terms=()) -> IsoDreamV2ModelLoss:
     """The world model and its loss (eq. 5) with the algorithm's weights and free-branch mode, plus
-    ``extra_terms`` (see :class:`~isodream_rl.objectives.IsoDreamV2ModelLoss`)."""
+    ``extra_terms`` (see :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2ModelLoss`)."""
     world_model = IsoDreamV2WorldModel(
         make_world_model_config(cfg, action_dim=action_dim), device=cfg.train.device
     )

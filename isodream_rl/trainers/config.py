@@ -12,11 +12,12 @@ import typing
 from dataclasses import dataclass, field, fields, make_dataclass
 from typing import Any
 
-from isodream_rl.modules.isodream_v2.config import DREAMERV2, PAPER_EXACT, SIZE_PRESETS, IsoDreamV2Config
+from isodream_rl.modules.isodream_v2.config import DREAMERV2, PAPER_EXACT, IsoDreamV2Config
+from isodream_rl.modules.sizes import SIZE_PRESETS
 from isodream_rl.objectives.isodream_v2.world_model import FREE_BRANCH_MODES, LOSS_WEIGHTS, PAPER_WEIGHTS
 from isodream_rl.trainers.world_model_config import (
-    ISODREAM_ALGOS,
     DREAMER_V3_LEARNERS,
+    ISODREAM_ALGOS,
     MODES,
     WorldModelModeConfig,
     world_model_mode_errors,

@@ -30,9 +30,9 @@ from pathlib import Path
 
 from torch import nn
 
-from isodream_rl.modules.isodream_v2.config import SIZE_PRESETS
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings
 from isodream_rl.modules.isodream.world_model import IsoDreamConfig
+from isodream_rl.modules.sizes import SIZE_PRESETS
 from isodream_rl.objectives.isodream import IsoDreamLearner, make_isodream
 from isodream_rl.trainers.components import RunComponents, make_replay_parts
 from isodream_rl.trainers.config import ConfigError, RunConfig

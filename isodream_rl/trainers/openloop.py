@@ -14,9 +14,9 @@ import torch
 from PIL import Image, ImageDraw
 from tensordict import TensorDict, TensorDictBase
 
-from isodream_rl.modules import IsoDreamV2WorldModel
-from isodream_rl.modules.isodream_v2.encoder import IMAGE_SHAPE
 from isodream_rl.modules.isodream.world_model import IsoDreamWorldModel
+from isodream_rl.modules.isodream_v2 import IsoDreamV2WorldModel
+from isodream_rl.modules.pixels import IMAGE_SHAPE
 
 #: Columns of each GIF frame: (label, key in the prediction tensordict, kind).
 _COLUMNS = (

@@ -16,11 +16,12 @@ from pathlib import Path
 import torch
 from torchrl.trainers import ReplayBufferTrainer, Trainer, UpdateWeights
 
-from isodream_rl.run_utils.csv_logs import csv_log_sizes
 from isodream_rl.envs.builder import ground_truth_mask_keys
+from isodream_rl.run_utils.checkpoint import CheckpointError, CheckpointManager
+from isodream_rl.run_utils.csv_logs import csv_log_sizes
+from isodream_rl.run_utils.disk_space import ReplayReservation
 from isodream_rl.trainers import trainer_state, world_model_run
 from isodream_rl.trainers.builders import checked_env_factory, close_logger, make_logger
-from isodream_rl.run_utils.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.collectors import make_collector
 from isodream_rl.trainers.config import (
     ConfigError,
@@ -28,7 +29,6 @@ from isodream_rl.trainers.config import (
     device_error,
     validate_config,
 )
-from isodream_rl.run_utils.disk_space import ReplayReservation
 from isodream_rl.trainers.evaluation import Evaluation, learning_summary, run_episodes, save_episode_gif
 from isodream_rl.trainers.hooks import Throughput
 from isodream_rl.trainers.registry import make_components

@@ -35,11 +35,11 @@ from hydra.experimental.callback import Callback
 from omegaconf import OmegaConf
 
 from isodream_rl.envs.finite import NonFiniteEnvDataError
-from isodream_rl.modules.isodream_v2.config import SIZE_PRESETS
-from isodream_rl.run_utils.run_lock import RunDirBusyError, RunDirLock
+from isodream_rl.modules.sizes import SIZE_PRESETS
 from isodream_rl.run_utils.checkpoint import CheckpointError, CheckpointManager
-from isodream_rl.trainers.config import FORMER_DREAMER_V2_ALGOS, ConfigError, RunConfig, config_from_dict
 from isodream_rl.run_utils.disk_space import DiskFullError
+from isodream_rl.run_utils.run_lock import RunDirBusyError, RunDirLock
+from isodream_rl.trainers.config import FORMER_DREAMER_V2_ALGOS, ConfigError, RunConfig, config_from_dict
 from isodream_rl.user_errors import debugging, exit_user_error, log_to_stderr, one_line
 
 #: the files and folders of a run (a folder holding one of them holds a run)

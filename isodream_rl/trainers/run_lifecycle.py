@@ -22,10 +22,10 @@ import torch
 from torch import nn
 from torchrl.trainers import Trainer
 
-from isodream_rl.run_utils.csv_logs import csv_log_sizes, cut_csv_logs
-from isodream_rl.modules.isodream_v2.encoder import check_pixel_values, check_pixels
-from isodream_rl.trainers.builders import env_factory
+from isodream_rl.modules.pixels import check_pixel_values, check_pixels
 from isodream_rl.run_utils.checkpoint import CheckpointManager, rng_state, set_rng_state
+from isodream_rl.run_utils.csv_logs import csv_log_sizes, cut_csv_logs
+from isodream_rl.trainers.builders import env_factory
 from isodream_rl.trainers.config import ConfigError, RunConfig
 from isodream_rl.trainers.hooks import PeriodicCheckpoint, StopOnSignal
 from isodream_rl.trainers.run_dir import check_same_run

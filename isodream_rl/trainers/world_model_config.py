@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from isodream_rl.modules.isodream_v2.config import SIZE_PRESETS
+from isodream_rl.modules.sizes import SIZE_PRESETS
 from isodream_rl.objectives.isodream_v2.world_model import FREE_BRANCH_MODES
 
 #: What ``isodream-train`` trains: Algorithm 1 (world model, actor and value), or the world model alone.
@@ -25,7 +25,7 @@ ISODREAM_ALGOS = ("isodream", "isodream_no_inverse", "isodream_no_attention", "i
 #: The algorithms trained by DreamerV3's update (:class:`~isodream_rl.trainers.dreamer_v3.DreamerV3OptimizationStepper`):
 #: Iso-Dream on DreamerV3's learner and TorchRL's DreamerV3 (``train.lr_warmup`` is theirs).
 DREAMER_V3_LEARNERS = (*ISODREAM_ALGOS, "torchrl_dreamer_v3")
-#: The algorithms whose world model is not :class:`~isodream_rl.modules.IsoDreamV2WorldModel` (TorchRL's baselines and
+#: The algorithms whose world model is not :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel` (TorchRL's baselines and
 #: Iso-Dream on DreamerV3's learner): no ``mode=world_model`` nor its probes.
 OTHER_WORLD_MODELS = (*TORCHRL_BASELINES, *ISODREAM_ALGOS)
 #: The algorithms whose world model ``mode=world_model`` trains (the DreamerV2-style one), named where another is

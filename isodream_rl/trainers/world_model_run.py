@@ -2,7 +2,7 @@
 
 ``isodream-train exp=world_model`` (or its alias ``isodream-demo``) collects random-action episodes with held
 actions (the sprites scene by default; any env of the ``env`` group), trains
-:class:`~isodream_rl.modules.IsoDreamV2WorldModel` with :class:`~isodream_rl.objectives.IsoDreamV2ModelLoss`
+:class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel` with :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2ModelLoss`
 through the trainer's :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` (no actor, no value),
 and every ``logging.eval_every`` updates scores it on held-out episodes
 (:func:`~isodream_rl.evaluation.branches.score_branches`: on every env with ground-truth masks (sprites,
@@ -44,7 +44,8 @@ from isodream_rl.data.sprites_episodes import (
 from isodream_rl.envs.builder import ground_truth_mask_keys
 from isodream_rl.evaluation.branches import branch_grid, save_png, score_branches
 from isodream_rl.evaluation.decomposition import TRUTH_KEYS
-from isodream_rl.modules import IsoDreamV2WorldModel
+from isodream_rl.modules.isodream_v2 import IsoDreamV2WorldModel
+from isodream_rl.run_utils.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.builders import (
     REPLAY_KEYS,
     action_dim_of,
@@ -55,7 +56,6 @@ from isodream_rl.trainers.builders import (
     make_world_model_config,
     make_world_model_loss,
 )
-from isodream_rl.run_utils.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.config import ConfigError, RunConfig
 from isodream_rl.trainers.run_dir import resuming, write_run_config
 from isodream_rl.trainers.run_lifecycle import (
@@ -202,7 +202,9 @@ def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDream
             f"{path} holds the world model of algo={cfg.algo.name}, not the DreamerV2-style Iso-Dream's"
         )
     cfg.model.precision = "fp32"
-    model = IsoDreamV2WorldModel(make_world_model_config(cfg, action_dim=probe_action_dim(cfg)), device=device)
+    model = IsoDreamV2WorldModel(
+        make_world_model_config(cfg, action_dim=probe_action_dim(cfg)), device=device
+    )
     load_saved_models({"world_model": model}, state, algo=cfg.algo.name, checkpoint=path)
     return model, cfg
 

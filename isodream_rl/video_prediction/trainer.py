@@ -19,7 +19,6 @@ from tensordict import TensorDict
 from torch.utils.data import DataLoader, default_collate
 from tqdm.auto import tqdm
 
-from isodream_rl.run_utils.csv_logs import csv_log_sizes, cut_csv_logs
 from isodream_rl.data import (
     ArraySequences,
     BAIRDataset,
@@ -29,6 +28,7 @@ from isodream_rl.data import (
     load_pusher_dataset,
 )
 from isodream_rl.run_utils.checkpoint import CheckpointError, CheckpointManager
+from isodream_rl.run_utils.csv_logs import csv_log_sizes, cut_csv_logs
 from isodream_rl.trainers.config import device_error
 from isodream_rl.trainers.hooks import StopOnSignal
 from isodream_rl.trainers.run_dir import RunFlags, hold_folder, refuse_another_run

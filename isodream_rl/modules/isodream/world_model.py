@@ -1,6 +1,6 @@
 """Iso-Dream's decoupled world model (paper eqs. 2-5) built from TorchRL's DreamerV3 pieces.
 
-The same decomposition as :class:`~isodream_rl.modules.IsoDreamV2WorldModel` (an action-conditioned RSSM for the
+The same decomposition as :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel` (an action-conditioned RSSM for the
 controllable state ``s``, an action-free RSSM for the noncontrollable state ``z``, a static background, three
 decoders composed by softmax masks, an inverse-dynamics cell), with DreamerV3's parts in place of DreamerV2's:
 ``DreamerV3ImageEncoder`` (RMS norm, SiLU), two block-GRU RSSMs with categorical latents and 1 % unimix

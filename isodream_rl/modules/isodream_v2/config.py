@@ -1,26 +1,14 @@
-"""World-model configuration and size presets.
-
-:data:`SIZE_PRESETS` is the one home of the world model's preset widths. The ``size`` group of
-``isodream-train`` (``isodream_rl/configs/size/*.yaml``) names one of them (``model.size``) and sets the rest of a
-run's scale there (behavior widths, replay windows, schedule), never a world-model width.
-"""
+"""The DreamerV2-style world model's configuration, :class:`IsoDreamV2Config`, built from a size preset
+(:data:`~isodream_rl.modules.sizes.SIZE_PRESETS`) with :meth:`IsoDreamV2Config.from_preset`."""
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
-from isodream_rl.modules.isodream_v2.composition import CLAMP_GRADIENTS, MASK_MODES
+from isodream_rl.modules.composition import CLAMP_GRADIENTS, MASK_MODES
 from isodream_rl.modules.inverse_dynamics import INVERSE_INPUTS
+from isodream_rl.modules.sizes import SIZE_PRESETS
 
-#: Size presets. ``paper``: Table 5 and the authors' configs (cnn depth 32, deter 200, stoch 50,
-#: MLP units 400); ``small``: quick CPU runs; ``bench``: the learning bench's (``small`` at half its
-#: convolution depth and GRU width, ``size=bench``); ``tiny``: unit tests.
-SIZE_PRESETS: dict[str, dict[str, int]] = {
-    "paper": {"depth": 32, "state_dim": 50, "belief_dim": 200, "hidden_dim": 200, "units": 400},
-    "small": {"depth": 16, "state_dim": 32, "belief_dim": 128, "hidden_dim": 128, "units": 256},
-    "bench": {"depth": 8, "state_dim": 32, "belief_dim": 64, "hidden_dim": 64, "units": 256},
-    "tiny": {"depth": 4, "state_dim": 8, "belief_dim": 16, "hidden_dim": 16, "units": 32},
-}
 DECODER_INPUTS = ("paper", "posterior")
 #: The paper's settings of the fields whose defaults depart from it (with the loss's ``PAPER_WEIGHTS``).
 PAPER_EXACT = {
@@ -77,7 +65,7 @@ class IsoDreamV2Config:
     """Backward of that clamp: ``"inward"`` (forward unchanged; a colour beyond the range gets the gradients
     that move it back, so a branch whose colours overshoot under a shut mask can come back) or ``"zero"`` (the
     authors' plain clamp); without ``clamp_components`` it has no effect. See
-    :class:`~isodream_rl.modules.isodream_v2.composition.MaskComposition`."""
+    :class:`~isodream_rl.modules.composition.MaskComposition`."""
     decoder_input: str = "posterior"
     """``"posterior"``: both dynamic components from posteriors; ``"paper"``: the controllable component from
     the one-step prior s~_t, the noncontrollable one from the posterior z_t (§3.2, against collapse)."""

@@ -6,7 +6,7 @@ rather than reused because the static branch decodes a stack of frame embeddings
 belief)``, and because every call site wants the flat ``[N, C, 64, 64]`` form (channels-last friendly).
 
 :class:`ConvDecoder` is the reference form, plain ``nn`` layers; the world model builds
-:class:`~isodream_rl.modules.fast_paths.FastConvDecoder` instead when ``IsoDreamV2Config.fast_paths`` is set (the
+:class:`~isodream_rl.modules.isodream_v2.fast_paths.FastConvDecoder` instead when ``IsoDreamV2Config.fast_paths`` is set (the
 same layers and parameters, the first layer computed as a matrix product).
 """
 

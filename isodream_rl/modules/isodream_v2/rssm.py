@@ -17,7 +17,7 @@ for the window instead of one per step).
 
 The joint two-branch filter with ``is_init`` resets is here too: :func:`filter_step`, one step of both
 branches, and :func:`filter_window`, a window of them. These are the reference forms; the world model runs
-:func:`~isodream_rl.modules.fast_paths.fast_filter_window` instead when ``IsoDreamV2Config.fast_paths`` is
+:func:`~isodream_rl.modules.isodream_v2.fast_paths.fast_filter_window` instead when ``IsoDreamV2Config.fast_paths`` is
 set (the same function: both branches' step as one batched computation, on one thread).
 """
 

@@ -14,14 +14,16 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from isodream_rl.modules.isodream_v2.composition import MaskComposition
+from isodream_rl.modules.composition import MaskComposition
+from isodream_rl.modules.fast_paths import FusedMaskComposition
+from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
 from isodream_rl.modules.isodream_v2.config import IsoDreamV2Config
 from isodream_rl.modules.isodream_v2.decoder import ConvDecoder
-from isodream_rl.modules.isodream_v2.encoder import IMAGE_SHAPE, BranchedEncoder, check_pixel_values, check_pixels
-from isodream_rl.modules.fast_paths import FastConvDecoder, FusedMaskComposition, fast_filter_window
+from isodream_rl.modules.isodream_v2.encoder import BranchedEncoder
+from isodream_rl.modules.isodream_v2.fast_paths import FastConvDecoder, fast_filter_window
 from isodream_rl.modules.isodream_v2.heads import make_discount_head, make_reward_head
-from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
 from isodream_rl.modules.isodream_v2.rssm import ActionConditionedRSSM, ActionFreeRSSM, filter_window
+from isodream_rl.modules.pixels import IMAGE_SHAPE, check_pixel_values, check_pixels
 
 
 def _next(key: str) -> tuple[str, str]:
@@ -58,7 +60,7 @@ class IsoDreamV2WorldModel(TensorDictModuleBase):
 
     ``config.fast_paths`` picks, once, how the decoders, the composition and the filter are computed: the CPU
     fast paths of :mod:`~isodream_rl.modules.fast_paths` (``True``) or the reference forms (``False``:
-    :class:`~isodream_rl.modules.isodream_v2.decoder.ConvDecoder`, :class:`~isodream_rl.modules.isodream_v2.composition.MaskComposition`,
+    :class:`~isodream_rl.modules.isodream_v2.decoder.ConvDecoder`, :class:`~isodream_rl.modules.composition.MaskComposition`,
     :func:`~isodream_rl.modules.isodream_v2.rssm.filter_window`). Both have the same parameters and state dict and give the
     same values and gradients within float tolerance.
 

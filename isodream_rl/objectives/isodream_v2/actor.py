@@ -65,9 +65,9 @@ class IsoDreamV2ActorLoss(LossModule):
     parameter group; :meth:`parameter_groups` gives all three.
 
     Args:
-        actor: an :class:`~isodream_rl.modules.IsoDreamV2Actor`.
-        imagination: an :class:`~isodream_rl.objectives.IsoDreamV2Imagination`.
-        value_loss: the :class:`~isodream_rl.objectives.IsoDreamV2ValueLoss` owning the slow value target.
+        actor: an :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2Actor`.
+        imagination: an :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2Imagination`.
+        value_loss: the :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2ValueLoss` owning the slow value target.
         gamma: discount (0.99).
         lmbda: TD(lambda) parameter (0.95).
         entropy_bonus: ``eta`` (1e-4).

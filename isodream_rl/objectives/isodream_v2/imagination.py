@@ -21,8 +21,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import nn
 
-from isodream_rl.modules.isodream_v2.actor import IsoDreamV2Actor
 from isodream_rl.modules.attention import PolicyInput
+from isodream_rl.modules.isodream_v2.actor import IsoDreamV2Actor
 from isodream_rl.modules.isodream_v2.world_model import IsoDreamV2WorldModel
 
 ATTENTION_WINDOWS = ("start", "per_step")
@@ -47,7 +47,7 @@ class IsoDreamV2Imagination(nn.Module):
     """Imagined rollouts of length ``L`` from a batch of posterior states (Algorithm 1, lines 7-12).
 
     Args:
-        world_model: the trained :class:`~isodream_rl.modules.IsoDreamV2WorldModel` (its parameters are not
+        world_model: the trained :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel` (its parameters are not
             trained by the behavior losses).
         policy_input: the :class:`~isodream_rl.modules.PolicyInput` giving ``e_j``; its ``window`` is ``tau``.
         horizon: ``L`` (15).

@@ -19,7 +19,7 @@ class IsoDreamV2ValueLoss(LossModule):
 
     ``L_value = mean_{N, j} w_j * 0.5 * (v_xi(e_j) - sg(G^lambda_j))^2``, i.e. ``-log N(G; v, 1)`` up to a
     constant, with ``w_j`` the detached ``cumprod(gamma * continuation)`` weights. ``G^lambda_j`` and ``w_j``
-    come from :class:`~isodream_rl.objectives.IsoDreamV2ActorLoss`, which writes them into the imagined rollout,
+    come from :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2ActorLoss`, which writes them into the imagined rollout,
     and are aligned with the state they value: ``G_j`` is the return from ``s~_j`` (TorchRL's convention; the
     authors' code regresses on time-reversed targets).
 
@@ -32,8 +32,8 @@ class IsoDreamV2ValueLoss(LossModule):
     default).
 
     Args:
-        value_network: an :class:`~isodream_rl.modules.IsoDreamV2Value`.
-        imagination: the :class:`~isodream_rl.objectives.IsoDreamV2Imagination` whose rollouts are regressed;
+        value_network: an :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2Value`.
+        imagination: the :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2Imagination` whose rollouts are regressed;
             its policy input is registered here (trained by this loss), its world model is not.
     """
 

@@ -12,8 +12,8 @@ from torch import nn
 from torch.nn import functional as F
 from torchrl.objectives import LossModule
 
-from isodream_rl.modules.isodream_v2.encoder import preprocess_pixels
 from isodream_rl.modules.isodream_v2.world_model import IsoDreamV2WorldModel
+from isodream_rl.modules.pixels import preprocess_pixels
 from isodream_rl.objectives.inverse_dynamics import InverseDynamicsLoss
 from isodream_rl.objectives.isodream_v2.kl import balanced_kl
 
@@ -51,7 +51,7 @@ class IsoDreamV2ModelLoss(LossModule):
     The ``lambda_*`` weights default to :data:`LOSS_WEIGHTS`.
 
     Args:
-        world_model: an :class:`~isodream_rl.modules.IsoDreamV2WorldModel`.
+        world_model: an :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel`.
         lambda_reco: weight of the image log-loss.
         lambda_reward: weight of the reward log-loss (2 in the authors' DMC and CARLA configs).
         lambda_discount: weight of the discount log-loss (used only with a discount head).
@@ -70,7 +70,7 @@ class IsoDreamV2ModelLoss(LossModule):
             and the target ``o``, both ``[B, T, 3, 64, 64]`` in the ``[-0.5, 0.5]`` range, and returning a
             mapping of ``loss_*`` scalars.
 
-    Inputs are checked at the world model's boundary (:class:`~isodream_rl.modules.IsoDreamV2WorldModel`,
+    Inputs are checked at the world model's boundary (:class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel`,
     ``check_inputs``): float pixels outside ``[0, 1]``, NaN/inf pixels or actions, a missing ``is_init`` and
     windows shorter than 2 steps raise a ``ValueError``; ``IsoDreamV2WorldModel(..., check_inputs=False)`` skips
     these checks.
