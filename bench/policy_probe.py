@@ -78,9 +78,9 @@ from isodream_rl.envs import make_env
 from isodream_rl.objectives.isodream_v2 import lambda_returns
 from isodream_rl.objectives.isodream_v2.imagination import policy_features
 from isodream_rl.run_utils.checkpoint import CheckpointManager
+from isodream_rl.trainers.learners import ISODREAM_ALGOS
 from isodream_rl.trainers.registry import make_components
 from isodream_rl.trainers.saved_models import saved_run_config
-from isodream_rl.trainers.world_model_config import ISODREAM_ALGOS
 
 #: an imagined step whose predicted reward exceeds this counts as a reach: a real reach step earns 1 plus its
 #: progress, the progress term alone at most about 0.71 (a full-speed diagonal step), so 0.7 would count those

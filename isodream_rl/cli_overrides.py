@@ -8,7 +8,7 @@ word: the run trains with the default and ignores the key. :func:`check_override
 - a key under the schema (:class:`~isodream_rl.trainers.config.RunConfig`) that is no setting, with or without
   ``+``/``++``, naming the closest setting and the valid ones;
 - a group option that does not exist, naming the closest and the valid ones (a former ``algo`` name, its new one:
-  :data:`~isodream_rl.trainers.config.RENAMED_ALGOS`);
+  :data:`~isodream_rl.trainers.renames.RENAMED_ALGOS`);
 - whatever else composing the configuration as Hydra will refuses (a value of the wrong type), in one line;
 - a flag that is none of Hydra's (``--steps 300``: Hydra prints its usage block), naming the flag and the closest
   setting.
@@ -31,7 +31,8 @@ from hydra.core.override_parser.types import OverrideType
 from hydra.errors import HydraException, MissingConfigException
 from omegaconf.errors import OmegaConfBaseException
 
-from isodream_rl.trainers.config import ConfigError, RunConfig, renamed_algo_error
+from isodream_rl.trainers.config import ConfigError, RunConfig
+from isodream_rl.trainers.renames import renamed_algo_error
 from isodream_rl.user_errors import DEBUG_FLAG
 
 CONFIGS = Path(__file__).parent / "configs"

@@ -10,12 +10,10 @@ it builds and to train; how it learns and recovers, with and without its loc pen
 """
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.objectives import DreamerV3ActorLoss
 from torchrl.trainers.algorithms import DreamerV3Optimizer
@@ -28,21 +26,21 @@ from isodream_rl.objectives.isodream import make_isodream
 from isodream_rl.objectives.isodream_v2 import IsoDreamV2ActorLoss
 from isodream_rl.trainers import RunConfig
 from isodream_rl.trainers.exact_model import exact_model_learner, train_behavior_on_exact_model
-from isodream_rl.trainers.world_model_config import ISODREAM_ALGOS
+from isodream_rl.trainers.learners import ISODREAM_ALGOS, resolved
 
 #: start states per update: a quarter of the bench's B * T = 512, so that the two learning tests take about 2.5
 #: minutes of one core (DreamerV3's learner: about 0.14 s per update)
 BATCH = 128
-SPRITES_GROUP = Path(__file__).resolve().parents[1] / "isodream_rl" / "configs" / "domain" / "sprites.yaml"
 
 
 def bench_behavior_config(algo: str = "isodream") -> RunConfig:
     """The learning bench's behavior (``size=bench``: 128-unit actor and value, horizon 15) of ``algo`` at the
-    library's defaults for sprites (``domain=sprites``, which ``env=sprites`` picks, sets the discount 0.9, which
-    DreamerV3's learner does not read), on ``[s, h]`` (the exact model has no noncontrollable branch)."""
+    library's defaults for sprites (``env.domain=sprites``, which ``env=sprites`` picks: the DreamerV2-style
+    learner's table has the discount 0.9 there, which DreamerV3's learner does not read), on ``[s, h]`` (the exact
+    model has no noncontrollable branch)."""
     cfg = RunConfig()
     cfg.algo.name = algo
-    cfg.algo.gamma = OmegaConf.load(SPRITES_GROUP).algo.gamma
+    cfg.env.domain = "sprites"
     cfg.algo.policy_input = "controllable"
     cfg.model.actor_units = cfg.model.value_units = 128
     cfg.train.threads = 1
@@ -164,7 +162,8 @@ def test_the_exact_model_trains_the_learner_of_the_runs_algo(algo):
         assert isinstance(learner.actor_loss, DreamerV3ActorLoss) and learner.grad_clip == math.inf
         assert all(isinstance(opt, DreamerV3Optimizer) for opt in learner.optimizers.values())
         return
-    actor_loss = learner.actor_loss
+    actor_loss, cfg = learner.actor_loss, resolved(cfg)
+    assert cfg.algo.gamma == 0.9  # the sprites domain's
     assert isinstance(actor_loss, IsoDreamV2ActorLoss) and learner.grad_clip == cfg.train.grad_clip
     assert (actor_loss.loc_penalty, actor_loss.gamma) == (cfg.algo.actor_loc_penalty, cfg.algo.gamma)
     for name, lr in (("actor", cfg.train.actor_lr), ("value", cfg.train.value_lr)):

@@ -50,8 +50,8 @@ from isodream_rl.trainers import (
     CheckpointError,
     CheckpointManager,
     ConfigError,
+    IsoDreamV2Components,
     NonFiniteLossError,
-    RunComponents,
     RunConfig,
     evaluate_checkpoint,
     train,
@@ -144,14 +144,14 @@ class Lineage:
             self.after[step] = [self.update(components) for _ in range(2)]
         self.live = components
 
-    def components(self, scratch: Path) -> RunComponents:
-        return RunComponents(self.cfg, action_dim=A, scratch_dir=scratch)
+    def components(self, scratch: Path) -> IsoDreamV2Components:
+        return IsoDreamV2Components(self.cfg, action_dim=A, scratch_dir=scratch)
 
-    def state(self, components: RunComponents) -> dict:
+    def state(self, components: IsoDreamV2Components) -> dict:
         return components.state(self.cfg, env_steps=0, trainer=None)
 
     @staticmethod
-    def update(components: RunComponents) -> float:
+    def update(components: IsoDreamV2Components) -> float:
         return float(components.stepper.step(None, components.replay_buffer.sample())["loss_model_reco"])
 
     def continue_from(self, tmp_path: Path, name: str = "scratch_b") -> tuple[Path, list[float]]:
@@ -1198,10 +1198,10 @@ def test_weights_of_other_widths_are_named_in_one_line(tmp_path, said):
     load_state_dict's size mismatches) | refused: one line naming the checkpoint, the model, a few keys with both
     shapes, and that the run's algo and model settings must be the saved ones"""
     cfg = tiny_run(tmp_path / "a")
-    state = RunComponents(cfg, action_dim=A, scratch_dir=tmp_path / "scratch_a").state(
+    state = IsoDreamV2Components(cfg, action_dim=A, scratch_dir=tmp_path / "scratch_a").state(
         cfg, env_steps=0, trainer=None
     )
-    narrow = RunComponents(
+    narrow = IsoDreamV2Components(
         tiny_run(tmp_path / "b", model__actor_units=8), action_dim=A, scratch_dir=tmp_path / "b"
     )
     with pytest.raises(CheckpointMismatchError) as error:

@@ -65,11 +65,13 @@ from isodream_rl.modules.carried_state import CarriedStatePolicy
 from isodream_rl.objectives.imagination_env import latent_dreamer_env
 from isodream_rl.trainers.builders import make_adam
 from isodream_rl.trainers.config import RunConfig
+from isodream_rl.trainers.learners import model_fields_read, resolved
 from isodream_rl.trainers.registry import register_algorithm
 from isodream_rl.trainers.stepper import ZeroStateStepper
 
-#: The size-preset fields this baseline reads (``SIZE_PRESETS`` merged with the ``model.<field>`` settings).
-SIZE_KEYS = ("depth", "state_dim", "belief_dim", "hidden_dim", "units")
+#: The size-preset fields this baseline reads (``SIZE_PRESETS`` merged with the ``model.<field>`` settings), from
+#: its settings table.
+SIZE_KEYS = tuple(name for name in model_fields_read("torchrl_dreamer") if name != "precision")
 #: Std of the acting policy's additive Gaussian noise (TorchRL's example: ``networks.exploration_noise``).
 EXPLORATION_NOISE = 0.3
 
@@ -79,7 +81,7 @@ _SAMPLING = (None, ExplorationType.RANDOM)
 def dreamer_sizes(cfg: RunConfig) -> dict[str, int]:
     """Widths of the run's size preset, the ``model.<field>`` settings applied: ``depth`` (TorchRL's ``channels``),
     ``state_dim``, ``belief_dim`` (``rnn_hidden_dim``), ``hidden_dim``, ``units`` (reward MLP)."""
-    return preset_widths(cfg, SIZE_KEYS, algo="torchrl_dreamer")
+    return preset_widths(cfg, SIZE_KEYS)
 
 
 # ---------------------------------------------------------------------------------------------- world model
@@ -654,6 +656,7 @@ class TorchRLDreamerComponents(BaselineComponents):
         scratch_dir: Path,
         exploration_noise: float = EXPLORATION_NOISE,
     ) -> None:
+        cfg = resolved(cfg)
         train, algo, model = cfg.train, cfg.algo, cfg.model
         sizes = dreamer_sizes(cfg)
         precision = model.precision or "fp32"

@@ -4,7 +4,7 @@
 its latent state is the true simulator state (agent and target positions, in units of the frame side), its
 controllable prior is the env's step (move by ``agent_speed * action``, clamp at the walls, the progress
 reward, ``+reach_reward`` and a new target at least 6 radii away on a reach) and its reward head reads the
-reward of that step. Trained on it, the actor, value and losses of :func:`~isodream_rl.trainers.builders.make_behavior`
+reward of that step. Trained on it, the actor, value and losses of :func:`~isodream_rl.trainers.isodream_v2.make_behavior`
 face no model error at all, so what they learn is what the behavior learner can learn; an optional reward error
 (``reward_error`` per unit action along one fixed direction, for the first ``error_updates`` updates) is the
 young world model's systematic mistake, to check that the learner recovers once the model is right.

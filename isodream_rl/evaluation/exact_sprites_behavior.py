@@ -27,6 +27,7 @@ from torchrl.modules import WorldModelWrapper
 from isodream_rl.evaluation.exact_sprites import ExactSpritesModel
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings
 from isodream_rl.modules.isodream.behavior import make_actor, make_value
+from isodream_rl.modules.isodream.settings import ISODREAM_SETTINGS
 from isodream_rl.objectives.dreamer_v3_behavior import DreamerV3Behavior, make_dreamer_v3_behavior
 from isodream_rl.objectives.imagination_env import latent_dreamer_env
 
@@ -53,13 +54,13 @@ class ExactModelConfig:
 
     action_dim: int
     control: ExactWidths
-    settings: DreamerV3Settings = DreamerV3Settings()
+    settings: DreamerV3Settings = ISODREAM_SETTINGS
     free_branch: bool = False
     free: ExactWidths = field(default_factory=lambda: ExactWidths(0, 0))
 
     @classmethod
     def of(
-        cls, model: ExactSpritesModel, settings: DreamerV3Settings = DreamerV3Settings()
+        cls, model: ExactSpritesModel, settings: DreamerV3Settings = ISODREAM_SETTINGS
     ) -> ExactModelConfig:
         cfg = model.config
         return cls(
@@ -119,7 +120,7 @@ def exact_imagination_env(model: ExactSpritesModel, *, device=None) -> DreamerEn
     )
 
 
-def exact_continuation(settings: DreamerV3Settings = DreamerV3Settings()) -> TensorDictModule:
+def exact_continuation(settings: DreamerV3Settings = ISODREAM_SETTINGS) -> TensorDictModule:
     """The exact continuation of a task that never terminates: ``1 - 1 / settings.continuation_horizon``, what
     DreamerV3's continuation head learns on non-terminal steps (module docstring)."""
     return TensorDictModule(
@@ -148,7 +149,7 @@ def make_exact_model_behavior(
     actor_units: int = 128,
     value_units: int = 128,
     horizon: int = 15,
-    settings: DreamerV3Settings = DreamerV3Settings(),
+    settings: DreamerV3Settings = ISODREAM_SETTINGS,
 ) -> ExactModelBehavior:
     """``algo=isodream``'s actor, critic and losses on the exact model (module docstring).
 

@@ -38,7 +38,7 @@ def make_dreamer_v3_behavior(
     *,
     continuation: TensorDictModuleBase,
     horizon: int = 15,
-    settings: DreamerV3Settings = DreamerV3Settings(),
+    settings: DreamerV3Settings,
 ) -> DreamerV3Behavior:
     """``DreamerV3ActorLoss`` + ``DreamerV3ValueLoss`` + ``SoftUpdate`` with DreamerV3's settings (module docstring).
 
@@ -86,7 +86,7 @@ def make_dreamer_v3_loss(
     model_loss: DreamerV3ModelLoss,
     behavior: DreamerV3Behavior,
     *,
-    settings: DreamerV3Settings = DreamerV3Settings(),
+    settings: DreamerV3Settings,
 ) -> DreamerV3Loss:
     """``DreamerV3Loss`` over a world-model loss and :func:`make_dreamer_v3_behavior`'s losses: the world model,
     imagination from every posterior, actor, critic, and the critic on the replayed posteriors (weight
@@ -101,7 +101,7 @@ def make_dreamer_v3_loss(
     )
 
 
-def dreamer_v3_model_loss_settings(settings: DreamerV3Settings = DreamerV3Settings()) -> dict:
+def dreamer_v3_model_loss_settings(settings: DreamerV3Settings) -> dict:
     """``DreamerV3ModelLoss``'s keyword arguments as TorchRL's reproduction configures it for pixels: separate
     dynamics and representation KL, squared error on ``pixels / 255`` (no symlog), two-hot reward, continuation
     trained to ``1 - 1 / continuation_horizon``; the output keeps its graph for the replay-value term."""

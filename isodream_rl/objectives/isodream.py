@@ -30,6 +30,7 @@ from torchrl.objectives.utils import SoftUpdate
 
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings, continuation_probability
 from isodream_rl.modules.isodream.behavior import IsoDreamPolicy, make_actor, make_value
+from isodream_rl.modules.isodream.settings import ISODREAM_SETTINGS
 from isodream_rl.modules.isodream.world_model import IsoDreamConfig, IsoDreamWorldModel
 from isodream_rl.objectives.dreamer_v3_behavior import (
     dreamer_v3_model_loss_settings,
@@ -38,7 +39,6 @@ from isodream_rl.objectives.dreamer_v3_behavior import (
 )
 from isodream_rl.objectives.imagination_env import latent_dreamer_env
 from isodream_rl.objectives.inverse_dynamics import InverseDynamicsLoss
-from isodream_rl.objectives.isodream_v2.world_model import LOSS_WEIGHTS
 
 
 class IsoDreamModelLoss(DreamerV3ModelLoss):
@@ -52,9 +52,10 @@ class IsoDreamModelLoss(DreamerV3ModelLoss):
 
     Args:
         world_model: the :class:`~isodream_rl.modules.isodream.world_model.IsoDreamWorldModel`.
-        lambda_inverse: weight of the inverse-dynamics term (``alpha`` of eq. 5; the library's default from
-            ``LOSS_WEIGHTS``, on the same per-frame squared-error scale as the image term).
-        settings: DreamerV3's settings.
+        lambda_inverse: weight of the inverse-dynamics term (``alpha`` of eq. 5; the default learner's, from
+            :data:`~isodream_rl.modules.isodream.settings.ISODREAM_SETTINGS`, on the same per-frame squared-error
+            scale as the image term).
+        settings: DreamerV3's settings (the default learner's table).
 
     Returns (``forward``):
         ``(losses, tensordict)``: ``loss_model_reco``, ``loss_model_reward``, ``loss_model_dynamic``,
@@ -66,8 +67,8 @@ class IsoDreamModelLoss(DreamerV3ModelLoss):
         self,
         world_model: IsoDreamWorldModel,
         *,
-        lambda_inverse: float = LOSS_WEIGHTS["lambda_inverse"],
-        settings: DreamerV3Settings = DreamerV3Settings(),
+        lambda_inverse: float = ISODREAM_SETTINGS.lambda_inverse,
+        settings: DreamerV3Settings = ISODREAM_SETTINGS,
     ) -> None:
         super().__init__(world_model, **dreamer_v3_model_loss_settings(settings))
         self.inverse_loss = (
@@ -197,7 +198,7 @@ def make_isodream(
     actor_units: int = 128,
     value_units: int = 128,
     horizon: int = 15,
-    lambda_inverse: float = LOSS_WEIGHTS["lambda_inverse"],
+    lambda_inverse: float = ISODREAM_SETTINGS.lambda_inverse,
     device: str | torch.device = "cpu",
 ) -> IsoDreamLearner:
     """Iso-Dream's world model, actor and critic composed with TorchRL's DreamerV3 losses (module docstring).

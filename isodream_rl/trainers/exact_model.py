@@ -5,8 +5,8 @@ exact model of sprites ``reach`` and trains it as a real run does, optionally wi
 reward error:
 
 - the DreamerV2-style learner (``algo=isodream_v2``, ``isodream_paper``, ``dreamerv2``: every ``algo`` not in
-  :data:`~isodream_rl.trainers.world_model_config.ISODREAM_ALGOS`):
-  :func:`~isodream_rl.trainers.builders.make_behavior` (the actor, value, losses and their settings, as a real run has them), trained the way
+  :data:`~isodream_rl.trainers.learners.ISODREAM_ALGOS`):
+  :func:`~isodream_rl.trainers.isodream_v2.make_behavior` (the actor, value, losses and their settings, as a real run has them), trained the way
   :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` does after its world-model step;
 - ``algo=isodream`` (the default) and its ablations, DreamerV3's learner:
   :func:`~isodream_rl.evaluation.exact_sprites_behavior.make_exact_model_behavior`
@@ -37,11 +37,13 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from isodream_rl.evaluation.exact_sprites import ExactSpritesModel, reference_returns
 from isodream_rl.evaluation.exact_sprites_behavior import make_exact_model_behavior
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings
-from isodream_rl.trainers.builders import make_adam, make_behavior
+from isodream_rl.modules.isodream.settings import ISODREAM_SETTINGS
+from isodream_rl.trainers.builders import make_adam
 from isodream_rl.trainers.config import RunConfig
 from isodream_rl.trainers.dreamer_v3 import make_dreamer_v3_optimizers
+from isodream_rl.trainers.isodream_v2 import make_behavior
+from isodream_rl.trainers.learners import ISODREAM_ALGOS, resolved
 from isodream_rl.trainers.stepper import loss_sum
-from isodream_rl.trainers.world_model_config import ISODREAM_ALGOS
 
 
 @dataclass
@@ -89,7 +91,7 @@ def train_behavior_on_exact_model(
     the sum of their losses, then the slow value target, as the run's stepper does after its world-model step:
     Adam clipped at ``cfg.train.grad_clip`` and the hard copy every ``algo.slow_target_every`` updates
     (:class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper`), or with ``cfg.algo.name`` in
-    :data:`~isodream_rl.trainers.world_model_config.ISODREAM_ALGOS` (``algo=isodream``, the default, and its
+    :data:`~isodream_rl.trainers.learners.ISODREAM_ALGOS` (``algo=isodream``, the default, and its
     ablations) DreamerV3's optimisers (adaptive clipping, learning-rate warm-up) and the slow critic's
     ``SoftUpdate`` (:class:`~isodream_rl.trainers.dreamer_v3.DreamerV3OptimizationStepper`; module docstring).
     For the first ``error_updates`` updates the model's reward carries ``reward_error`` along
@@ -193,16 +195,17 @@ def exact_model_learner(
     cfg: RunConfig, model: ExactSpritesModel, *, settings: DreamerV3Settings | None = None
 ) -> ExactModelLearner:
     """The behavior learner of ``cfg.algo.name`` on ``model`` (module docstring): DreamerV3's for ``algo=isodream``
-    and its ablations (:data:`~isodream_rl.trainers.world_model_config.ISODREAM_ALGOS`; ``settings``:
+    and its ablations (:data:`~isodream_rl.trainers.learners.ISODREAM_ALGOS`; ``settings``:
     DreamerV3's, ``None`` for the library's), the DreamerV2-style one for every other name."""
     if cfg.algo.name in ISODREAM_ALGOS:
-        return _dreamer_v3_learner(cfg, model, settings or DreamerV3Settings())
+        return _dreamer_v3_learner(cfg, model, settings or ISODREAM_SETTINGS)
     return _dreamer_v2_learner(cfg, model)
 
 
 def _dreamer_v2_learner(cfg: RunConfig, model: ExactSpritesModel) -> ExactModelLearner:
     """The run's DreamerV2-style behavior (``make_behavior``), Adam per group clipped at ``train.grad_clip``, the
     actor's mode as the policy."""
+    cfg = resolved(cfg)
     behavior = make_behavior(cfg, model)
     actor_loss, value_loss = behavior.actor_loss, behavior.value_loss
     actor = actor_loss.actor

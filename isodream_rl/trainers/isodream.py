@@ -4,11 +4,12 @@
 The world model, actor and critic of :func:`~isodream_rl.objectives.isodream.make_isodream`, one
 ``DreamerV3Optimizer`` per parameter group (:func:`~isodream_rl.trainers.dreamer_v3.make_dreamer_v3_optimizers`)
 and the DreamerV3 update (:class:`~isodream_rl.trainers.dreamer_v3.DreamerV3OptimizationStepper`), both shared with
-``algo=torchrl_dreamer_v3``; the replay side is every run's.
+``algo=torchrl_dreamer_v3``; the replay side is every run's. Its settings are one table,
+:data:`~isodream_rl.modules.isodream.settings.ISODREAM_SETTINGS`.
 
 Widths. DreamerV3's size rule per branch (``hidden``; ``deter = 8 hidden``; categoricals of ``hidden / 16``
-classes): the controllable branch at ``hidden = HIDDEN_PER_HIDDEN_DIM x`` the size preset's ``hidden_dim`` (a multiple
-of 8) with 32 categoricals, the action-free branch at :data:`FREE_HIDDEN_FRACTION` of that with as many fewer
+classes): the controllable branch at ``hidden = hidden_per_hidden_dim x`` the size preset's ``hidden_dim`` (a
+multiple of 8) with 32 categoricals, the action-free branch at ``free_hidden_fraction`` of that with as many fewer
 categoricals (the same classes, so that both branches' logits stack for the KL terms); an image depth of
 ``hidden_dim / 8`` for the encoder and each of the three decoders. At ``size=bench``: ``hidden`` 80 and 40, image
 depth 8, a 1.58 M-parameter world model, where ``algo=torchrl_dreamer_v3`` has one branch of ``hidden`` 120, image
@@ -18,10 +19,10 @@ What it reads of the run configuration: ``model.size`` (``hidden_dim``), ``model
 ``value_units`` / ``attention_dim``; ``algo.free_branch`` / ``static_branch`` / ``inverse_dynamics`` (the branch
 switches), ``algo.reward_uses_free``, ``algo.policy_input``, ``algo.attention_window`` (tau), ``algo.horizon``
 (L), ``algo.lambda_inverse``; ``train.world_model_lr`` / ``actor_lr`` / ``value_lr``, ``world_model_warmup``,
-``max_nonfinite_updates``, ``sequence_length``, ``device``. DreamerV3's own settings
-(:class:`~isodream_rl.modules.dreamer_v3.DreamerV3Settings`) replace ``algo.gamma`` (the continuation head's
-``1 - 1/333`` discounts), ``algo.lmbda``, ``algo.actor_entropy``, ``algo.free_nats``, ``algo.kl_balance``,
-``algo.slow_target_every``, ``algo.lambda_reward`` and ``train.grad_clip`` / ``adam_eps``, which it does not read.
+``lr_warmup``, ``max_nonfinite_updates``, ``sequence_length``, ``device``. The DreamerV2-style learner's settings
+(``algo.gamma``: the continuation head's ``1 - 1/333`` discounts here; ``algo.lmbda``, ``actor_entropy``,
+``free_nats``, ``kl_balance``, ``slow_target_every``, ``lambda_reward``, ``train.grad_clip``, ``adam_eps``...) are
+refused (:func:`~isodream_rl.trainers.learners.unread_setting_errors`).
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from pathlib import Path
 
 from torch import nn
 
-from isodream_rl.modules.dreamer_v3 import DreamerV3Settings
+from isodream_rl.modules.isodream.settings import ISODREAM_SETTINGS, IsoDreamSettings
 from isodream_rl.modules.isodream.world_model import IsoDreamConfig
 from isodream_rl.modules.sizes import SIZE_PRESETS
 from isodream_rl.objectives.isodream import IsoDreamLearner, make_isodream
@@ -38,14 +39,9 @@ from isodream_rl.trainers.components import RunComponents, make_replay_parts
 from isodream_rl.trainers.config import ConfigError, RunConfig
 from isodream_rl.trainers.dreamer_v3 import dreamer_v3_checkpoint_modules, make_dreamer_v3_stepper
 
-#: ``hidden`` of the controllable branch per unit of the size preset's ``hidden_dim``.
-HIDDEN_PER_HIDDEN_DIM = 1.25
-#: ``hidden`` of the action-free branch per unit of the controllable branch's.
-FREE_HIDDEN_FRACTION = 0.5
-
 
 def isodream_config(
-    cfg: RunConfig, *, action_dim: int, settings: DreamerV3Settings = DreamerV3Settings()
+    cfg: RunConfig, *, action_dim: int, settings: IsoDreamSettings = ISODREAM_SETTINGS
 ) -> IsoDreamConfig:
     """The world model's :class:`~isodream_rl.modules.isodream.world_model.IsoDreamConfig` for ``cfg``.
 
@@ -61,8 +57,8 @@ def isodream_config(
             f"pieces autocast on CUDA only), got model.precision={precision!r}: drop the override"
         )
     hidden_dim = cfg.model.hidden_dim or SIZE_PRESETS[cfg.model.size]["hidden_dim"]
-    hidden = 8 * max(1, round(HIDDEN_PER_HIDDEN_DIM * hidden_dim / 8))
-    free_hidden = 8 * max(1, round(FREE_HIDDEN_FRACTION * hidden / 8))
+    hidden = 8 * max(1, round(settings.hidden_per_hidden_dim * hidden_dim / 8))
+    free_hidden = 8 * max(1, round(settings.free_hidden_fraction * hidden / 8))
     algo = cfg.algo
     return IsoDreamConfig(
         action_dim=action_dim,
@@ -89,7 +85,8 @@ class IsoDreamComponents(RunComponents):
         cfg: the run configuration.
         action_dim: width of the env's action.
         scratch_dir: folder of the replay buffer's memmap files.
-        settings: DreamerV3's settings. Defaults to TorchRL's reproduction's.
+        settings: the learner's settings. Defaults to its table,
+            :data:`~isodream_rl.modules.isodream.settings.ISODREAM_SETTINGS`.
 
     Attributes:
         learner (:class:`~isodream_rl.objectives.isodream.IsoDreamLearner`), model_loss, world_model,
@@ -102,7 +99,7 @@ class IsoDreamComponents(RunComponents):
         *,
         action_dim: int,
         scratch_dir: Path,
-        settings: DreamerV3Settings = DreamerV3Settings(),
+        settings: IsoDreamSettings = ISODREAM_SETTINGS,
     ) -> None:
         train, model = cfg.train, cfg.model
         self.algo = cfg.algo.name
@@ -114,7 +111,9 @@ class IsoDreamComponents(RunComponents):
             actor_units=model.actor_units,
             value_units=model.value_units,
             horizon=cfg.algo.horizon,
-            lambda_inverse=cfg.algo.lambda_inverse,
+            lambda_inverse=settings.lambda_inverse
+            if cfg.algo.lambda_inverse is None
+            else cfg.algo.lambda_inverse,
             device=train.device,
         )
         self.model_loss = self.learner.model_loss

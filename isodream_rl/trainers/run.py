@@ -31,6 +31,7 @@ from isodream_rl.trainers.config import (
 )
 from isodream_rl.trainers.evaluation import Evaluation, learning_summary, run_episodes, save_episode_gif
 from isodream_rl.trainers.hooks import Throughput
+from isodream_rl.trainers.learners import TORCHRL_BASELINES
 from isodream_rl.trainers.registry import make_components
 from isodream_rl.trainers.run_dir import hold_run_dir, resuming, write_run_config
 from isodream_rl.trainers.run_lifecycle import (
@@ -45,7 +46,6 @@ from isodream_rl.trainers.run_lifecycle import (
     write_summary,
 )
 from isodream_rl.trainers.saved_models import saved_run_config
-from isodream_rl.trainers.world_model_config import TORCHRL_BASELINES
 from isodream_rl.trainers.world_model_run import LatentProbe
 
 logger = logging.getLogger(__name__)

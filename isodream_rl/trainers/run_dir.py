@@ -39,7 +39,9 @@ from isodream_rl.modules.sizes import SIZE_PRESETS
 from isodream_rl.run_utils.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.run_utils.disk_space import DiskFullError
 from isodream_rl.run_utils.run_lock import RunDirBusyError, RunDirLock
-from isodream_rl.trainers.config import FORMER_DREAMER_V2_ALGOS, ConfigError, RunConfig, config_from_dict
+from isodream_rl.trainers.config import ConfigError, RunConfig, config_from_dict
+from isodream_rl.trainers.learners import resolved
+from isodream_rl.trainers.renames import resumes_former_run
 from isodream_rl.user_errors import debugging, exit_user_error, log_to_stderr, one_line
 
 #: the files and folders of a run (a folder holding one of them holds a run)
@@ -273,10 +275,11 @@ def _os_error(err: OSError, run_dir: Path, flags: RunFlags = TRAIN_FLAGS) -> Exc
 
 
 def write_run_config(cfg: RunConfig) -> Path:
-    """Write ``<run_dir>/run_config.json`` (the resolved configuration); the path."""
+    """Write ``<run_dir>/run_config.json`` (the configuration with the values its learner reads,
+    :func:`~isodream_rl.trainers.learners.resolved`); the path."""
     path = Path(cfg.run_dir) / "run_config.json"
     tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
+    tmp.write_text(json.dumps(dataclasses.asdict(resolved(cfg)), indent=2))
     tmp.replace(path)
     return path
 
@@ -292,10 +295,10 @@ def _flat(tree: dict, prefix: str = "") -> dict[str, Any]:
 
 
 def _compared(cfg: RunConfig) -> dict[str, Any]:
-    """The flat settings of ``cfg`` as a resume compares them: the size preset as the widths it stands for, so a
-    run whose widths were written as ``model.<field>`` on another preset (``size=bench`` before it was one) is
-    the same run."""
-    tree = dataclasses.asdict(cfg)
+    """The flat settings of ``cfg`` as a resume compares them: the values its learner reads
+    (:func:`~isodream_rl.trainers.learners.resolved`), the size preset as the widths it stands for, so a run whose
+    widths were written as ``model.<field>`` on another preset (``size=bench`` before it was one) is the same run."""
+    tree = dataclasses.asdict(resolved(cfg))
     model = tree["model"]
     if model["size"] in SIZE_PRESETS:
         for name, width in SIZE_PRESETS[model.pop("size")].items():
@@ -307,20 +310,15 @@ def differing_settings(saved: dict, cfg: RunConfig) -> dict[str, tuple[Any, Any]
     """``{field: (saved, now)}`` for the settings outside :data:`RESUMABLE` where ``cfg`` differs from the
     configuration ``saved`` in a checkpoint (``dataclasses.asdict`` of a :class:`RunConfig`).
 
-    ``algo=isodream_v2`` continues a ``mode=rl`` run saved under a name of
-    :data:`~isodream_rl.trainers.config.FORMER_DREAMER_V2_ALGOS`: such a run may be one of the DreamerV2-style
-    learner, trained before that name became Iso-Dream on DreamerV3's learner, which only its weights tell; they are
-    checked when they load (:func:`~isodream_rl.trainers.saved_models.check_saved_models`), and the ``algo`` fields
-    that set the variant are compared as any other.
+    ``algo=isodream_v2`` continues a run saved under a name that changed learner
+    (:func:`~isodream_rl.trainers.renames.resumes_former_run`; its weights are checked when they load), read under
+    that name, and the ``algo`` fields that set the variant are compared as any other.
     """
-    before = _compared(config_from_dict(saved))
+    saved_cfg = config_from_dict(saved)
+    if resumes_former_run(saved_cfg.algo.name, cfg.algo.name, mode=saved_cfg.mode):
+        saved_cfg = config_from_dict({**saved, "algo": {**saved["algo"], "name": cfg.algo.name}})
+    before = _compared(saved_cfg)
     now = _compared(cfg)
-    if (
-        before["mode"] == "rl"
-        and before["algo.name"] in FORMER_DREAMER_V2_ALGOS
-        and now["algo.name"] == "isodream_v2"
-    ):
-        before["algo.name"] = now["algo.name"]
     return {
         key: (before.get(key), now.get(key))
         for key in sorted(before.keys() | now.keys())

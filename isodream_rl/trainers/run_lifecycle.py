@@ -28,6 +28,7 @@ from isodream_rl.run_utils.csv_logs import csv_log_sizes, cut_csv_logs
 from isodream_rl.trainers.builders import env_factory
 from isodream_rl.trainers.config import ConfigError, RunConfig
 from isodream_rl.trainers.hooks import PeriodicCheckpoint, StopOnSignal
+from isodream_rl.trainers.learners import resolved
 from isodream_rl.trainers.run_dir import check_same_run
 from isodream_rl.trainers.saved_models import CheckpointMismatchError
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
@@ -142,14 +143,15 @@ def run_state(
     hooks: dict,
     logs: Path | None = None,
 ) -> dict:
-    """What ``state.pt`` of a checkpoint of either mode holds (:data:`STATE_KEYS`): the config, the state of
+    """What ``state.pt`` of a checkpoint of either mode holds (:data:`STATE_KEYS`): the config (with the values its
+    learner reads, :func:`~isodream_rl.trainers.learners.resolved`), the state of
     each of ``models``, the stepper's (optimisers and update counts), ``counters``, the state of the ``hooks``
     that have one, the RNG states and, with ``logs``, the size of each CSV log (what a resume cuts them back
     to, :func:`restore_run_state`)."""
     if logs is not None:
         counters = {**counters, "log_sizes": csv_log_sizes(logs)}
     return {
-        "config": dataclasses.asdict(cfg),
+        "config": dataclasses.asdict(resolved(cfg)),
         "models": {name: module.state_dict() for name, module in models.items()},
         "stepper": stepper.state_dict(),
         "counters": counters,

@@ -53,10 +53,10 @@ from isodream_rl.trainers.builders import (
     close_logger,
     make_adam,
     make_logger,
-    make_world_model_config,
-    make_world_model_loss,
 )
 from isodream_rl.trainers.config import ConfigError, RunConfig
+from isodream_rl.trainers.isodream_v2 import make_world_model_config, make_world_model_loss
+from isodream_rl.trainers.learners import OTHER_WORLD_MODELS
 from isodream_rl.trainers.run_dir import resuming, write_run_config
 from isodream_rl.trainers.run_lifecycle import (
     RunResult,
@@ -70,7 +70,6 @@ from isodream_rl.trainers.run_lifecycle import (
 )
 from isodream_rl.trainers.saved_models import load_saved_models, saved_run_config
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
-from isodream_rl.trainers.world_model_config import OTHER_WORLD_MODELS
 
 logger = logging.getLogger(__name__)
 
@@ -174,7 +173,7 @@ def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDream
 
     Raises:
         CheckpointError: no readable checkpoint there, or one of another world model
-            (:data:`~isodream_rl.trainers.world_model_config.OTHER_WORLD_MODELS`: TorchRL's baselines, Iso-Dream on
+            (:data:`~isodream_rl.trainers.learners.OTHER_WORLD_MODELS`: TorchRL's baselines, Iso-Dream on
             DreamerV3's learner), or weights that do not fit the world model of its configuration
             (:class:`~isodream_rl.trainers.saved_models.CheckpointMismatchError`). An ``algo=isodream`` run saved
             when that name was the DreamerV2-style learner is read as ``algo=isodream_v2``

@@ -43,6 +43,7 @@ from torchrl.modules.models.model_based import _straight_through_categorical
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings, WindowInputCheck
 from isodream_rl.modules.fast_paths import FusedMaskComposition, use_fast_rms_norms
 from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
+from isodream_rl.modules.isodream.settings import ISODREAM_SETTINGS
 
 PIXELS = ("next", "pixels")
 #: Width of the constant zero action of the action-free prior.
@@ -121,8 +122,8 @@ class IsoDreamConfig:
     window's first step and episode starts, which have no previous posterior, draw from the posterior.
     ``"posterior"``: ``z_t ~ q(z_t | h'_t, o_t)`` at every step, as eq. 4's text (the frame it draws is in its
     input, so the agent can land in either dynamic branch)."""
-    settings: DreamerV3Settings = DreamerV3Settings()
-    """DreamerV3's settings (unimix, categoricals, bins, blocks)."""
+    settings: DreamerV3Settings = ISODREAM_SETTINGS
+    """DreamerV3's settings (unimix, categoricals, bins, blocks): the default learner's."""
 
     def __post_init__(self) -> None:
         if self.free_decodes not in FREE_DECODER_INPUTS:
