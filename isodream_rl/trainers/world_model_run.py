@@ -56,7 +56,7 @@ from isodream_rl.trainers.builders import (
 )
 from isodream_rl.trainers.config import ConfigError, RunConfig
 from isodream_rl.trainers.isodream_v2 import make_world_model_config, make_world_model_loss
-from isodream_rl.trainers.learners import OTHER_WORLD_MODELS
+from isodream_rl.trainers.learners import OTHER_WORLD_MODELS, resolved
 from isodream_rl.trainers.run_dir import resuming, write_run_config
 from isodream_rl.trainers.run_lifecycle import (
     RunResult,
@@ -395,6 +395,7 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
         NonFiniteLossError: too many NaN/inf updates in a row.
     """
     started = wall_clock()
+    cfg = resolved(cfg)
     _, run_dir, pictures, logs = begin_run(cfg)
     wm, train_cfg = cfg.world_model, cfg.train
     if probe is None and wm.probe_episodes and _is_sprites(cfg):
