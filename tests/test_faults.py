@@ -45,6 +45,7 @@ from isodream_rl.modules.isodream_v2 import IsoDreamV2Config, IsoDreamV2WorldMod
 from isodream_rl.objectives.isodream_v2 import IsoDreamV2ModelLoss
 from isodream_rl.run_utils import checkpoint as checkpoint_module
 from isodream_rl.run_utils.checkpoint import set_rng_state, write_manifest
+from isodream_rl.run_utils.run_folder import existing_run_files
 from isodream_rl.run_utils.run_lock import LOCK_FILE, lock_owner
 from isodream_rl.trainers import (
     CheckpointError,
@@ -58,7 +59,7 @@ from isodream_rl.trainers import (
 )
 from isodream_rl.trainers.config import config_from_dict
 from isodream_rl.trainers.hooks import ReplayPreparation
-from isodream_rl.trainers.run_dir import existing_run_files
+from isodream_rl.trainers.run_dir import RUN_FILES
 from isodream_rl.trainers.saved_models import CheckpointMismatchError
 from tests.conftest import tiny_run_config
 
@@ -778,7 +779,9 @@ def test_a_start_that_fails_leaves_no_run_and_the_corrected_command_starts(tmp_p
     monkeypatch.setattr(run_module, "make_components", broken)
     with pytest.raises(RuntimeError, match="injected build failure"):
         train(tiny_run(tmp_path / "run"))
-    assert existing_run_files(tmp_path / "run") == [] and not (tmp_path / "run" / LOCK_FILE).exists()
+    assert (
+        existing_run_files(tmp_path / "run", RUN_FILES) == [] and not (tmp_path / "run" / LOCK_FILE).exists()
+    )
     monkeypatch.undo()
     assert train(tiny_run(tmp_path / "run")).env_steps == 30
 

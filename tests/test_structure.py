@@ -18,11 +18,12 @@ ROOT = PACKAGE_DIR.name
 LAYERS: tuple[frozenset[str], ...] = (
     # process-wide helpers
     frozenset({"__init__", "process_settings", "user_errors", "run_utils"}),
-    frozenset({"envs", "data", "modules"}),
+    # video prediction stands on the data sets and the run utilities only, beside the RL side's lowest layer
+    frozenset({"envs", "data", "modules", "video_prediction"}),
     frozenset({"objectives"}),
     frozenset({"evaluation"}),
     frozenset({"trainers"}),
-    frozenset({"baselines", "video_prediction"}),
+    frozenset({"baselines"}),
     # the console entry points and their configuration
     frozenset({"cli", "cli_demo", "cli_overrides", "configs"}),
 )

@@ -17,9 +17,11 @@ from typing import Any
 from isodream_rl.modules.isodream_v2.config import DREAMERV2, PAPER_EXACT, IsoDreamV2Config
 from isodream_rl.modules.sizes import SIZE_PRESETS
 from isodream_rl.objectives.isodream_v2.world_model import FREE_BRANCH_MODES
+from isodream_rl.run_utils.device import device_error
 from isodream_rl.trainers.learners import WORLD_MODEL_FIELDS, resolved, unread_setting_errors
 from isodream_rl.trainers.renames import drop_unread_settings, renamed_algo_error, saved_algo_name
 from isodream_rl.trainers.world_model_config import MODES, WorldModelModeConfig, world_model_mode_errors
+from isodream_rl.user_errors import ConfigError
 
 POLICY_INPUTS = ("controllable", "attention", "concat")
 COLLECTOR_BACKENDS = ("sync", "multiprocess", "ray", "distributed")
@@ -44,10 +46,6 @@ ALGO_BRANCHES: dict[str, dict[str, bool]] = {
     "torchrl_dreamer_v3": DREAMERV2,
 }
 ALGO_NAMES = tuple(ALGO_BRANCHES)
-
-
-class ConfigError(ValueError):
-    """An invalid training configuration; the message names the field and what to change."""
 
 
 @dataclass
@@ -330,22 +328,6 @@ def _choice(errors: list[str], name: str, value, valid) -> None:
 def _positive(errors: list[str], name: str, value, minimum: int | float = 1) -> None:
     if value is not None and value < minimum:
         errors.append(f"{name}={value} must be >= {minimum}")
-
-
-def device_error(device: str, *, setting: str = "train.device") -> str | None:
-    """Why ``device`` cannot be used on this machine, or ``None``; the message names it as ``setting`` (the
-    config field or command-line flag the user gave it with) and says what to set instead."""
-    import torch
-
-    try:
-        kind = torch.device(device).type
-    except (RuntimeError, TypeError) as err:
-        return f"{setting}={device!r} is not a torch device ({err})"
-    if kind == "cuda" and not torch.cuda.is_available():
-        return f"{setting}={device!r} but this machine has no usable CUDA GPU: set {setting}=cpu"
-    if kind == "mps" and not torch.backends.mps.is_available():
-        return f"{setting}={device!r} but MPS is not available here: set {setting}=cpu"
-    return None
 
 
 def _name_errors(cfg: RunConfig) -> list[str]:

@@ -25,9 +25,10 @@ from torchrl.trainers import Trainer
 from isodream_rl.modules.pixels import check_pixel_values, check_pixels
 from isodream_rl.run_utils.checkpoint import CheckpointManager, rng_state, set_rng_state
 from isodream_rl.run_utils.csv_logs import csv_log_sizes, cut_csv_logs
+from isodream_rl.run_utils.signals import StopOnSignal
 from isodream_rl.trainers.builders import env_factory
 from isodream_rl.trainers.config import ConfigError, RunConfig
-from isodream_rl.trainers.hooks import PeriodicCheckpoint, StopOnSignal
+from isodream_rl.trainers.hooks import PeriodicCheckpoint
 from isodream_rl.trainers.learners import resolved
 from isodream_rl.trainers.run_dir import check_same_run
 from isodream_rl.trainers.saved_models import CheckpointMismatchError
@@ -202,7 +203,7 @@ def train_with_checkpoints(
     """The training loop of both modes: ``trainer.train()`` with a checkpoint every ``every_updates`` updates
     (:class:`~isodream_rl.trainers.hooks.PeriodicCheckpoint`, registered after the run's other hooks) and a
     last one when it ends; SIGINT/SIGTERM save a checkpoint and stop at the end of the batch
-    (:class:`~isodream_rl.trainers.hooks.StopOnSignal`).
+    (:class:`~isodream_rl.run_utils.signals.StopOnSignal`).
 
     Returns:
         the signal that stopped the run, or ``None`` if it ran to its end (or a hook stopped it).

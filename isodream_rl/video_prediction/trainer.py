@@ -2,7 +2,7 @@
 and the per-frame evaluation protocol (train 2 -> 10, test 2 -> 28 / 2 -> 18).
 
 The run folder (``--out-dir``) is held and claimed as ``isodream-train``'s is
-(:func:`~isodream_rl.trainers.run_dir.hold_folder`), and its checkpoints are ``isodream-train``'s
+(:func:`~isodream_rl.run_utils.run_folder.hold_folder`), and its checkpoints are ``isodream-train``'s
 (:class:`~isodream_rl.run_utils.checkpoint.CheckpointManager`: ``<out_dir>/checkpoints/step_<iteration>/``,
 written atomically with a verified manifest; an unreadable newest one falls back to the one before)."""
 
@@ -29,9 +29,9 @@ from isodream_rl.data import (
 )
 from isodream_rl.run_utils.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.run_utils.csv_logs import csv_log_sizes, cut_csv_logs
-from isodream_rl.trainers.config import device_error
-from isodream_rl.trainers.hooks import StopOnSignal
-from isodream_rl.trainers.run_dir import RunFlags, hold_folder, refuse_another_run
+from isodream_rl.run_utils.device import device_error
+from isodream_rl.run_utils.run_folder import RunFlags, hold_folder, refuse_another_run
+from isodream_rl.run_utils.signals import StopOnSignal
 from isodream_rl.video_prediction.config import PredictorConfig, variant_config
 from isodream_rl.video_prediction.metrics import FrameMetrics
 from isodream_rl.video_prediction.objective import VideoPredictionLoss
@@ -422,12 +422,12 @@ def train(
     and gives the same weights as an uninterrupted run; Adam's learning rate is constant, so ``iterations``
     may be raised on resume to train longer. The first SIGINT or SIGTERM ends the iteration under way, writes a
     checkpoint and returns without the final evaluation (a second one stops at once, as isodream-train's
-    :class:`~isodream_rl.trainers.hooks.StopOnSignal`).
+    :class:`~isodream_rl.run_utils.signals.StopOnSignal`).
 
     Writes ``<out_dir>/checkpoints/`` and TorchRL logger files under ``<out_dir>/logs``. An ``out_dir``
     holding another run is refused unless ``resume`` (continue it) or ``overwrite`` (delete it first), and it
     is held by this process while the run writes to it, as ``isodream-train`` does
-    (:func:`~isodream_rl.trainers.run_dir.hold_folder`); a resumed run cuts its CSV logs back to what they held
+    (:func:`~isodream_rl.run_utils.run_folder.hold_folder`); a resumed run cuts its CSV logs back to what they held
     at the checkpoint (:mod:`isodream_rl.run_utils.csv_logs`).
 
     Returns:
@@ -449,7 +449,7 @@ def train(
     torch.manual_seed(config.seed)
     train_set, test_set = build_split(config, "train"), build_split(config, "test")
     # held once the data are found
-    with hold_folder(out_dir, resume=resume, overwrite=overwrite, run_files=RUN_FILES, flags=FLAGS):
+    with hold_folder(out_dir, flags=FLAGS, resume=resume, overwrite=overwrite, run_files=RUN_FILES):
         return _train(config, train_set, test_set, progress=progress, resume=resume)
 
 
