@@ -45,7 +45,7 @@ def existing_run_files(run_dir: str | Path, run_files: Sequence[str]) -> list[st
     return [name for name in run_files if (run_dir / name).exists()]
 
 
-def refuseanother_run(
+def refuse_another_run(
     run_dir: str | Path,
     *,
     resume: bool,
@@ -95,7 +95,7 @@ def claim_folder(
     Raises:
         ConfigError: as :func:`refuse_another_run`; nothing is written or deleted then.
     """
-    found = refuseanother_run(run_dir, resume=resume, overwrite=overwrite, run_files=run_files, flags=flags)
+    found = refuse_another_run(run_dir, resume=resume, overwrite=overwrite, run_files=run_files, flags=flags)
     if not resume:
         for name in found:
             path = run_dir / name
@@ -105,6 +105,7 @@ def claim_folder(
 
 
 def another_run(run_dir: Path, found: list[str], flags: RunFlags) -> str:
+    """The refusal of ``run_dir``, which holds the run files ``found`` of another run, naming what to give instead."""
     return (
         f"{run_dir} holds another run ({', '.join(found)}): continue it with {flags.resume}, replace it with "
         f"{flags.overwrite}, or give another {flags.folder}"
