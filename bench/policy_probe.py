@@ -54,7 +54,7 @@ Two learners, by the run's ``algo.name`` (:func:`probe_learner`):
   REINFORCE there, so the model's pathwise action gradients are not what it follows. These results also carry
   ``algo`` and ``learner`` (``"dreamer_v3"``); the DreamerV2-style results are as they were.
 
-    python bench/policy_probe.py runs/ladder/R2_dv2 --json docs/results/ladder/policy_probe_R2_dv2.json
+    python bench/policy_probe.py runs/ladder/R2_dv2 --json docs/results/archive/ladder/policy_probe_R2_dv2.json
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ what a young world model lets it do: the default's learner (DreamerV3's, ``algo=
 recover once an early, systematic reward error of the model is gone (the lock-in that real runs show when their
 world model is still young). The DreamerV2-style learner (``algo=isodream_v2``) is checked to be the one a run of
 it builds and to train; how it learns and recovers, with and without its loc penalty, is
-``bench/exact_model.py --variants isodream_v2,paper``'s (``docs/results/exact_model.json``).
+``bench/exact_model.py --variants isodream_v2,paper``'s (``docs/results/exact_model_isodream_v2.json``).
 """
 
 import math
