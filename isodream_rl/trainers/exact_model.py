@@ -110,9 +110,9 @@ def train_behavior_on_exact_model(
         seed: seeds torch (the networks and the imagined actions) and the model's starts.
         model_kwargs: extra :class:`ExactSpritesModel` arguments (``sprite_size`` ...).
         progress: print one line per evaluation.
-        settings: DreamerV3's settings (``None``: the library's,
-            :class:`~isodream_rl.modules.dreamer_v3.DreamerV3Settings`); the DreamerV2-style learner does not read
-            them.
+        settings: DreamerV3's settings (``None``: the default learner's table,
+            :data:`~isodream_rl.modules.isodream.settings.ISODREAM_SETTINGS`); the DreamerV2-style learner does not
+            read them.
     """
     if cfg.algo.policy_input != "controllable":
         raise ValueError(
@@ -124,55 +124,74 @@ def train_behavior_on_exact_model(
         reward_error=reward_error, error_direction=error_direction, seed=seed, **(model_kwargs or {})
     )
     learner = exact_model_learner(cfg, model, settings=settings)
-    actor_loss, value_loss, optimizers = learner.actor_loss, learner.value_loss, learner.optimizers
     result = ExactModelResult()
     result.scripted_return, result.constant_return = reference_returns(model, episodes=eval_episodes)
-
-    def evaluate(step: int, metrics: TensorDict | None) -> None:
-        scores = model.episode_returns(learner.policy, episodes=eval_episodes)
-        result.updates.append(step)
-        result.returns.append(scores["return"])
-        result.reaches.append(scores["reaches"])
-        result.cosine.append(scores["cosine"])
-        if metrics is not None:
-            result.entropy.append(float(metrics["actor_entropy"]))
-            result.grad_norm_actor.append(float(metrics["grad_norm_actor"]))
-            result.mean_abs_action.append(float(metrics["mean_abs_action"]))
-        if progress:
-            print(
-                f"update {step}: return {scores['return']:.1f} (scripted {result.scripted_return:.1f}), "
-                f"cosine {scores['cosine']:.2f}, entropy {result.entropy[-1] if result.entropy else math.nan:.2f}",
-                flush=True,
-            )
-
     start_time = time.perf_counter()
-    evaluate(0, None)
+    _evaluate(result, model, learner, step=0, metrics=None, episodes=eval_episodes, progress=progress)
     for step in range(1, updates + 1):
         model.reward_error = reward_error if step <= error_updates else 0.0
-        state, belief = model.initial_state(batch)
-        start = TensorDict(dict(zip(learner.start_keys, (state, belief))), [batch])
-        actor_losses, imagined = actor_loss(start)
-        value_losses, _ = value_loss(imagined)
-        loss = loss_sum(actor_losses) + loss_sum(value_losses)
-        for opt in optimizers.values():
-            opt.zero_grad(set_to_none=True)
-        loss.backward()
-        norms = {
-            name: nn.utils.clip_grad_norm_(
-                [p for g in opt.param_groups for p in g["params"]], learner.grad_clip
-            )
-            for name, opt in optimizers.items()
-        }
-        for opt in optimizers.values():
-            opt.step()
-        learner.target_updater.step()
+        metrics = _update(learner, model, batch=batch)
         if step % eval_every == 0 or step == updates:
-            metrics = actor_losses.detach().clone()
-            metrics["grad_norm_actor"] = norms["actor"].detach()
-            metrics["mean_abs_action"] = imagined["action"].abs().mean()
-            evaluate(step, metrics)
+            _evaluate(
+                result, model, learner, step=step, metrics=metrics, episodes=eval_episodes, progress=progress
+            )
     result.wall_s = time.perf_counter() - start_time
     return result
+
+
+def _update(learner: ExactModelLearner, model: ExactSpritesModel, *, batch: int) -> TensorDict:
+    """One behavior update from ``batch`` random starts of ``model``: both losses backpropagated, each optimiser's
+    gradients clipped and stepped, the slow value updated; the actor loss's entries with the actor's gradient norm
+    and the mean absolute imagined action."""
+    state, belief = model.initial_state(batch)
+    start = TensorDict(dict(zip(learner.start_keys, (state, belief))), [batch])
+    actor_losses, imagined = learner.actor_loss(start)
+    value_losses, _ = learner.value_loss(imagined)
+    loss = loss_sum(actor_losses) + loss_sum(value_losses)
+    optimizers = learner.optimizers
+    for opt in optimizers.values():
+        opt.zero_grad(set_to_none=True)
+    loss.backward()
+    norms = {
+        name: nn.utils.clip_grad_norm_([p for g in opt.param_groups for p in g["params"]], learner.grad_clip)
+        for name, opt in optimizers.items()
+    }
+    for opt in optimizers.values():
+        opt.step()
+    learner.target_updater.step()
+    metrics = actor_losses.detach().clone()
+    metrics["grad_norm_actor"] = norms["actor"].detach()
+    metrics["mean_abs_action"] = imagined["action"].abs().mean()
+    return metrics
+
+
+def _evaluate(
+    result: ExactModelResult,
+    model: ExactSpritesModel,
+    learner: ExactModelLearner,
+    *,
+    step: int,
+    metrics: TensorDict | None,
+    episodes: int,
+    progress: bool,
+) -> None:
+    """Play ``episodes`` episodes of the deterministic policy on ``model`` and append them (and ``metrics``, the
+    update's) to ``result``; with ``progress``, one line."""
+    scores = model.episode_returns(learner.policy, episodes=episodes)
+    result.updates.append(step)
+    result.returns.append(scores["return"])
+    result.reaches.append(scores["reaches"])
+    result.cosine.append(scores["cosine"])
+    if metrics is not None:
+        result.entropy.append(float(metrics["actor_entropy"]))
+        result.grad_norm_actor.append(float(metrics["grad_norm_actor"]))
+        result.mean_abs_action.append(float(metrics["mean_abs_action"]))
+    if progress:
+        print(
+            f"update {step}: return {scores['return']:.1f} (scripted {result.scripted_return:.1f}), "
+            f"cosine {scores['cosine']:.2f}, entropy {result.entropy[-1] if result.entropy else math.nan:.2f}",
+            flush=True,
+        )
 
 
 @dataclass

@@ -377,6 +377,166 @@ class UpdateCadence(TrainerHookBase):
         trainer.register_op("post_steps", self)
 
 
+class _WorldModelRun:
+    """The parts of one ``mode=world_model`` run and what it does with them: the world model, its loss and stepper
+    (no actor, no value), the evaluation on held-out episodes, the logger, the checkpoints and the wall clock
+    (summed over resumes)."""
+
+    def __init__(
+        self,
+        cfg: RunConfig,
+        *,
+        run_dir: Path,
+        pictures: Path,
+        logs: Path,
+        checkpoints: CheckpointManager,
+        started: float,
+    ) -> None:
+        wm, train_cfg = cfg.world_model, cfg.train
+        self.cfg, self.logs, self.checkpoints, self.started = cfg, logs, checkpoints, started
+        logger.info("collecting %d random-action episodes of %d steps", wm.episodes, wm.episode_length)
+        data = collect_episodes(cfg, episodes=wm.episodes, seed=train_cfg.seed)
+        held_out = collect_episodes(cfg, episodes=wm.held_out_episodes, seed=train_cfg.seed + 1)
+        self.buffer = make_window_buffer(
+            data, batch_size=train_cfg.batch_size, window=train_cfg.sequence_length
+        )
+        self.loss = make_world_model_loss(cfg, action_dim=data["action"].shape[-1])
+        self.world_model = self.loss.world_model
+        self.stepper = IsoDreamOptimizationStepper(
+            model_loss=self.loss,
+            world_model_optimizer=make_adam(
+                self.loss.parameters(), lr=train_cfg.world_model_lr, eps=train_cfg.adam_eps
+            ),
+            sequence_length=train_cfg.sequence_length,
+            grad_clip=train_cfg.grad_clip,
+            max_nonfinite=train_cfg.max_nonfinite_updates,
+        )
+        self.log = make_logger(cfg, run_dir=run_dir)
+        self.evaluation = BranchEvaluation(
+            world_model=self.world_model,
+            held_out=held_out,
+            # as many training episodes, scored beside the held-out ones: a gap between the two is memorisation
+            seen=data[: held_out.shape[0]],
+            window=train_cfg.sequence_length,
+            device=train_cfg.device,
+            pictures=pictures,
+            logger=self.log,
+        )
+        self.env_steps = wm.episodes * wm.episode_length
+        self.wall_before = 0.0
+        self.last_checkpoint: Path | None = None
+
+    def restore(self, state: dict, checkpoint: Path) -> None:
+        """Continue from a checkpoint's ``state``: the weights, the stepper, the CSV logs, the evaluation's
+        history and the wall clock."""
+        models = {"world_model": self.world_model}
+        restore_run_state(
+            state,
+            checkpoint=checkpoint,
+            load_models=functools.partial(
+                load_saved_models, models, algo=self.cfg.algo.name, checkpoint=checkpoint
+            ),
+            stepper=self.stepper,
+            logs=self.logs,
+        )
+        if (state.get("hooks") or {}).get("evaluation") is not None:
+            self.evaluation.load_state_dict(state["hooks"]["evaluation"])
+        self.wall_before = state["counters"]["wall_s"]
+        self.last_checkpoint = checkpoint
+        logger.info("resumed from %s (%d updates)", checkpoint, self.stepper.updates)
+
+    def wall_s(self) -> float:
+        """The run's wall-clock so far, data collection included, summed over resumes."""
+        return self.wall_before + wall_clock() - self.started
+
+    def save(self) -> Path:
+        """Write a checkpoint at the current update; its folder."""
+        saved = run_state(
+            self.cfg,
+            models={"world_model": self.world_model},
+            stepper=self.stepper,
+            counters={"env_steps": self.env_steps, "updates": self.stepper.updates, "wall_s": self.wall_s()},
+            hooks={"evaluation": self.evaluation.state_dict()},
+            logs=self.logs,
+        )
+        self.last_checkpoint = self.checkpoints.save(self.stepper.updates, saved)
+        return self.last_checkpoint
+
+    def trainer(self, cadence: UpdateCadence) -> Trainer:
+        """TorchRL's ``Trainer`` over the updates still to run, sampling windows of the collected episodes, with
+        ``cadence`` registered."""
+        trainer = Trainer(
+            collector=FixedData(self.cfg.world_model.updates - self.stepper.updates),
+            # no batch brings env steps: the run ends with FixedData's batches, or a hook's stop
+            total_frames=self.env_steps + 1,
+            frame_skip=1,
+            optim_steps_per_batch=1,
+            loss_module=self.loss,
+            optimization_stepper=self.stepper,
+            logger=None,  # UpdateCadence logs the losses at the update count, the Trainer would at env steps
+            progress_bar=False,
+            save_trainer_file=None,
+        )
+        trainer.collected_frames = self.env_steps
+
+        def sample(batch: TensorDict) -> TensorDict:
+            """``process_optim_batch``: ``batch_size`` windows of the collected episodes, on the CPU (the stepper
+            moves them to the model's device)."""
+            return self.buffer.sample()
+
+        trainer.register_op("process_optim_batch", sample)
+        cadence.register(trainer)
+        return trainer
+
+    def cadence(self) -> UpdateCadence:
+        """The hook that logs, evaluates and stops at the wall-clock budget, from the current update on."""
+        cfg = self.cfg
+        return UpdateCadence(
+            first=self.stepper.updates,
+            updates=cfg.world_model.updates,
+            log_every=cfg.logging.log_every,
+            eval_every=cfg.logging.eval_every,
+            evaluation=self.evaluation,
+            logger=self.log,
+            wall_s=self.wall_s,
+            max_minutes=cfg.world_model.max_minutes,
+            progress_bar=cfg.logging.progress_bar,
+            desc=f"world model ({cfg.model.size}, {self.world_model.config.precision})",
+        )
+
+    def summary(self, *, out_of_time: bool, probe: LatentProbe | None) -> dict[str, Any]:
+        """The run's ``summary.json``: its last scores, with the latent probe's on sprites (what each branch's
+        state knows, on fresh episodes of the same scene, seeds never trained on)."""
+        cfg, wm = self.cfg, self.cfg.world_model
+        scores = dict(self.evaluation.last_scores)
+        if wm.probe_episodes and _is_sprites(cfg):
+            probed = probe(
+                self.world_model,
+                episodes=wm.probe_episodes,
+                seed=cfg.train.seed + 1000,
+                encoder=True,
+                **probe_scene(cfg),
+            )
+            scores.update({f"probe_{key}": value for key, value in probed.items()})
+            for key, value in probed.items():
+                self.log.log_scalar(f"probe_{key}", value, step=wm.updates)
+        return {
+            "mode": cfg.mode,
+            "algo": cfg.algo.name,
+            "env": cfg.env.name,
+            "updates": self.stepper.updates,
+            "stopped_by": "max_minutes" if out_of_time else "updates",
+            "seconds": round(self.wall_s(), 1),
+            "precision": self.world_model.config.precision,
+            "size": cfg.model.size,
+            "seed": cfg.train.seed,
+            **{key: round(value, 3) for key, value in scores.items()},
+            "png": str(self.evaluation.last_picture),
+            "checkpoint": str(self.last_checkpoint),
+            "logs": str(self.logs),
+        }
+
+
 def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
     """Train (or, with ``resume=true``, continue) the world model of ``cfg`` alone; see the module docstring.
 
@@ -397,7 +557,7 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
     started = wall_clock()
     cfg = resolved(cfg)
     _, run_dir, pictures, logs = begin_run(cfg)
-    wm, train_cfg = cfg.world_model, cfg.train
+    wm = cfg.world_model
     if probe is None and wm.probe_episodes and _is_sprites(cfg):
         raise ConfigError(
             f"world_model.probe_episodes={wm.probe_episodes} needs the latent probe: pass "
@@ -409,161 +569,42 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
     state, resumed_from = (
         resume_state(cfg, checkpoints, required_keys=STATE_KEYS) if resuming(cfg) else (None, None)
     )
-    window, batch_size = train_cfg.sequence_length, train_cfg.batch_size
-
-    logger.info("collecting %d random-action episodes of %d steps", wm.episodes, wm.episode_length)
-    data = collect_episodes(cfg, episodes=wm.episodes, seed=train_cfg.seed)
-    held_out = collect_episodes(cfg, episodes=wm.held_out_episodes, seed=train_cfg.seed + 1)
-    # as many training episodes, scored beside the held-out ones: a gap between the two is memorisation
-    seen = data[: held_out.shape[0]]
-    buffer = make_window_buffer(data, batch_size=batch_size, window=window)
-
-    loss = make_world_model_loss(cfg, action_dim=data["action"].shape[-1])
-    world_model = loss.world_model
-    stepper = IsoDreamOptimizationStepper(
-        model_loss=loss,
-        world_model_optimizer=make_adam(
-            loss.parameters(), lr=train_cfg.world_model_lr, eps=train_cfg.adam_eps
-        ),
-        sequence_length=window,
-        grad_clip=train_cfg.grad_clip,
-        max_nonfinite=train_cfg.max_nonfinite_updates,
+    run = _WorldModelRun(
+        cfg, run_dir=run_dir, pictures=pictures, logs=logs, checkpoints=checkpoints, started=started
     )
-    models = {"world_model": world_model}
-    log = make_logger(cfg, run_dir=run_dir)
-    evaluation = BranchEvaluation(
-        world_model=world_model,
-        held_out=held_out,
-        seen=seen,
-        window=window,
-        device=train_cfg.device,
-        pictures=pictures,
-        logger=log,
-    )
-    wall_before = 0.0
     if state is not None:
-        restore_run_state(
-            state,
-            checkpoint=resumed_from,
-            load_models=functools.partial(
-                load_saved_models, models, algo=cfg.algo.name, checkpoint=resumed_from
-            ),
-            stepper=stepper,
-            logs=logs,
-        )
-        if (state.get("hooks") or {}).get("evaluation") is not None:
-            evaluation.load_state_dict(state["hooks"]["evaluation"])
-        wall_before = state["counters"]["wall_s"]
-        logger.info("resumed from %s (%d updates)", resumed_from, stepper.updates)
+        run.restore(state, resumed_from)
     write_run_config(cfg)  # the run starts: its parts are built, the config matches its checkpoint
-    first = stepper.updates
-    env_steps = wm.episodes * wm.episode_length
+    first = run.stepper.updates
     if first >= wm.updates:
-        close_logger(log)
-        return RunResult(run_dir, resumed_from, logs, pictures, env_steps, first, resumed_from)
-    budget = wm.max_minutes * 60.0 if wm.max_minutes else math.inf
-
-    def wall_s() -> float:
-        """The run's wall-clock so far, data collection included, summed over resumes."""
-        return wall_before + wall_clock() - started
-
-    last_checkpoint: list[Path | None] = [resumed_from]
-
-    def save() -> Path:
-        saved = run_state(
-            cfg,
-            models=models,
-            stepper=stepper,
-            counters={"env_steps": env_steps, "updates": stepper.updates, "wall_s": wall_s()},
-            hooks={"evaluation": evaluation.state_dict()},
-            logs=logs,
-        )
-        last_checkpoint[0] = checkpoints.save(stepper.updates, saved)
-        return last_checkpoint[0]
-
-    trainer = Trainer(
-        collector=FixedData(wm.updates - first),
-        # no batch brings env steps: the run ends with FixedData's batches, or a hook's stop
-        total_frames=env_steps + 1,
-        frame_skip=1,
-        optim_steps_per_batch=1,
-        loss_module=loss,
-        optimization_stepper=stepper,
-        logger=None,  # UpdateCadence logs the losses at the update count, the Trainer would at env steps
-        progress_bar=False,
-        save_trainer_file=None,
-    )
-    trainer.collected_frames = env_steps
-
-    def sample(batch: TensorDict) -> TensorDict:
-        """``process_optim_batch``: ``batch_size`` windows of the collected episodes, on the CPU (the stepper
-        moves them to the model's device)."""
-        return buffer.sample()
-
-    trainer.register_op("process_optim_batch", sample)
-    cadence = UpdateCadence(
-        first=first,
-        updates=wm.updates,
-        log_every=cfg.logging.log_every,
-        eval_every=cfg.logging.eval_every,
-        evaluation=evaluation,
-        logger=log,
-        wall_s=wall_s,
-        max_minutes=wm.max_minutes,
-        progress_bar=cfg.logging.progress_bar,
-        desc=f"world model ({cfg.model.size}, {world_model.config.precision})",
-    )
-    cadence.register(trainer)
+        close_logger(run.log)
+        return RunResult(run_dir, resumed_from, logs, pictures, run.env_steps, first, resumed_from)
+    cadence = run.cadence()
+    trainer = run.trainer(cadence)
     # a resumed run whose budget was spent before its summary: scored and checkpointed as it is
-    out_of_time = wall_s() >= budget
+    out_of_time = run.wall_s() >= (wm.max_minutes * 60.0 if wm.max_minutes else math.inf)
     if out_of_time:
-        evaluation.evaluate(first)
-        save()
+        run.evaluation.evaluate(first)
+        run.save()
         stopped_by_signal = None
     else:
         stopped_by_signal = train_with_checkpoints(
-            trainer, save=save, stepper=stepper, every_updates=cfg.checkpoint.every_updates
+            trainer, save=run.save, stepper=run.stepper, every_updates=cfg.checkpoint.every_updates
         )
         out_of_time = cadence.out_of_time
     cadence.bar.close()
-    scores, summary = dict(evaluation.last_scores), None
+    summary = None
     if stopped_by_signal is None:
-        if wm.probe_episodes and _is_sprites(cfg):
-            # what each branch's state knows, on fresh episodes of the same scene (seeds never trained on)
-            probed = probe(
-                world_model,
-                episodes=wm.probe_episodes,
-                seed=train_cfg.seed + 1000,
-                encoder=True,
-                **probe_scene(cfg),
-            )
-            scores.update({f"probe_{key}": value for key, value in probed.items()})
-            for key, value in probed.items():
-                log.log_scalar(f"probe_{key}", value, step=wm.updates)
-        summary = {
-            "mode": cfg.mode,
-            "algo": cfg.algo.name,
-            "env": cfg.env.name,
-            "updates": stepper.updates,
-            "stopped_by": "max_minutes" if out_of_time else "updates",
-            "seconds": round(wall_s(), 1),
-            "precision": world_model.config.precision,
-            "size": cfg.model.size,
-            "seed": train_cfg.seed,
-            **{key: round(value, 3) for key, value in scores.items()},
-            "png": str(evaluation.last_picture),
-            "checkpoint": str(last_checkpoint[0]),
-            "logs": str(logs),
-        }
+        summary = run.summary(out_of_time=out_of_time, probe=probe)
         write_summary(run_dir, summary)
-    close_logger(log)
+    close_logger(run.log)
     return RunResult(
         run_dir=run_dir,
-        checkpoint=last_checkpoint[0],
+        checkpoint=run.last_checkpoint,
         logs=logs,
         pictures=pictures,
-        env_steps=env_steps,
-        updates=stepper.updates,
+        env_steps=run.env_steps,
+        updates=run.stepper.updates,
         resumed_from=resumed_from,
         metrics=cadence.metrics,
         summary=summary,
