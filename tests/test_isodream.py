@@ -315,3 +315,17 @@ class TestPictures:
         truth = windows["next", "pixels"].float() / 255
         expected = (output["next", "reco_pixels"] - truth).pow(2).mean()
         assert scores["reco_mse"] == pytest.approx(float(expected.detach()), rel=0.05)
+
+
+def test_the_readme_example_trains_the_default_world_model():
+    """The "Use the modules" snippet of README.md runs: the default's world model and loss, exported by the
+    packages, on a [B, T] window."""
+    import re
+    from pathlib import Path
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    (block,) = re.findall(r"## Use the modules\n\n```python\n(.*?)```", readme, flags=re.S)
+    scope: dict = {}
+    exec(compile(block, "README.md", "exec"), scope)
+    assert {"loss_model_reco", "loss_model_inverse", "loss_model_dynamic"} <= set(scope["losses"].keys())
+    assert scope["output"]["next", "mask_control"].shape == (4, 16, 1, 64, 64)
