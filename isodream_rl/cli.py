@@ -34,7 +34,7 @@ from hydra.core.config_store import ConfigStore  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 import isodream_rl.baselines  # noqa: E402, F401  (registers algo=torchrl_dreamer and torchrl_dreamer_v3)
-from isodream_rl.cli_overrides import check_overrides  # noqa: E402
+from isodream_rl.cli_overrides import check_overrides, free_form_overrides  # noqa: E402
 from isodream_rl.configs import register_dmc_envs  # noqa: E402
 from isodream_rl.envs.finite import NonFiniteEnvDataError  # noqa: E402
 from isodream_rl.evaluation.latent_probe import probe  # noqa: E402
@@ -113,6 +113,7 @@ def train() -> None:
     or 143.
     """
     sys.argv = take_debug_flag(sys.argv)
+    sys.argv[1:] = free_form_overrides(sys.argv[1:])
     with report_user_errors("isodream-train", (ConfigError,)):
         check_overrides(sys.argv[1:])
     _train_main()

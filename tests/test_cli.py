@@ -471,3 +471,15 @@ def test_env_groups_set_env_fields_only_and_pick_a_domain(env):
         "controllable",
         False,
     )
+
+
+def test_an_env_argument_the_env_group_does_not_write_is_accepted_without_a_plus():
+    """``env.kwargs.contact_penalty=0.0`` is an argument of the sprites env: isodream-train gives it to Hydra as
+    ``++env.kwargs...`` (Hydra alone refuses a key its group did not write, "not in struct")."""
+    from isodream_rl.cli_overrides import check_overrides, free_form_overrides
+
+    line = free_form_overrides(["env=sprites_reach", "env.kwargs.contact_penalty=0.0", "+env.kwargs.seed=1"])
+    assert line == ["env=sprites_reach", "++env.kwargs.contact_penalty=0.0", "+env.kwargs.seed=1"]
+    check_overrides(line)
+    assert composed(*line).env.kwargs["contact_penalty"] == 0.0
+    assert free_form_overrides(["train.slurm_kwargs.timeout_min=5"]) == ["++train.slurm_kwargs.timeout_min=5"]
