@@ -20,11 +20,17 @@ more at the end::
      "scripted_return": R, "references": {...},
      "algos": {algo: {"final_per_seed": [...], "final_successes_per_seed": [...],
                       "normalised_per_seed": [...], "wall_s_per_seed": [...], "updates_per_seed": [...],
-                      "seeds": [...],
+                      "contacts_per_seed": [...], "decomposition_per_seed": [{score: value}, ...],
+                      "agent_branch_per_seed": [...], "seeds": [...],
                       "curves": {seed: {"env_steps": [...], "eval_return": [...], "wall_s": [...],
-                                        "updates": [...], "finished": bool}}}},
+                                        "updates": [...], "iou_control_vs_agent": [...], ...,
+                                        "finished": bool}}}},
      "commit": ..., "cpu": ..., "command": ..., "overrides": [...]}
 
+``decomposition_per_seed`` is each finished run's final decomposition (``summary.json``: every mask IoU of its
+world model against the env's ground truth, ``None`` for runs without one, e.g. TorchRL's DreamerV3) and
+``agent_branch_per_seed`` the branch whose mask holds the agent most; the curves carry the scores of
+:data:`CURVE_DECOMPOSITION` at each evaluation. ``contacts_per_seed``: distractor contacts per episode (sprites).
 The ``*_per_seed`` lists and ``seeds`` hold the finished runs (those with a ``summary.json``); ``curves`` also
 holds the unfinished ones (``"finished": false``: their evaluations so far, from the CSV logs). ``updates`` is
 the update count logged at each evaluation's env step (``None`` where none was logged at that step).
@@ -69,6 +75,13 @@ MORE_ALGOS = ("isodream_v2", "torchrl_dreamer")
 SUCCESS_KEY = {"sprites": "reaches", "sprites_reach": "reaches", "highway": "distance"}
 #: Seconds between polls of the running runs.
 POLL_S = 5.0
+#: The decomposition scores a curve carries at each evaluation (runs whose env renders the ground truth).
+CURVE_DECOMPOSITION = (
+    "iou_control_vs_agent",
+    "iou_free_vs_agent",
+    "iou_static_vs_agent",
+    "iou_free_vs_distractors",
+)
 
 
 def run_command(algo: str, seed: int, run_dir: Path, args: argparse.Namespace) -> list[str]:
@@ -146,10 +159,19 @@ def _curve(run_dir: Path, summary: dict | None) -> dict | None:
         "eval_return": [v for _, v in returns],
         "wall_s": [walls.get(s) for s in steps],
     }
+    # where the world model's masks put the agent and the distractors at each evaluation (Iso-Dream's runs)
+    for score in CURVE_DECOMPOSITION:
+        logged = dict(read_scalar(run_dir, f"eval/decomposition/{score}"))
+        if logged:
+            curve[score] = [logged.get(s) for s in steps]
     if summary is not None:
         curve["env_steps"].append(summary["env_steps"])
         curve["eval_return"].append(summary["eval_return"])
         curve["wall_s"].append(summary["wall_s"])
+        final = summary.get("decomposition") or {}
+        for score in CURVE_DECOMPOSITION:
+            if score in curve:
+                curve[score].append(final.get(score))
     # the newest update count logged at or before each evaluation (the logs and the evaluations keep their own
     # schedules); the final evaluation also reads summary.json's count
     curve["updates"] = [
@@ -175,6 +197,9 @@ def collect(args: argparse.Namespace, verbose: bool = True) -> dict:
             "normalised_per_seed": [],
             "wall_s_per_seed": [],
             "updates_per_seed": [],
+            "contacts_per_seed": [],
+            "decomposition_per_seed": [],
+            "agent_branch_per_seed": [],
             "seeds": [],
             "curves": {},
         }
@@ -202,6 +227,9 @@ def collect(args: argparse.Namespace, verbose: bool = True) -> dict:
             entry["final_successes_per_seed"].append(summary.get(f"eval_{success_key}"))
             entry["normalised_per_seed"].append(summary.get("normalised_score"))
             entry["wall_s_per_seed"].append(summary["wall_s"])
+            entry["contacts_per_seed"].append(summary.get("eval_contacts"))
+            entry["decomposition_per_seed"].append(summary.get("decomposition"))
+            entry["agent_branch_per_seed"].append((summary.get("isolation") or {}).get("agent_branch"))
             updates = read_scalar(run_dir, "updates")
             entry["updates_per_seed"].append(updates[-1][1] if updates else None)
         results["algos"][algo] = entry
@@ -270,28 +298,37 @@ def _fmt(values, digits=1) -> str:
     return f"{np.mean(values):.{digits}f} ({min(values):.{digits}f} to {max(values):.{digits}f})"
 
 
+def _final_scores(entry: dict, score: str) -> list:
+    return [(d or {}).get(score) for d in entry.get("decomposition_per_seed", [])]
+
+
 def table(results: dict) -> str:
-    """Markdown table over the finished seeds, with the count of unfinished ones (logs, no summary.json)."""
+    """Markdown table over the finished seeds, with the count of unfinished ones (logs, no summary.json): returns,
+    success and contact counts, wall-clock, and the world models' final mask IoUs (:data:`CURVE_DECOMPOSITION`)."""
     success = SUCCESS_KEY.get(results["env"], "successes")
     lines = [
         f"| algo | seeds | unfinished | final return | normalised score | {success} per episode "
-        "| wall-clock per run (min) |",
-        "|---|---|---|---|---|---|---|",
+        "| contacts per episode | wall-clock per run (min) | IoU controllable vs agent | IoU action-free vs agent "
+        "| IoU static vs agent | IoU action-free vs distractors |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for algo, entry in results["algos"].items():
         unfinished = sum(not c.get("finished", True) for c in entry["curves"].values())
+        ious = " | ".join(_fmt(_final_scores(entry, score), 2) for score in CURVE_DECOMPOSITION)
         lines.append(
             f"| {algo} | {len(entry['seeds'])} | {unfinished} | {_fmt(entry['final_per_seed'])} | "
             f"{_fmt(entry['normalised_per_seed'], 2)} | {_fmt(entry['final_successes_per_seed'])} | "
-            f"{_fmt([w / 60 for w in entry['wall_s_per_seed']])} |"
+            f"{_fmt(entry.get('contacts_per_seed', []))} | "
+            f"{_fmt([w / 60 for w in entry['wall_s_per_seed']])} | {ious} |"
         )
     refs = results.get("references") or {}
     for name in ("random", "constant", "scripted"):
         if name in refs:
             ref = refs[name]
+            normalised = {"constant": "0", "scripted": "1"}.get(name, "-")
             lines.append(
-                f"| {name} policy | - | - | {ref['return']:.1f} | {'0' if name == 'constant' else ('1' if name == 'scripted' else '-')} "
-                f"| {ref.get(success, float('nan')):.1f} | - |"
+                f"| {name} policy | - | - | {ref['return']:.1f} | {normalised} "
+                f"| {ref.get(success, float('nan')):.1f} | {ref.get('contacts', float('nan')):.1f} | - | - | - | - | - |"
             )
     return "\n".join(lines)
 

@@ -68,6 +68,9 @@ def _summary(result: RunResult) -> str:
     for key in ("episode_return", "eval_return", "loss_model_reco", "env_steps_per_s", "updates_per_s"):
         if key in result.metrics:
             lines.append(f"  {key}: {result.metrics[key]:.4g}")
+    isolation = (result.summary or {}).get("isolation") or {}
+    if isolation.get("message"):
+        lines.append(f"  warning: {isolation['message']}")
     return "\n".join(lines)
 
 

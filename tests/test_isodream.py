@@ -75,6 +75,63 @@ class TestDecomposition:
         torch.testing.assert_close(a["next", "state"][..., width:], b["next", "state"][..., width:])
         assert not torch.allclose(a["next", "belief"][..., :deter], b["next", "belief"][..., :deter])
 
+    @pytest.mark.parametrize("branch", ["control", "free"])
+    @pytest.mark.parametrize("source", ["prior", "posterior"])
+    def test_each_dynamic_branch_draws_its_prior_not_the_frame(self, branch, source):
+        """The default's dynamic decoders draw their one-step priors (``s~_t ~ p(s_t | h_t)``, ``h_t`` from the
+        previous posterior and the action; ``z~_t ~ p(z_t | h'_t)`` without the action): a frame changed at step t
+        changes what they draw from step t + 1 on, never at t, so only the action can tell where the agent went
+        (it lands in the controllable branch). They draw the posterior where no previous posterior exists (the
+        window's first step). ``*_decoder_input="posterior"`` draws the frame it is given."""
+        torch.manual_seed(0)
+        config = IsoDreamConfig(
+            action_dim=A, hidden=16, image_depth=2, units=16, **{f"{branch}_decoder_input": source}
+        )
+        model = IsoDreamWorldModel(config)
+        pixels = torch.randint(0, 256, (2, 4, 3, 64, 64), dtype=torch.uint8)
+
+        def drawn(frames):
+            torch.manual_seed(1)
+            batch = TensorDict(
+                {
+                    ("next", "pixels"): frames,
+                    "action": torch.ones(2, 4, A),
+                    "is_init": torch.zeros(2, 4, 1, dtype=torch.bool),
+                },
+                [2, 4],
+            )
+            return model(batch)["next", f"reco_{branch}"]
+
+        def moved(step):  # [T]: which steps' drawings change when the frame of `step` changes
+            changed = pixels.clone()
+            changed[:, step] = 255 - changed[:, step]
+            return (drawn(pixels) - drawn(changed)).flatten(2).abs().amax(-1).amax(0) > 0
+
+        assert moved(0).tolist() == [True, True, True, True]  # the first step draws its posterior
+        sees_its_frame = source == "posterior"
+        assert moved(2).tolist() == [False, False, sees_its_frame, True]
+
+    @pytest.mark.parametrize("bias, share", [(3.0, (0.85, 0.97)), (0.0, (0.25, 0.45))])
+    def test_static_mask_starts_with_most_of_every_pixel(self, bias, share):
+        """``static_mask_bias=3`` (the default): an untrained model gives the static branch ~91 % of every pixel, so
+        the dynamic branches must earn what moves; without it the three masks start near 1/3 each."""
+        torch.manual_seed(0)
+        config = IsoDreamConfig(action_dim=A, hidden=16, image_depth=2, units=16, static_mask_bias=bias)
+        batch = TensorDict(
+            {
+                ("next", "pixels"): torch.randint(0, 256, (2, 4, 3, 64, 64), dtype=torch.uint8),
+                "action": torch.zeros(2, 4, A),
+                "is_init": torch.zeros(2, 4, 1, dtype=torch.bool),
+            },
+            [2, 4],
+        )
+        static = IsoDreamWorldModel(config)(batch)["next", "mask_static"]
+        assert share[0] < static.mean() < share[1]
+
+    def test_decoder_inputs_are_checked(self):
+        with pytest.raises(ValueError, match="control_decoder_input must be one of"):
+            IsoDreamConfig(action_dim=A, hidden=16, image_depth=2, units=16, control_decoder_input="paper")
+
     def test_inverse_loss_trains_the_controllable_branch_only(self, parts):
         model = parts.learner.world_model
         model.zero_grad()
@@ -287,6 +344,9 @@ def test_train_writes_a_summary_and_resumes(tmp_path):
     result = train(cfg)
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["algo"] == ALGO and math.isfinite(summary["eval_return"])
+    # sprites renders the ground truth: the final decomposition and where it put the agent
+    assert 0.0 <= summary["decomposition"]["iou_control_vs_agent"] <= 1.0
+    assert summary["isolation"]["agent_branch"] in ("control", "free", "static")
     assert math.isfinite(result.metrics["loss_model_inverse"]) and math.isfinite(result.metrics["loss_actor"])
     cfg.resume, cfg.train.total_steps = True, 80
     resumed = train(cfg)

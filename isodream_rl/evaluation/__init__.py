@@ -14,9 +14,11 @@ learner without model error (:func:`isodream_rl.trainers.exact_model.train_behav
 from isodream_rl.evaluation.decomposition import (
     BRANCHES,
     CLASSES,
+    ISOLATION_AIMS,
     branch_assignment,
     check_windows,
     decomposition_scores,
+    isolation_verdict,
     score_decomposition,
 )
 from isodream_rl.evaluation.exact_sprites import ExactSpritesModel
@@ -25,8 +27,10 @@ __all__ = [
     "BRANCHES",
     "CLASSES",
     "ExactSpritesModel",
+    "ISOLATION_AIMS",
     "branch_assignment",
     "check_windows",
     "decomposition_scores",
+    "isolation_verdict",
     "score_decomposition",
 ]

@@ -198,3 +198,52 @@ def decomposition_scores(
     if isinstance(world_model, IsoDreamWorldModel):  # its composite is in pixels / 255 units
         output.set(("next", "reco_pixels"), output.get(("next", "reco_pixels")) - 0.5)
     return score_decomposition(output, windows, threshold=threshold)
+
+
+#: The isolation aims (Iso-Dream's assignment): the agent in the controllable branch, out of the action-free one,
+#: and the things that move without the action in the action-free branch.
+ISOLATION_AIMS = {"iou_control_vs_agent": 0.7, "iou_free_vs_agent": 0.2, "iou_free_vs_distractors": 0.5}
+
+
+def isolation_verdict(scores: dict[str, float]) -> dict[str, object]:
+    """Where a world model's decomposition put the agent and the distractors, against :data:`ISOLATION_AIMS`.
+
+    Args:
+        scores: :func:`decomposition_scores`' output (``iou_<branch>_vs_<class>``).
+
+    Returns:
+        ``agent_branch``: the branch of :data:`BRANCHES` whose mask overlaps the agent most (``None`` without an
+        agent in the windows); ``isolates_agent``: ``iou_control_vs_agent >= 0.7`` and ``iou_free_vs_agent <= 0.2``;
+        ``isolates_distractors``: ``iou_free_vs_distractors >= 0.5`` (``None`` without distractors in the windows);
+        ``message``: one line saying where the agent landed when it is not isolated, else ``None``.
+    """
+    agent = {b: scores.get(f"iou_{b}_vs_agent", math.nan) for b in BRANCHES}
+    has_agent = not all(math.isnan(v) for v in agent.values())
+    branch = max(BRANCHES, key=lambda b: -1.0 if math.isnan(agent[b]) else agent[b]) if has_agent else None
+    isolates = (
+        has_agent
+        and agent["control"] >= ISOLATION_AIMS["iou_control_vs_agent"]
+        and not agent["free"] > ISOLATION_AIMS["iou_free_vs_agent"]
+    )
+    distractors = scores.get("iou_free_vs_distractors", math.nan)
+    verdict: dict[str, object] = {
+        "agent_branch": branch,
+        "isolates_agent": bool(isolates) if has_agent else None,
+        "isolates_distractors": None
+        if math.isnan(distractors)
+        else bool(distractors >= ISOLATION_AIMS["iou_free_vs_distractors"]),
+        "message": None,
+    }
+    if has_agent and not isolates:
+        where = {
+            "free": "in the action-free branch",
+            "static": "in the static branch",
+            "control": "only partly in the controllable branch",
+        }[branch]
+        verdict["message"] = (
+            f"the world model draws the agent {where} (mask IoU with the agent: controllable "
+            f"{agent['control']:.2f}, action-free {agent['free']:.2f}, static {agent['static']:.2f}; "
+            f"Iso-Dream's aim: controllable >= {ISOLATION_AIMS['iou_control_vs_agent']}, action-free <= "
+            f"{ISOLATION_AIMS['iou_free_vs_agent']})"
+        )
+    return verdict

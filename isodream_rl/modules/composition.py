@@ -31,7 +31,9 @@ from torch import nn
 
 MASK_MODES = ("softmax", "sigmoid")
 BRANCHES = ("control", "free", "static")
-#: The preprocessed pixel range (``isodream_rl.modules.isodream_v2.encoder.preprocess_pixels``).
+#: What a dynamic branch's decoder may draw at each step: its posterior, or its one-step prior (both learners).
+DECODER_STATES = ("posterior", "prior")
+#: The preprocessed pixel range (``isodream_rl.modules.pixels.preprocess_pixels``).
 PIXEL_RANGE = (-0.5, 0.5)
 CLAMP_GRADIENTS = ("zero", "inward")
 

@@ -16,7 +16,7 @@ from torchrl.record.loggers import Logger
 from torchrl.trainers import TrainerHookBase
 
 from isodream_rl.envs.task_metrics import TASK_METRICS
-from isodream_rl.evaluation import decomposition_scores
+from isodream_rl.evaluation import decomposition_scores, isolation_verdict
 from isodream_rl.evaluation.decomposition import TRUTH_KEYS
 from isodream_rl.trainers.openloop import open_loop_prediction, prediction_frames, prediction_video, save_gif
 
@@ -120,6 +120,28 @@ def rollout_decomposition(
     windows = rollout[: count * window].select(*keys).reshape(count, window).clone()
     windows["is_init"][:, 0] = True  # each window is filtered from zero states
     return decomposition_scores(world_model, windows, device=next(world_model.parameters()).device)
+
+
+#: Windows of the final evaluation's first episode that :func:`final_decomposition` scores.
+FINAL_DECOMPOSITION_WINDOWS = 8
+
+
+def final_decomposition(world_model, rollout: TensorDictBase, *, window: int) -> dict:
+    """The decomposition scores of a run's final evaluation and where they put the agent (``summary.json``).
+
+    Args:
+        world_model: the run's Iso-Dream world model.
+        rollout: the first evaluation episode, ``[T]``, with the ground-truth masks.
+        window: the replay window length (the model filters each window from zero states, as in training).
+
+    Returns:
+        ``decomposition``: :func:`rollout_decomposition` over up to :data:`FINAL_DECOMPOSITION_WINDOWS` windows;
+        ``isolation``: :func:`~isodream_rl.evaluation.isolation_verdict` of those scores.
+    """
+    scores = rollout_decomposition(
+        world_model, rollout, window=window, max_windows=FINAL_DECOMPOSITION_WINDOWS
+    )
+    return {"decomposition": scores, "isolation": isolation_verdict(scores) if scores else None}
 
 
 def log_prediction(logger: Logger, name: str, video: torch.Tensor, *, step: int) -> None:

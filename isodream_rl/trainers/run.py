@@ -31,7 +31,13 @@ from isodream_rl.trainers.config import (
     device_error,
     validate_config,
 )
-from isodream_rl.trainers.evaluation import Evaluation, learning_summary, run_episodes, save_episode_gif
+from isodream_rl.trainers.evaluation import (
+    Evaluation,
+    final_decomposition,
+    learning_summary,
+    run_episodes,
+    save_episode_gif,
+)
 from isodream_rl.trainers.hooks import Throughput
 from isodream_rl.trainers.learners import TORCHRL_BASELINES
 from isodream_rl.trainers.registry import make_components
@@ -276,6 +282,7 @@ def _train_rl(cfg: RunConfig) -> RunResult:
             env_steps=trainer.collected_frames,
             wall_s=train_wall_s,
             run_dir=run_dir,
+            world_model=components.world_model if decomposition else None,
         )
         for key, value in summary.items():
             if isinstance(value, (int, float)):
@@ -301,19 +308,40 @@ def _train_rl(cfg: RunConfig) -> RunResult:
 
 
 def final_evaluation(
-    cfg: RunConfig, policy, *, env_factory, env_steps: int, wall_s: float, run_dir: Path
+    cfg: RunConfig,
+    policy,
+    *,
+    env_factory,
+    env_steps: int,
+    wall_s: float,
+    run_dir: Path,
+    world_model=None,
 ) -> dict:
     """Evaluate the trained policy (``logging.final_eval_episodes`` mode-action episodes) next to the task's
-    reference policies and write ``<run_dir>/summary.json`` (see :func:`learning_summary`)."""
-    env = env_factory()
+    reference policies and write ``<run_dir>/summary.json`` (see :func:`learning_summary`).
+
+    With ``world_model`` (an Iso-Dream world model on an env that renders the ground-truth masks;
+    ``env_factory(masks=True)`` must build that env), the summary also holds the decomposition scores of the
+    first episode and where they put the agent (:func:`final_decomposition`)."""
+    env = env_factory(masks=True) if world_model is not None else env_factory()
     env.set_seed(cfg.train.seed + 1)
     try:
-        results = run_episodes(policy, env, episodes=cfg.logging.final_eval_episodes, task=cfg.env.name)
+        results = run_episodes(
+            policy,
+            env,
+            episodes=cfg.logging.final_eval_episodes,
+            task=cfg.env.name,
+            keep_rollout=world_model is not None,
+        )
     finally:
         env.close()
     summary = learning_summary(
         results, env_name=cfg.env.name, env_kwargs=dict(cfg.env.kwargs), env_steps=env_steps, wall_s=wall_s
     )
+    if world_model is not None:
+        summary.update(
+            final_decomposition(world_model, results.first_rollout, window=cfg.train.sequence_length)
+        )
     summary.update(updates_per_env_step=1.0 / cfg.train.train_every, algo=cfg.algo.name, seed=cfg.train.seed)
     write_summary(run_dir, summary)
     return summary

@@ -40,6 +40,7 @@ from torchrl.modules import (
 )
 from torchrl.modules.models.model_based import _straight_through_categorical
 
+from isodream_rl.modules.composition import DECODER_STATES as DECODER_INPUTS
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings, WindowInputCheck
 from isodream_rl.modules.fast_paths import FusedMaskComposition, use_fast_rms_norms
 from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
@@ -48,8 +49,6 @@ from isodream_rl.modules.isodream.settings import ISODREAM_SETTINGS
 PIXELS = ("next", "pixels")
 #: Width of the constant zero action of the action-free prior.
 FREE_ACTION_DIM = 1
-#: What the action-free decoder may draw from (:attr:`IsoDreamConfig.free_decodes`).
-FREE_DECODER_INPUTS = ("prior", "posterior")
 
 
 def _next(key: str) -> tuple[str, str]:
@@ -115,19 +114,29 @@ class IsoDreamConfig:
     """The reward and continuation heads read ``[h, s, h', z]`` (CARLA, sprites) rather than ``[h, s]``."""
     static_frames: int = 1
     """K: the frames whose embeddings give a window's background."""
-    free_decodes: str = "prior"
-    """What the action-free decoder draws from (:data:`FREE_DECODER_INPUTS`): ``"prior"`` (default), its one-step
-    prior ``z~_t ~ p(z_t | h'_t)`` with ``h'_t`` from the previous posterior, so that it cannot draw what the
-    actions moved since (the authors' DMC code, where the action-free branch is a one-step predictor); the
-    window's first step and episode starts, which have no previous posterior, draw from the posterior.
-    ``"posterior"``: ``z_t ~ q(z_t | h'_t, o_t)`` at every step, as eq. 4's text (the frame it draws is in its
-    input, so the agent can land in either dynamic branch)."""
+    static_mask_bias: float = 3.0
+    """Initial bias of the static branch's mask logit (a learned parameter): 3 starts training with the background
+    owning 91 % of every pixel, so that the dynamic branches take only the pixels it cannot explain (what moves)
+    instead of one of them taking the still background and leaving the agent to the static image."""
+    control_decoder_input: str = "posterior"
+    """What the controllable decoder draws from (:data:`DECODER_INPUTS`): ``"posterior"`` (default), ``s_t ~
+    q(s_t | h_t, o_t)`` (the authors' DMC code); ``"prior"``, its one-step prior ``s~_t ~ p(s_t | h_t)``, ``h_t``
+    made from the previous posterior and the action ``a_{t-1}`` (eq. 4's text, §3.2)."""
+    free_decoder_input: str = "prior"
+    """What the action-free decoder draws from (:data:`DECODER_INPUTS`): ``"prior"`` (default), its one-step prior
+    ``z~_t ~ p(z_t | h'_t)``, ``h'_t`` made from the previous posterior without the action, so that it cannot draw
+    what the actions moved since (the authors' DMC code, where this branch is a one-step predictor);
+    ``"posterior"``: ``z_t ~ q(z_t | h'_t, o_t)`` (eq. 4's text), with which the agent can land in this branch.
+
+    A decoder that draws its prior draws the posterior where no previous posterior exists (a window's first step,
+    an episode's start)."""
     settings: DreamerV3Settings = ISODREAM_SETTINGS
     """DreamerV3's settings (unimix, categoricals, bins, blocks): the default learner's."""
 
     def __post_init__(self) -> None:
-        if self.free_decodes not in FREE_DECODER_INPUTS:
-            raise ValueError(f"free_decodes must be one of {FREE_DECODER_INPUTS}, got {self.free_decodes!r}")
+        for name in ("control_decoder_input", "free_decoder_input"):
+            if getattr(self, name) not in DECODER_INPUTS:
+                raise ValueError(f"{name} must be one of {DECODER_INPUTS}, got {getattr(self, name)!r}")
 
     @property
     def control(self) -> BranchWidths:
@@ -273,6 +282,9 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             if cfg.static_branch
             else None
         )
+        if self.static_decoder is not None:
+            with torch.no_grad():
+                self.static_decoder.layers[-1].bias[3] += cfg.static_mask_bias
         # Composed in the decoders' units (pixels / 255, see MaskComposition's pixel_range), as one autograd node
         # (FusedMaskComposition): the same eq. 4 without shifting three [B, T, 4, 64, 64] outputs into [-0.5, 0.5]
         # and four results back, and without a clamp node and a slice gradient per branch.
@@ -395,7 +407,10 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         s, h = control.get(_next("state")), control.get(_next("belief"))
         states, beliefs = [s], [h]
         prior, posterior = [control.get(_next("prior_logits"))], [control.get(_next("posterior_logits"))]
-        outputs = {"control": self.control_decoder(s, h)}
+        is_init = tensordict.get("is_init")
+        outputs = {
+            "control": self.control_decoder(self._drawn(s, prior[0], is_init, cfg.control_decoder_input), h)
+        }
         if cfg.free_branch:
             zero = action.new_zeros(*action.shape[:-1], FREE_ACTION_DIM)
             free = self._roll(self.free_rollout, tensordict, state=z0, belief=hz0, action=zero, embed=embed)
@@ -404,7 +419,9 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             beliefs.append(hz)
             prior.append(free.get(_next("prior_logits")))
             posterior.append(free.get(_next("posterior_logits")))
-            outputs["free"] = self.free_decoder(self._free_drawn(z, prior[-1], tensordict.get("is_init")), hz)
+            outputs["free"] = self.free_decoder(
+                self._drawn(z, prior[-1], is_init, cfg.free_decoder_input), hz
+            )
             tensordict.set(_next("free_window"), self.free_window(z, hz))
         if cfg.static_branch:
             batch, time = embed.shape[:2]
@@ -500,21 +517,24 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             out[f"mask_{name}"] = mask
         return out
 
-    def _free_drawn(
-        self, posterior: torch.Tensor, prior_logits: torch.Tensor, is_init: torch.Tensor
+    def _drawn(
+        self, posterior: torch.Tensor, prior_logits: torch.Tensor, is_init: torch.Tensor, source: str
     ) -> torch.Tensor:
-        """The state the action-free decoder draws at each step (:attr:`IsoDreamConfig.free_decodes`).
+        """The state a branch's decoder draws at each step (:attr:`IsoDreamConfig.control_decoder_input`,
+        :attr:`IsoDreamConfig.free_decoder_input`).
 
         Args:
-            posterior: the posterior ``z_t`` ``[B, T, S_z]``.
-            prior_logits: the prior's logits ``[B, T, K, C]`` (from ``h'_t``, which the previous posterior made).
+            posterior: the branch's posterior ``[B, T, S]``.
+            prior_logits: its prior's logits ``[B, T, K, C]`` (from the belief that the previous posterior made).
             is_init: ``[B, T, 1]`` episode starts.
+            source: ``"prior"`` or ``"posterior"``.
 
         Returns:
-            ``[B, T, S_z]``: a straight-through sample of the prior (with the RSSM's unimix) where a previous
-            posterior exists in the window, the posterior elsewhere (the first step, episode starts).
+            ``[B, T, S]``: with ``"prior"``, a straight-through sample of the prior (with the RSSM's unimix) where a
+            previous posterior exists in the window and the posterior elsewhere (the first step, episode starts);
+            with ``"posterior"``, the posterior.
         """
-        if self.config.free_decodes == "posterior":
+        if source == "posterior":
             return posterior
         prior = _straight_through_categorical(prior_logits, self.config.settings.unimix).flatten(-2)
         blind = is_init.reshape(*posterior.shape[:2], 1).clone()

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
-from isodream_rl.modules.composition import CLAMP_GRADIENTS, MASK_MODES
+from isodream_rl.modules.composition import CLAMP_GRADIENTS, DECODER_STATES, MASK_MODES
 from isodream_rl.modules.inverse_dynamics import INVERSE_INPUTS
 from isodream_rl.modules.sizes import SIZE_PRESETS
 
@@ -21,7 +21,6 @@ PAPER_EXACT = {
 #: from this, and the trainer's ``ALGO_BRANCHES`` (``isodream_rl/trainers/config.py``) gives them to
 #: ``algo=dreamerv2`` (both modes of ``isodream-train``) and to the TorchRL baselines.
 DREAMERV2 = {"free_branch": False, "static_branch": False, "inverse_dynamics": False}
-FREE_DECODER_INPUTS = ("posterior", "prior")
 PRECISIONS = ("fp32", "bf16")
 
 
@@ -100,7 +99,7 @@ class IsoDreamV2Config:
             ("inverse_input", self.inverse_input, INVERSE_INPUTS),
             ("mask_mode", self.mask_mode, MASK_MODES),
             ("decoder_input", self.decoder_input, DECODER_INPUTS),
-            ("free_decoder_input", self.free_decoder_input, FREE_DECODER_INPUTS),
+            ("free_decoder_input", self.free_decoder_input, DECODER_STATES),
             ("clamp_gradient", self.clamp_gradient, CLAMP_GRADIENTS),
             ("precision", self.precision, PRECISIONS),
         ):
