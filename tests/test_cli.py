@@ -403,7 +403,7 @@ def test_a_run_saved_by_an_algo_that_changed_learner_resumes_as_isodream_v2(env)
         assert differing_settings(saved, composed(f"env={env}", "algo=isodream_v2", *settings)) == {}, name
     # not the other way round: a run saved as algo=isodream_v2 is the DreamerV2-style learner's
     saved = dataclasses.asdict(composed(f"env={env}", "algo=isodream_v2"))
-    assert differing_settings(saved, composed(f"env={env}")) == {"algo.name": ("isodream_v2", "isodream")}
+    assert differing_settings(saved, composed(f"env={env}"))["algo.name"] == ("isodream_v2", "isodream")
 
 
 def test_the_model_section_holds_every_world_model_field_but_the_envs():
@@ -483,3 +483,69 @@ def test_an_env_argument_the_env_group_does_not_write_is_accepted_without_a_plus
     check_overrides(line)
     assert composed(*line).env.kwargs["contact_penalty"] == 0.0
     assert free_form_overrides(["train.slurm_kwargs.timeout_min=5"]) == ["++train.slurm_kwargs.timeout_min=5"]
+
+
+@pytest.mark.parametrize(
+    ("line", "refused", "readers"),
+    [
+        (["algo.gamma=0.9"], "algo.gamma=0.9 is not read by algo=isodream", "the DreamerV2-style learner"),
+        (
+            ["algo.exploration_noise=0.3"],
+            "algo.exploration_noise=0.3 is not read by algo=isodream",
+            "isodream_v2",
+        ),
+        (["model.depth=8"], "model.depth=8 is not read by algo=isodream", "TorchRL's Dreamer"),
+        (
+            ["algo=torchrl_dreamer_v3", "train.grad_clip=10"],
+            "train.grad_clip=10.0 is not read",
+            "torchrl_dreamer",
+        ),
+        (
+            ["algo=isodream_v2", "train.lr_warmup=7"],
+            "train.lr_warmup=7 is not read",
+            "Iso-Dream on DreamerV3's",
+        ),
+    ],
+)
+def test_a_setting_the_learner_does_not_read_is_refused_naming_the_learners_that_do(line, refused, readers):
+    with pytest.raises(ConfigError, match=rf"{re.escape(refused)} .*{re.escape(readers)}"):
+        validate_config(composed(*line, "size=tiny"))
+
+
+def test_each_learner_reads_its_own_table_and_the_default_leaves_the_others_unset():
+    from isodream_rl.modules.isodream.settings import ISODREAM_SETTINGS
+    from isodream_rl.trainers.learners import ISODREAM_V2_SETTINGS, learner_of
+
+    default = resolved(composed("env=sprites"))
+    assert default.algo.lambda_inverse == ISODREAM_SETTINGS.lambda_inverse
+    assert default.train.lr_warmup == ISODREAM_SETTINGS.lr_warmup
+    reads = learner_of("isodream").values
+    unread = [key for key in ISODREAM_V2_SETTINGS if key not in reads and not key.startswith("model.")]
+    assert "algo.gamma" in unread and "train.grad_clip" in unread
+    assert all(getattr(getattr(default, k.split(".")[0]), k.split(".")[1]) is None for k in unread)
+    v2 = resolved(composed("env=sprites", "algo=isodream_v2"))
+    assert (v2.algo.gamma, v2.algo.lambda_reward, v2.train.grad_clip, v2.train.lr_warmup) == (
+        0.9,
+        2.0,
+        100.0,
+        None,
+    )
+
+
+def test_a_config_saved_before_the_settings_tables_reads_back_without_what_its_learner_never_read():
+    """Before each learner had its own table, every configuration held the DreamerV2-style learner's values; the
+    default's run folders made then resume as they are (those values dropped), and so do the DreamerV2-style ones."""
+    import dataclasses
+
+    from isodream_rl.trainers.config import config_from_dict
+    from isodream_rl.trainers.run_dir import differing_settings
+
+    saved = dataclasses.asdict(composed("size=quickstart"))
+    saved["algo"].update(gamma=0.9, lambda_reward=2.0, exploration_noise=0.3, free_branch_loss="kl")
+    saved["train"].update(grad_clip=100.0, adam_eps=1e-5)
+    cfg = config_from_dict(saved)
+    assert (cfg.algo.gamma, cfg.algo.exploration_noise, cfg.train.grad_clip) == (None, None, None)
+    validate_config(cfg)
+    assert differing_settings(saved, composed("size=quickstart")) == {}
+    old_v2 = dataclasses.asdict(resolved(composed("algo=isodream_v2")))
+    assert differing_settings(old_v2, composed("algo=isodream_v2")) == {}
