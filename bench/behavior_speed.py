@@ -1,8 +1,8 @@
 """One actor + value update of Iso-Dream against TorchRL's Dreamer, and Iso-Dream's acting latency.
 
-Update. Ours: :class:`~isodream_rl.objectives.IsoDreamActorLoss` + :class:`~isodream_rl.objectives.IsoDreamValueLoss`
-over :class:`~isodream_rl.objectives.IsoDreamImagination` (horizon ``L``, attention window ``tau``) of the
-three-branch :class:`~isodream_rl.modules.IsoDreamWorldModel`. TorchRL: ``DreamerActorLoss`` (TD(lambda)
+Update. Ours: :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2ActorLoss` + :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2ValueLoss`
+over :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2Imagination` (horizon ``L``, attention window ``tau``) of the
+three-branch :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel`. TorchRL: ``DreamerActorLoss`` (TD(lambda)
 value estimator) + ``DreamerValueLoss`` over a ``DreamerEnv`` built from ``RSSMPrior`` and an MLP reward
 head, with ``DreamerActor`` and an MLP value. Both at equal sizes: the same RSSM (stoch, deter, hidden) and
 MLP/head widths (``units``; actor 4 layers, value 3, reward 2, as the authors and TorchRL). An update is
@@ -13,10 +13,10 @@ Our rollout also runs the noncontrollable branch ``tau - 1`` steps beyond ``L`` 
 
 Each variant is timed in turn, round-robin, so that load from other processes hits all of them alike; the
 median over ``--steps`` updates after ``--warmup`` is reported. Variants: precision fp32/bf16 on both
-sides (ours: ``WorldModelConfig(precision=...)``, whose autocast covers every behavior MLP; TorchRL: an
+sides (ours: ``IsoDreamV2Config(precision=...)``, whose autocast covers every behavior MLP; TorchRL: an
 outer CPU bf16 autocast around the losses).
 
-Acting: one env step of :class:`~isodream_rl.modules.IsoDreamPolicy` (encode a 64x64 frame, filter both
+Acting: one env step of :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2Policy` (encode a 64x64 frame, filter both
 branches, imagine the ``tau - 1`` future noncontrollable states, attention, actor sample) on the fp32
 model, at batch 1 and 8, median wall-clock ms over ``--acting-steps`` calls (process CPU ms also given).
 
@@ -46,16 +46,15 @@ from torchrl.modules import MLP, DreamerActor, RSSMPrior, SafeSequential, TanhNo
 from torchrl.objectives import DreamerActorLoss, DreamerValueLoss
 from torchrl.objectives.utils import ValueEstimators
 
-from isodream_rl.modules import (
-    SIZE_PRESETS,
-    IsoDreamActor,
-    IsoDreamPolicy,
-    IsoDreamValue,
-    IsoDreamWorldModel,
-    PolicyInput,
-    WorldModelConfig,
+from isodream_rl.modules import SIZE_PRESETS, PolicyInput
+from isodream_rl.modules.isodream_v2 import (
+    IsoDreamV2Actor,
+    IsoDreamV2Config,
+    IsoDreamV2Policy,
+    IsoDreamV2Value,
+    IsoDreamV2WorldModel,
 )
-from isodream_rl.objectives import IsoDreamActorLoss, IsoDreamImagination, IsoDreamValueLoss
+from isodream_rl.objectives.isodream_v2 import IsoDreamV2ActorLoss, IsoDreamV2Imagination, IsoDreamV2ValueLoss
 
 LR = 8e-5
 GAMMA, LMBDA = 0.99, 0.95
@@ -138,21 +137,21 @@ class Variant:
 
 def ours_variant(
     args, size: dict, precision: str
-) -> tuple[Variant, IsoDreamWorldModel, PolicyInput, IsoDreamActor]:
-    cfg = WorldModelConfig.from_preset(
+) -> tuple[Variant, IsoDreamV2WorldModel, PolicyInput, IsoDreamV2Actor]:
+    cfg = IsoDreamV2Config.from_preset(
         args.size,
         action_dim=args.action_dim,
         reward_uses_free=args.policy_input != "controllable",
         precision=precision,
     )
-    wm = IsoDreamWorldModel(cfg)
+    wm = IsoDreamV2WorldModel(cfg)
     pin = PolicyInput.for_world_model(wm, mode=args.policy_input, window=args.tau, width=args.attention_width)
-    imagination = IsoDreamImagination(wm, pin, horizon=args.horizon, attention_window=args.attention_window)
-    value_loss = IsoDreamValueLoss(
-        IsoDreamValue(in_features=pin.out_features, num_cells=size["units"]), imagination
+    imagination = IsoDreamV2Imagination(wm, pin, horizon=args.horizon, attention_window=args.attention_window)
+    value_loss = IsoDreamV2ValueLoss(
+        IsoDreamV2Value(in_features=pin.out_features, num_cells=size["units"]), imagination
     )
-    actor = IsoDreamActor(in_features=pin.out_features, action_dim=args.action_dim, num_cells=size["units"])
-    actor_loss = IsoDreamActorLoss(actor, imagination, value_loss, gamma=GAMMA, lmbda=LMBDA)
+    actor = IsoDreamV2Actor(in_features=pin.out_features, action_dim=args.action_dim, num_cells=size["units"])
+    actor_loss = IsoDreamV2ActorLoss(actor, imagination, value_loss, gamma=GAMMA, lmbda=LMBDA)
     groups = actor_loss.parameter_groups()
     opt_actor, opt_value = torch.optim.Adam(groups["actor"], lr=LR), torch.optim.Adam(groups["value"], lr=LR)
     n = args.batch_size * args.time
@@ -197,7 +196,7 @@ def torchrl_variant(args, size: dict, precision: str) -> Variant:
     return Variant(f"torchrl_{precision}", step, precision)
 
 
-def acting_latency(policy: IsoDreamPolicy, batches: list[int], steps: int, warmup: int) -> dict:
+def acting_latency(policy: IsoDreamV2Policy, batches: list[int], steps: int, warmup: int) -> dict:
     """Median wall and process-CPU ms of one ``policy`` call per batch size, timed round-robin."""
     inputs = {}
     for n in batches:
@@ -272,7 +271,7 @@ def main(argv=None):
         )
 
     acting_precision, wm, pin, actor = acting_model
-    acting = acting_latency(IsoDreamPolicy(wm, actor, pin), [1, 8], args.acting_steps, warmup=5)
+    acting = acting_latency(IsoDreamV2Policy(wm, actor, pin), [1, 8], args.acting_steps, warmup=5)
 
     results = {
         v.name: {

@@ -13,7 +13,7 @@ the library's learning rates) on :class:`~isodream_rl.evaluation.ExactSpritesMod
   controller's by update 750).
 
 The variants set ``algo`` fields of the library's defaults (:data:`VARIANTS`): ``isodream`` is the default's
-learner, DreamerV3's (:mod:`isodream_rl.evaluation.exact_sprites_v3`: its actor and two-hot critic on ``[s, h]``,
+learner, DreamerV3's (:mod:`isodream_rl.evaluation.exact_sprites_behavior`: its actor and two-hot critic on ``[s, h]``,
 ``DreamerV3ActorLoss`` (REINFORCE, percentile return normalisation, entropy 3e-4) and ``DreamerV3ValueLoss``
 (slow critic), the exact continuation ``1 - 1/333``, ``DreamerV3Optimizer`` at the run's learning rates with its
 1000-update warm-up; it reads neither ``algo.gamma`` nor the loc penalty); ``isodream_v2`` and the others are the
@@ -25,11 +25,12 @@ Every ``--eval-every`` updates the deterministic policy plays 16 episodes of 200
 ``grad_norm_actor``, ``mean_abs_action``), the scripted and best-constant returns, the normalised final score;
 plus a picture (``--png``, the JSON's path with ``.png``). Runs one variant at a time on one torch thread.
 
-The committed JSONs name the variants as they were named when measured: ``exact_model.json`` (made at d35c722)
-calls ``isodream_v2`` ``default`` (it was ``algo=isodream`` then), ``exact_model_v3.json`` calls ``isodream``
-``isodream_v3``. ``exact_model.json`` also holds two variants whose code was removed after they did not help:
+The committed JSONs name the variants as they were named when measured: ``exact_model_isodream_v2.json`` (made at
+d35c722) calls ``isodream_v2`` ``default`` (it was ``algo=isodream`` then), ``exact_model_isodream.json`` calls
+``isodream`` ``isodream_v3``. ``exact_model_isodream_v2.json`` also holds two variants whose code was removed after
+they did not help:
 ``return_norm`` (the lambda-returns divided by DreamerV3's 5th-95th percentile span, TorchRL's
-``PercentileValueNorm``, entropy 3e-3) and ``reinforce_return_norm`` (``IsoDreamActorLoss(gradient="reinforce")``
+``PercentileValueNorm``, entropy 3e-3) and ``reinforce_return_norm`` (``IsoDreamV2ActorLoss(gradient="reinforce")``
 with advantages normalised the same way, entropy 3e-4), both without the loc penalty.
 
     python bench/exact_model.py                                  # the committed results

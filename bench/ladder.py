@@ -6,7 +6,7 @@ run finished) and writes, per run: the command, the periodic evaluation returns,
 returns, the reward-loss curve, the number of updates, and the final summary. The reference returns of the
 run's env (random, best constant action, scripted) are measured once per distinct env setting.
 
-    python bench/ladder.py runs/ladder/* --json docs/results/learning_ladder.json
+    python bench/ladder.py runs/ladder/* --json docs/results/archive/learning_ladder.json
 """
 
 from __future__ import annotations

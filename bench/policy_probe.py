@@ -54,7 +54,7 @@ Two learners, by the run's ``algo.name`` (:func:`probe_learner`):
   REINFORCE there, so the model's pathwise action gradients are not what it follows. These results also carry
   ``algo`` and ``learner`` (``"dreamer_v3"``); the DreamerV2-style results are as they were.
 
-    python bench/policy_probe.py runs/ladder/R2_dv2 --json docs/results/ladder/policy_probe_R2_dv2.json
+    python bench/policy_probe.py runs/ladder/R2_dv2 --json docs/results/archive/ladder/policy_probe_R2_dv2.json
 """
 
 from __future__ import annotations
@@ -75,18 +75,18 @@ from common import cpu_name, git_commit  # noqa: E402
 
 import isodream_rl.baselines  # noqa: F401  (registers algo=torchrl_dreamer and torchrl_dreamer_v3)
 from isodream_rl.envs import make_env
-from isodream_rl.objectives import lambda_returns
-from isodream_rl.objectives.imagination import policy_features
-from isodream_rl.trainers.checkpoint import CheckpointManager
+from isodream_rl.objectives.isodream_v2 import lambda_returns
+from isodream_rl.objectives.isodream_v2.imagination import policy_features
+from isodream_rl.run_utils.checkpoint import CheckpointManager
+from isodream_rl.trainers.learners import ISODREAM_ALGOS
 from isodream_rl.trainers.registry import make_components
 from isodream_rl.trainers.saved_models import saved_run_config
-from isodream_rl.trainers.world_model_config import DREAMER_V3_ISODREAM
 
 #: an imagined step whose predicted reward exceeds this counts as a reach: a real reach step earns 1 plus its
 #: progress, the progress term alone at most about 0.71 (a full-speed diagonal step), so 0.7 would count those
 REACH_THRESHOLD = 0.85
 #: the algorithms that learn on TorchRL's DreamerV3 learner (:class:`DreamerV3Learner`)
-DREAMER_V3_ALGOS = (*DREAMER_V3_ISODREAM, "torchrl_dreamer_v3")
+DREAMER_V3_ALGOS = (*ISODREAM_ALGOS, "torchrl_dreamer_v3")
 
 
 class DreamerV2Learner:

@@ -29,8 +29,8 @@ from common import cpu_name, git_commit  # noqa: E402  (bench/common.py, on the 
 
 from isodream_rl.envs.builder import make_gym_env
 from isodream_rl.envs.reference import scripted_action
-from isodream_rl.trainers.components import RunComponents
 from isodream_rl.trainers.config import RunConfig
+from isodream_rl.trainers.isodream_v2 import IsoDreamV2Components
 from isodream_rl.trainers.openloop import open_loop_prediction, prediction_frames, save_gif
 
 p = argparse.ArgumentParser()
@@ -121,7 +121,7 @@ if a.algo == "dreamerv2":
 else:
     cfg.algo.reward_uses_free = True
     cfg.algo.policy_input = "attention"
-comp = RunComponents(cfg, action_dim=2, scratch_dir=Path("/tmp/world_model_reward_" + a.name))
+comp = IsoDreamV2Components(cfg, action_dim=2, scratch_dir=Path("/tmp/world_model_reward_" + a.name))
 comp.model_loss.lambda_kl_control = a.kl_scale
 opt = torch.optim.Adam(comp.world_model.parameters(), lr=a.lr, eps=1e-5)
 test_batch = window(test, 24, a.T)

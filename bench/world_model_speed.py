@@ -1,7 +1,7 @@
 """One world-model update of Iso-Dream against TorchRL's Dreamer, interleaved in one process.
 
-Ours: :class:`~isodream_rl.objectives.IsoDreamModelLoss` over the three-branch
-:class:`~isodream_rl.modules.IsoDreamWorldModel`. TorchRL: ``DreamerModelLoss`` over ``ObsEncoder``,
+Ours: :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2ModelLoss` over the three-branch
+:class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel`. TorchRL: ``DreamerModelLoss`` over ``ObsEncoder``,
 ``RSSMPrior``/``RSSMPosterior`` in ``RSSMRollout``, ``ObsDecoder`` and an MLP reward head, at equal sizes
 (same cnn depth, deter, stoch, hidden, MLP units; each of our branch encoders/decoders has TorchRL's
 channel widths). An update is forward + backward + gradient clipping + Adam step on a ``[B, T]`` batch of
@@ -51,8 +51,9 @@ from torchrl.modules import (
 )
 from torchrl.objectives import DreamerModelLoss
 
-from isodream_rl.modules import SIZE_PRESETS, IsoDreamWorldModel, WorldModelConfig
-from isodream_rl.objectives import IsoDreamModelLoss
+from isodream_rl.modules import SIZE_PRESETS
+from isodream_rl.modules.isodream_v2 import IsoDreamV2Config, IsoDreamV2WorldModel
+from isodream_rl.objectives.isodream_v2 import IsoDreamV2ModelLoss
 
 
 def torchrl_dreamer(size: dict, action_dim: int, channels_last: bool) -> DreamerModelLoss:
@@ -212,10 +213,10 @@ def main(argv=None):
     B, T, A = args.batch_size, args.time, args.action_dim
 
     def ours(precision, channels_last):
-        cfg = WorldModelConfig.from_preset(
+        cfg = IsoDreamV2Config.from_preset(
             args.size, action_dim=A, precision=precision, channels_last=channels_last
         )
-        loss = IsoDreamModelLoss(IsoDreamWorldModel(cfg))
+        loss = IsoDreamV2ModelLoss(IsoDreamV2WorldModel(cfg))
         batch = make_batch(B, T, A, size, float_pixels=False, channels_last=False)
         # our model applies its own autocast (GRU and losses stay fp32), so the outer one is off
         return Variant(

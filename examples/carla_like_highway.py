@@ -26,19 +26,19 @@ from torchrl.record.loggers import get_logger
 from torchrl.trainers import ReplayBufferTrainer, Trainer
 
 from isodream_rl.envs import make_env
-from isodream_rl.modules import (
-    IsoDreamActor,
-    IsoDreamValue,
-    IsoDreamWorldModel,
-    PolicyInput,
-    WorldModelConfig,
+from isodream_rl.modules import PolicyInput
+from isodream_rl.modules.isodream_v2 import (
+    IsoDreamV2Actor,
+    IsoDreamV2Config,
+    IsoDreamV2Value,
+    IsoDreamV2WorldModel,
 )
-from isodream_rl.modules.policy import IsoDreamPolicy
-from isodream_rl.objectives import (
-    IsoDreamActorLoss,
-    IsoDreamImagination,
-    IsoDreamModelLoss,
-    IsoDreamValueLoss,
+from isodream_rl.modules.isodream_v2.policy import IsoDreamV2Policy
+from isodream_rl.objectives.isodream_v2 import (
+    IsoDreamV2ActorLoss,
+    IsoDreamV2Imagination,
+    IsoDreamV2ModelLoss,
+    IsoDreamV2ValueLoss,
     make_target_updater,
 )
 from isodream_rl.trainers.builders import STREAM_KEY
@@ -124,24 +124,26 @@ def main() -> None:
 
     # 2. World model (eq. 2-4) and its loss (eq. 5): CARLA keeps the KL of the noncontrollable branch and
     #    predicts the reward from (s, z).
-    world_model = IsoDreamWorldModel(
-        WorldModelConfig.from_preset(args.size, action_dim=action_dim, reward_uses_free=True)
+    world_model = IsoDreamV2WorldModel(
+        IsoDreamV2Config.from_preset(args.size, action_dim=action_dim, reward_uses_free=True)
     )
-    model_loss = IsoDreamModelLoss(world_model, lambda_reward=2.0, free_branch_loss="kl")
+    model_loss = IsoDreamV2ModelLoss(world_model, lambda_reward=2.0, free_branch_loss="kl")
 
     # 3. Behavior (eq. 6-7): future-state attention -> actor and value, trained in imagination.
     policy_input = PolicyInput.for_world_model(
         world_model, mode="attention", window=args.window, width=args.units
     )
-    imagination = IsoDreamImagination(world_model, policy_input, horizon=args.horizon)
-    value_loss = IsoDreamValueLoss(
-        IsoDreamValue(in_features=policy_input.out_features, num_cells=args.units), imagination
+    imagination = IsoDreamV2Imagination(world_model, policy_input, horizon=args.horizon)
+    value_loss = IsoDreamV2ValueLoss(
+        IsoDreamV2Value(in_features=policy_input.out_features, num_cells=args.units), imagination
     )
-    actor = IsoDreamActor(in_features=policy_input.out_features, action_dim=action_dim, num_cells=args.units)
-    actor_loss = IsoDreamActorLoss(actor, imagination, value_loss)
+    actor = IsoDreamV2Actor(
+        in_features=policy_input.out_features, action_dim=action_dim, num_cells=args.units
+    )
+    actor_loss = IsoDreamV2ActorLoss(actor, imagination, value_loss)
 
     # 4. Acting (§3.4): filter o_t, roll z tau - 1 steps ahead, attend, act. The primer carries the states.
-    policy = IsoDreamPolicy(world_model, actor, policy_input)
+    policy = IsoDreamV2Policy(world_model, actor, policy_input)
 
     # 5. Collector: random prefill, then the policy; a TensorDictPrimer adds the recurrent keys to the env.
     def primed_env():

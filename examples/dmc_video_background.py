@@ -26,19 +26,19 @@ from torchrl.record.loggers import get_logger
 from torchrl.trainers import ReplayBufferTrainer, Trainer
 
 from isodream_rl.envs import make_env
-from isodream_rl.modules import (
-    IsoDreamActor,
-    IsoDreamValue,
-    IsoDreamWorldModel,
-    PolicyInput,
-    WorldModelConfig,
+from isodream_rl.modules import PolicyInput
+from isodream_rl.modules.isodream_v2 import (
+    IsoDreamV2Actor,
+    IsoDreamV2Config,
+    IsoDreamV2Value,
+    IsoDreamV2WorldModel,
 )
-from isodream_rl.modules.policy import IsoDreamPolicy
-from isodream_rl.objectives import (
-    IsoDreamActorLoss,
-    IsoDreamImagination,
-    IsoDreamModelLoss,
-    IsoDreamValueLoss,
+from isodream_rl.modules.isodream_v2.policy import IsoDreamV2Policy
+from isodream_rl.objectives.isodream_v2 import (
+    IsoDreamV2ActorLoss,
+    IsoDreamV2Imagination,
+    IsoDreamV2ModelLoss,
+    IsoDreamV2ValueLoss,
     make_target_updater,
 )
 from isodream_rl.trainers.builders import STREAM_KEY
@@ -122,22 +122,24 @@ def main() -> None:
 
     # 2. World model (eq. 2-4) and its loss (eq. 5): in DMC the noncontrollable branch learns from
     #    reconstruction alone (paper §3.2) and the reward comes from [s, h].
-    world_model = IsoDreamWorldModel(
-        WorldModelConfig.from_preset(args.size, action_dim=action_dim, reward_uses_free=False)
+    world_model = IsoDreamV2WorldModel(
+        IsoDreamV2Config.from_preset(args.size, action_dim=action_dim, reward_uses_free=False)
     )
-    model_loss = IsoDreamModelLoss(world_model, lambda_reward=2.0, free_branch_loss="recon_only")
+    model_loss = IsoDreamV2ModelLoss(world_model, lambda_reward=2.0, free_branch_loss="recon_only")
 
     # 3. Behavior (eq. 7): actor and value on the controllable state [s, h], trained in imagination.
     policy_input = PolicyInput.for_world_model(world_model, mode="controllable")
-    imagination = IsoDreamImagination(world_model, policy_input, horizon=args.horizon)
-    value_loss = IsoDreamValueLoss(
-        IsoDreamValue(in_features=policy_input.out_features, num_cells=args.units), imagination
+    imagination = IsoDreamV2Imagination(world_model, policy_input, horizon=args.horizon)
+    value_loss = IsoDreamV2ValueLoss(
+        IsoDreamV2Value(in_features=policy_input.out_features, num_cells=args.units), imagination
     )
-    actor = IsoDreamActor(in_features=policy_input.out_features, action_dim=action_dim, num_cells=args.units)
-    actor_loss = IsoDreamActorLoss(actor, imagination, value_loss)
+    actor = IsoDreamV2Actor(
+        in_features=policy_input.out_features, action_dim=action_dim, num_cells=args.units
+    )
+    actor_loss = IsoDreamV2ActorLoss(actor, imagination, value_loss)
 
     # 4. Acting: filter o_t with both branches, act on [s, h]. The primer carries the recurrent states.
-    policy = IsoDreamPolicy(world_model, actor, policy_input)
+    policy = IsoDreamV2Policy(world_model, actor, policy_input)
 
     # 5. Collector: random prefill, then the policy; a TensorDictPrimer adds the recurrent keys to the env.
     def primed_env(split: str = "train"):

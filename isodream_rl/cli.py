@@ -34,15 +34,15 @@ from hydra.core.config_store import ConfigStore  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 import isodream_rl.baselines  # noqa: E402, F401  (registers algo=torchrl_dreamer and torchrl_dreamer_v3)
-from isodream_rl.cli_overrides import check_overrides  # noqa: E402
+from isodream_rl.cli_overrides import check_overrides, free_form_overrides  # noqa: E402
 from isodream_rl.configs import register_dmc_envs  # noqa: E402
 from isodream_rl.envs.finite import NonFiniteEnvDataError  # noqa: E402
 from isodream_rl.evaluation.latent_probe import probe  # noqa: E402
-from isodream_rl.run_lock import RunDirBusyError  # noqa: E402
+from isodream_rl.run_utils.checkpoint import CheckpointError  # noqa: E402
+from isodream_rl.run_utils.disk_space import DiskFullError  # noqa: E402
+from isodream_rl.run_utils.run_lock import RunDirBusyError  # noqa: E402
 from isodream_rl.trainers import run as run_module  # noqa: E402
-from isodream_rl.trainers.checkpoint import CheckpointError  # noqa: E402
 from isodream_rl.trainers.config import ConfigError, RunConfig  # noqa: E402
-from isodream_rl.trainers.disk_space import DiskFullError  # noqa: E402
 from isodream_rl.trainers.run_lifecycle import RunResult  # noqa: E402
 from isodream_rl.trainers.stepper import NonFiniteLossError  # noqa: E402
 from isodream_rl.trainers.world_model_run import load_world_model, probe_scene  # noqa: E402
@@ -116,6 +116,7 @@ def train() -> None:
     or 143.
     """
     sys.argv = take_debug_flag(sys.argv)
+    sys.argv[1:] = free_form_overrides(sys.argv[1:])
     with report_user_errors("isodream-train", (ConfigError,)):
         check_overrides(sys.argv[1:])
     _train_main()

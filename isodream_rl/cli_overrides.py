@@ -8,13 +8,16 @@ word: the run trains with the default and ignores the key. :func:`check_override
 - a key under the schema (:class:`~isodream_rl.trainers.config.RunConfig`) that is no setting, with or without
   ``+``/``++``, naming the closest setting and the valid ones;
 - a group option that does not exist, naming the closest and the valid ones (a former ``algo`` name, its new one:
-  :data:`~isodream_rl.trainers.config.RENAMED_ALGOS`);
+  :data:`~isodream_rl.trainers.renames.RENAMED_ALGOS`);
 - whatever else composing the configuration as Hydra will refuses (a value of the wrong type), in one line;
 - a flag that is none of Hydra's (``--steps 300``: Hydra prints its usage block), naming the flag and the closest
   setting.
 
 Keys inside the free-form settings (``env.kwargs``, ``train.slurm_kwargs``) are left to what reads them,
-``hydra.*`` to Hydra.
+``hydra.*`` to Hydra. Such a key is an argument of the env (or of the SLURM executor), so it is accepted whether
+or not the env group writes it: :func:`free_form_overrides` gives ``env.kwargs.contact_penalty=0.0`` to Hydra as
+``++env.kwargs.contact_penalty=0.0``, where Hydra alone would refuse a key its group did not write ("not in
+struct").
 """
 
 from __future__ import annotations
@@ -31,7 +34,8 @@ from hydra.core.override_parser.types import OverrideType
 from hydra.errors import HydraException, MissingConfigException
 from omegaconf.errors import OmegaConfBaseException
 
-from isodream_rl.trainers.config import ConfigError, RunConfig, renamed_algo_error
+from isodream_rl.trainers.config import ConfigError, RunConfig
+from isodream_rl.trainers.renames import renamed_algo_error
 from isodream_rl.user_errors import DEBUG_FLAG
 
 CONFIGS = Path(__file__).parent / "configs"
@@ -53,6 +57,24 @@ def _all_settings(node: type = RunConfig, prefix: str = "") -> list[str]:
     for name, kind in _settings(node).items():
         keys += _all_settings(kind, f"{prefix}{name}.") if dataclasses.is_dataclass(kind) else [prefix + name]
     return keys
+
+
+def free_form_settings(node: type = RunConfig, prefix: str = "") -> list[str]:
+    """The free-form settings of the schema (a dict of the arguments of what reads it), as dotted keys."""
+    keys = []
+    for name, kind in _settings(node).items():
+        if dataclasses.is_dataclass(kind):
+            keys += free_form_settings(kind, f"{prefix}{name}.")
+        elif typing.get_origin(kind) is dict:
+            keys.append(prefix + name)
+    return keys
+
+
+def free_form_overrides(args: list[str]) -> list[str]:
+    """``args`` with each plain override of a key inside a free-form setting (``env.kwargs.<key>=<value>``) given
+    as ``++`` (set it, or add it): the key is an argument of the env whether or not the env group writes it."""
+    prefixes = tuple(f"{key}." for key in free_form_settings())
+    return ["++" + arg if arg.startswith(prefixes) and "=" in arg else arg for arg in args]
 
 
 def unknown_setting(key: str) -> str | None:

@@ -26,6 +26,11 @@ DEBUG_FLAG = "--debug"
 STOPPED_BY_SIGNAL = 128
 
 
+class ConfigError(ValueError):
+    """An invalid setting of a run (its configuration, its run folder, a command-line flag); the message names the
+    setting and what to change."""
+
+
 def debugging() -> bool:
     """``HYDRA_FULL_ERROR=1`` is set (``--debug`` sets it too): show tracebacks."""
     return os.environ.get("HYDRA_FULL_ERROR") == "1"

@@ -41,7 +41,7 @@ def cli_process(args, cwd):
 
 def tiny_run_config(run_dir, **changes):
     """A sprites ``RunConfig`` of Iso-Dream on the DreamerV2-style learner (``algo=isodream_v2``; the DreamerV3
-    learner's tiny runs are ``tests/test_isodream_v3.py``'s) at test sizes: tiny world model, 16-unit actor and
+    learner's tiny runs are ``tests/test_isodream.py``'s) at test sizes: tiny world model, 16-unit actor and
     value, windows of 2 x 6, 10 prefill steps, one batch every 10 steps, 20 steps in all, horizon 3. ``changes``
     override fields by ``section__name`` (``train__total_steps=30``; a plain name sets a top-level field)."""
     from isodream_rl.trainers import RunConfig

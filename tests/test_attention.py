@@ -5,7 +5,8 @@ import math
 import pytest
 import torch
 
-from isodream_rl.modules import FutureStateAttention, IsoDreamWorldModel, PolicyInput, WorldModelConfig
+from isodream_rl.modules import FutureStateAttention, PolicyInput
+from isodream_rl.modules.isodream_v2 import IsoDreamV2Config, IsoDreamV2WorldModel
 
 
 class TestFutureStateAttention:
@@ -98,7 +99,7 @@ class TestPolicyInput:
     def test_unknown_mode_and_missing_free_branch_are_rejected(self):
         with pytest.raises(ValueError, match="unknown policy_input"):
             PolicyInput(mode="future", feature_dim=6)
-        wm = IsoDreamWorldModel(WorldModelConfig.dreamerv2("tiny", action_dim=2))
+        wm = IsoDreamV2WorldModel(IsoDreamV2Config.dreamerv2("tiny", action_dim=2))
         with pytest.raises(ValueError, match="free_branch=False"):
             PolicyInput.for_world_model(wm, mode="attention")
         assert PolicyInput.for_world_model(wm, mode="controllable").out_features == 8 + 16

@@ -7,21 +7,21 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from isodream_rl.modules import (
-    IsoDreamActor,
-    IsoDreamValue,
-    IsoDreamWorldModel,
-    PolicyInput,
-    WorldModelConfig,
+from isodream_rl.modules import PolicyInput
+from isodream_rl.modules.isodream_v2 import (
+    IsoDreamV2Actor,
+    IsoDreamV2Config,
+    IsoDreamV2Value,
+    IsoDreamV2WorldModel,
 )
-from isodream_rl.objectives import (
-    IsoDreamActorLoss,
-    IsoDreamImagination,
-    IsoDreamValueLoss,
+from isodream_rl.objectives.isodream_v2 import (
+    IsoDreamV2ActorLoss,
+    IsoDreamV2Imagination,
+    IsoDreamV2ValueLoss,
     lambda_returns,
     make_target_updater,
 )
-from isodream_rl.objectives.imagination import policy_features
+from isodream_rl.objectives.isodream_v2.imagination import policy_features
 
 A, L, N = 2, 5, 6
 GAMMA, LMBDA = 0.99, 0.95
@@ -51,14 +51,14 @@ def reference_lambda_returns(reward, next_value, discount, lmbda):
 
 
 def build(mode="attention", gradient="dynamics", attention_through_actor=False, **wm_kwargs):
-    wm = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=A, **wm_kwargs))
+    wm = IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=A, **wm_kwargs))
     policy_input = PolicyInput.for_world_model(wm, mode=mode, window=3, width=8)
-    imagination = IsoDreamImagination(wm, policy_input, horizon=L)
-    value_loss = IsoDreamValueLoss(
-        IsoDreamValue(in_features=policy_input.out_features, num_cells=8), imagination
+    imagination = IsoDreamV2Imagination(wm, policy_input, horizon=L)
+    value_loss = IsoDreamV2ValueLoss(
+        IsoDreamV2Value(in_features=policy_input.out_features, num_cells=8), imagination
     )
-    actor = IsoDreamActor(in_features=policy_input.out_features, action_dim=A, num_cells=8, depth=2)
-    actor_loss = IsoDreamActorLoss(
+    actor = IsoDreamV2Actor(in_features=policy_input.out_features, action_dim=A, num_cells=8, depth=2)
+    actor_loss = IsoDreamV2ActorLoss(
         actor,
         imagination,
         value_loss,
@@ -198,7 +198,7 @@ def test_missing_start_keys_and_targets_are_reported():
     with pytest.raises(KeyError, match="lambda_target"):
         value_loss(TensorDict({}, [2, 3]))
     with pytest.raises(ValueError, match="actor gradient"):
-        IsoDreamActorLoss(actor_loss.actor, actor_loss.imagination, value_loss, gradient="ppo")
+        IsoDreamV2ActorLoss(actor_loss.actor, actor_loss.imagination, value_loss, gradient="ppo")
 
 
 def test_docs_snippet_runs():
@@ -227,4 +227,4 @@ def test_loc_penalty_is_the_squared_pre_tanh_mean_and_reaches_the_actor_only():
     losses, _ = actor_loss(start_batch(wm))
     assert "loss_actor_loc" not in losses.keys() and "actor_loc_abs" in losses.keys()
     with pytest.raises(ValueError, match="loc_penalty must be >= 0"):
-        IsoDreamActorLoss(actor_loss.actor, actor_loss.imagination, value_loss, loc_penalty=-1.0)
+        IsoDreamV2ActorLoss(actor_loss.actor, actor_loss.imagination, value_loss, loc_penalty=-1.0)

@@ -197,5 +197,8 @@ def test_the_default_table_never_overwrites_the_status_page(tmp_path):
     learning = load_bench("learning")
     results = learning.ROOT / "docs" / "results"
     assert learning.table_path(results / "learning.json") == results / "learning_table.md"
-    assert learning.table_path(results / "learning_rung1_v3.json") == results / "learning_rung1_v3.md"
+    assert (
+        learning.table_path(results / "learning_rung1_isodream.json")
+        == results / "learning_rung1_isodream.md"
+    )
     assert learning.table_path(tmp_path / "learning.json") == tmp_path / "learning.md"

@@ -14,9 +14,9 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 import isodream_rl.cli  # noqa: F401  (registers the config schema)
-from isodream_rl.trainers import ConfigError, RunConfig, validate_config
+from isodream_rl.trainers import AlgoConfig, ConfigError, RunConfig, validate_config
 from isodream_rl.trainers.config import ALGO_NAMES
-from isodream_rl.trainers.world_model_config import TORCHRL_BASELINES, WORLD_MODEL_ALGOS
+from isodream_rl.trainers.learners import ISODREAM_V2_ALGOS, TORCHRL_BASELINES, resolved
 
 CONFIGS = Path(isodream_rl.cli.__file__).parent / "configs"
 ENVS = sorted(p.stem for p in (CONFIGS / "env").glob("*.yaml"))
@@ -70,7 +70,7 @@ RESULTS = CONFIGS.parents[1] / "docs" / "results"
 def test_every_exp_composes_to_a_valid_config_and_its_results_page_names_the_recorded_runs(exp):
     cfg = composed(f"exp={exp}")
     validate_config(cfg)
-    assert cfg.algo.name in WORLD_MODEL_ALGOS  # the exp names its algo: the default's world model is another
+    assert cfg.algo.name in ISODREAM_V2_ALGOS  # the exp names its algo: the default's world model is another
     header = (CONFIGS / "exp" / f"{exp}.yaml").read_text()
     # settings only: no run names or scores in the file, at most a pointer to the results page
     assert not re.search(r"\bruns? [A-Z]+[0-9]+\b|Recorded|R²", header), header
@@ -101,6 +101,7 @@ def test_every_exp_composes_to_a_valid_config_and_its_results_page_names_the_rec
 def test_the_decomposition_recipe_is_the_same_on_every_scene(scene, algo):
     cfg = composed("exp=decomposition", *scene, f"algo={algo}")
     validate_config(cfg)
+    cfg = resolved(cfg)
     assert cfg.algo.name == algo and cfg.run_dir == f"runs/decomposition-{cfg.env.name}-{algo}"
     assert (cfg.algo.free_branch_loss, cfg.algo.reward_uses_free, cfg.algo.lambda_reward) == (
         "kl",
@@ -119,17 +120,26 @@ def test_the_decomposition_recipe_is_the_same_on_every_scene(scene, algo):
 
 def test_domain_presets_follow_the_paper():
     dmc = composed("env=dmc_walker_walk")
-    assert (dmc.algo.free_branch_loss, dmc.algo.policy_input, dmc.algo.reward_uses_free) == (
-        "recon_only",
+    assert (dmc.env.domain, dmc.algo.policy_input, dmc.algo.reward_uses_free) == (
+        "dmc",
         "controllable",
         False,
     )
     highway = composed("env=highway")
-    assert (highway.algo.free_branch_loss, highway.algo.policy_input, highway.algo.reward_uses_free) == (
-        "kl",
+    assert (highway.env.domain, highway.algo.policy_input, highway.algo.reward_uses_free) == (
+        "carla",
         "attention",
         True,
     )
+    # the DreamerV2-style learner's own per-domain values come from its table, by env.domain
+    dmc_v2, highway_v2 = (
+        resolved(composed(f"env={env}", "algo=isodream_v2")) for env in ("dmc_walker_walk", "highway")
+    )
+    assert (dmc_v2.algo.free_branch_loss, highway_v2.algo.free_branch_loss) == ("recon_only", "kl")
+    assert (dmc_v2.algo.lambda_reward, highway_v2.algo.lambda_reward) == (2.0, 2.0)
+    assert (
+        dmc.algo.free_branch_loss is None and resolved(dmc).algo.free_branch_loss is None
+    )  # the default's: none
     assert highway.algo.attention_window == 5 and highway.env.action_repeat == 4
     paper = composed("size=paper")
     assert (paper.train.batch_size, paper.train.sequence_length, paper.train.prefill_steps) == (50, 50, 2500)
@@ -139,13 +149,13 @@ def test_domain_presets_follow_the_paper():
 def test_sprites_trains_with_the_library_defaults_and_the_paper_preset_with_the_papers_settings():
     """The DreamerV2-style learner: ``algo=isodream_v2`` at the library's settings, ``isodream_paper`` at the
     paper's."""
-    from isodream_rl.modules import WorldModelConfig
-    from isodream_rl.modules.config import PAPER_EXACT
-    from isodream_rl.objectives.world_model import PAPER_WEIGHTS
-    from isodream_rl.trainers.builders import make_world_model_loss
+    from isodream_rl.modules.isodream_v2 import IsoDreamV2Config
+    from isodream_rl.modules.isodream_v2.config import PAPER_EXACT
+    from isodream_rl.objectives.isodream_v2.world_model import PAPER_WEIGHTS
+    from isodream_rl.trainers.isodream_v2 import make_world_model_loss
 
     defaults = make_world_model_loss(composed("env=sprites", "size=tiny", "algo=isodream_v2"), action_dim=2)
-    library = WorldModelConfig(action_dim=2)
+    library = IsoDreamV2Config(action_dim=2)
     for name in PAPER_EXACT:
         assert getattr(defaults.world_model.config, name) == getattr(library, name)
     assert defaults.inverse_loss.lambda_inverse == 30.0
@@ -156,11 +166,11 @@ def test_sprites_trains_with_the_library_defaults_and_the_paper_preset_with_the_
 
 
 def test_dreamerv2_preset_is_the_libraries_baseline():
-    from isodream_rl.modules import WorldModelConfig
-    from isodream_rl.trainers.builders import make_world_model_config
+    from isodream_rl.modules.isodream_v2 import IsoDreamV2Config
+    from isodream_rl.trainers.isodream_v2 import make_world_model_config
 
     trained = make_world_model_config(composed("algo=dreamerv2", "size=tiny"), action_dim=2)
-    baseline = WorldModelConfig.dreamerv2("tiny", action_dim=2)
+    baseline = IsoDreamV2Config.dreamerv2("tiny", action_dim=2)
     assert trained.to_dict() == {**baseline.to_dict(), "channels_last": trained.channels_last}
 
 
@@ -185,7 +195,9 @@ def test_lr_warmup_sets_dreamer_v3s_optimisers_and_is_refused_elsewhere():
             components = make_components(cfg, action_dim=2, scratch_dir=Path(scratch))
         optimizers = components.stepper.optimizers.values()
         assert {group["warmup_steps"] for opt in optimizers for group in opt.param_groups} == {7}, algo
-    with pytest.raises(ConfigError, match=r"train.lr_warmup=7 is the learning-rate warm-up of DreamerV3's"):
+    with pytest.raises(
+        ConfigError, match=r"train.lr_warmup=7 is not read by algo=isodream_v2 .*TorchRL's DreamerV3"
+    ):
         validate_config(composed("algo=isodream_v2", "train.lr_warmup=7"))
     with pytest.raises(ConfigError, match=r"train.lr_warmup=-1 must be >= 0"):
         validate_config(composed("train.lr_warmup=-1"))
@@ -343,12 +355,13 @@ def test_a_config_saved_before_the_loc_penalty_reads_back_with_the_loss_it_train
     from isodream_rl.trainers.config import config_from_dict
     from isodream_rl.trainers.run_dir import differing_settings
 
-    saved = dataclasses.asdict(RunConfig())
-    assert saved["algo"]["actor_loc_penalty"] == 0.1  # the default today
+    today = RunConfig(algo=AlgoConfig(name="isodream_v2"))
+    saved = dataclasses.asdict(resolved(today))
+    assert saved["algo"]["actor_loc_penalty"] == 0.1  # the DreamerV2-style learner's today
     del saved["algo"]["actor_loc_penalty"]  # as run_config.json and checkpoints had it before
     assert config_from_dict(saved).algo.actor_loc_penalty == 0.0
     # so resuming such a run with today's defaults is refused, naming the setting, instead of changing its loss
-    assert differing_settings(saved, RunConfig()) == {"algo.actor_loc_penalty": (0.0, 0.1)}
+    assert differing_settings(saved, today) == {"algo.actor_loc_penalty": (0.0, 0.1)}
     saved["algo"]["actor_loc_penalty"] = 0.1
     assert config_from_dict(saved).algo.actor_loc_penalty == 0.1
 
@@ -359,7 +372,7 @@ def test_a_config_saved_with_model_overrides_reads_back_into_the_typed_model_fie
     from isodream_rl.trainers.config import config_from_dict
     from isodream_rl.trainers.run_dir import differing_settings
 
-    now = composed("size=bench", "model.precision=bf16")
+    now = composed("algo=isodream_v2", "size=bench", "model.precision=bf16")
     saved = dataclasses.asdict(now)
     # as size=bench wrote it before: the small preset, its widths and the precision in model.overrides
     model = {"depth": 8, "belief_dim": 64, "hidden_dim": 64, "precision": "bf16"}
@@ -370,20 +383,19 @@ def test_a_config_saved_with_model_overrides_reads_back_into_the_typed_model_fie
     }
     assert config_from_dict(saved).model.world_model_fields() == model
     assert differing_settings(saved, now) == {}  # the same run: a resume goes on
-    assert differing_settings(saved, composed("size=bench", "model.precision=bf16", "model.depth=16")) == {
-        "model.depth": (8, 16)
-    }
+    deeper = composed("algo=isodream_v2", "size=bench", "model.precision=bf16", "model.depth=16")
+    assert differing_settings(saved, deeper) == {"model.depth": (8, 16)}
 
 
 @pytest.mark.parametrize("env", ["sprites", "dmc_walker_walk"])
 def test_a_run_saved_by_an_algo_that_changed_learner_resumes_as_isodream_v2(env):
     import dataclasses
 
-    from isodream_rl.trainers.config import FORMER_DREAMER_V2_ALGOS
+    from isodream_rl.trainers.learners import ISODREAM_ALGOS
+    from isodream_rl.trainers.renames import FORMER_DREAMER_V2_ALGOS
     from isodream_rl.trainers.run_dir import differing_settings
-    from isodream_rl.trainers.world_model_config import DREAMER_V3_ISODREAM
 
-    assert set(FORMER_DREAMER_V2_ALGOS) == set(DREAMER_V3_ISODREAM)
+    assert set(FORMER_DREAMER_V2_ALGOS) == set(ISODREAM_ALGOS)
     for name, settings in FORMER_DREAMER_V2_ALGOS.items():
         # saved by algo=<name> (its algo fields are the same before and after it changed learner), continued by
         # algo=isodream_v2 with the settings that build the same variant; the weights tell which it was
@@ -391,15 +403,15 @@ def test_a_run_saved_by_an_algo_that_changed_learner_resumes_as_isodream_v2(env)
         assert differing_settings(saved, composed(f"env={env}", "algo=isodream_v2", *settings)) == {}, name
     # not the other way round: a run saved as algo=isodream_v2 is the DreamerV2-style learner's
     saved = dataclasses.asdict(composed(f"env={env}", "algo=isodream_v2"))
-    assert differing_settings(saved, composed(f"env={env}")) == {"algo.name": ("isodream_v2", "isodream")}
+    assert differing_settings(saved, composed(f"env={env}"))["algo.name"] == ("isodream_v2", "isodream")
 
 
 def test_the_model_section_holds_every_world_model_field_but_the_envs():
-    from isodream_rl.modules.config import WorldModelConfig
+    from isodream_rl.modules.isodream_v2.config import IsoDreamV2Config
     from isodream_rl.trainers.config import ModelConfig
 
     names = [f.name for f in dataclasses_fields(ModelConfig)]
-    assert names[4:] == [f.name for f in dataclasses_fields(WorldModelConfig) if f.name != "action_dim"]
+    assert names[4:] == [f.name for f in dataclasses_fields(IsoDreamV2Config) if f.name != "action_dim"]
     assert all(getattr(ModelConfig(), name) is None for name in names[4:])  # None: the preset's value
     assert composed("model.depth=8", "model.precision=bf16").model.world_model_fields() == {
         "depth": 8,
@@ -407,17 +419,23 @@ def test_the_model_section_holds_every_world_model_field_but_the_envs():
     }
 
 
-def test_the_loss_weights_have_one_table_and_the_paper_preset_names_its_alpha_once():
-    from isodream_rl.objectives.world_model import LOSS_WEIGHTS, PAPER_WEIGHTS
-    from isodream_rl.trainers.builders import make_world_model_loss
+def test_the_loss_weights_have_one_table_per_learner_and_the_paper_preset_names_its_alpha_once():
+    from isodream_rl.modules.isodream.settings import ISODREAM_SETTINGS
+    from isodream_rl.objectives.isodream_v2.world_model import LOSS_WEIGHTS, PAPER_WEIGHTS
+    from isodream_rl.trainers.isodream_v2 import make_world_model_loss
 
-    loss = make_world_model_loss(composed("size=tiny", "env=dmc_walker_walk"), action_dim=2)
+    loss = make_world_model_loss(
+        composed("size=tiny", "env=dmc_walker_walk", "algo=isodream_v2"), action_dim=2
+    )
     for name, weight in LOSS_WEIGHTS.items():
         if name != "lambda_reward":  # the DMC env group's 2 (the authors' reward_scale)
             assert getattr(loss.inverse_loss if name == "lambda_inverse" else loss, name) == weight
-    assert composed("algo=isodream_paper").algo.lambda_inverse == PAPER_WEIGHTS["lambda_inverse"]
-    assert composed("algo=isodream_paper", "algo.lambda_inverse=5").algo.lambda_inverse == 5.0
-    assert composed().algo.lambda_inverse == LOSS_WEIGHTS["lambda_inverse"] == RunConfig().algo.lambda_inverse
+    assert resolved(composed("algo=isodream_paper")).algo.lambda_inverse == PAPER_WEIGHTS["lambda_inverse"]
+    assert resolved(composed("algo=isodream_paper", "algo.lambda_inverse=5")).algo.lambda_inverse == 5.0
+    assert resolved(composed("algo=isodream_v2")).algo.lambda_inverse == LOSS_WEIGHTS["lambda_inverse"]
+    # the default's is its own table's, whatever the DreamerV2-style learner's
+    assert resolved(composed()).algo.lambda_inverse == ISODREAM_SETTINGS.lambda_inverse
+    assert composed().algo.lambda_inverse is None is RunConfig().algo.lambda_inverse  # None: the learner's
 
 
 @pytest.mark.parametrize("algo", ALGOS)
@@ -447,9 +465,87 @@ def test_env_groups_set_env_fields_only_and_pick_a_domain(env):
         assert set(written) == {"defaults", "env"}
     domain = next(entry["/domain"] for entry in written["defaults"] if isinstance(entry, dict))
     assert (CONFIGS / "domain" / f"{domain}.yaml").exists()
-    stored = composed("env=dmc_cartpole_swingup").algo  # a DMC task without a YAML file picks domain=dmc too
-    assert (stored.free_branch_loss, stored.policy_input, stored.lambda_reward) == (
-        "recon_only",
+    stored = composed("env=dmc_cartpole_swingup")  # a DMC task without a YAML file picks domain=dmc too
+    assert (stored.env.domain, stored.algo.policy_input, stored.algo.reward_uses_free) == (
+        "dmc",
         "controllable",
-        2.0,
+        False,
     )
+
+
+def test_an_env_argument_the_env_group_does_not_write_is_accepted_without_a_plus():
+    """``env.kwargs.contact_penalty=0.0`` is an argument of the sprites env: isodream-train gives it to Hydra as
+    ``++env.kwargs...`` (Hydra alone refuses a key its group did not write, "not in struct")."""
+    from isodream_rl.cli_overrides import check_overrides, free_form_overrides
+
+    line = free_form_overrides(["env=sprites_reach", "env.kwargs.contact_penalty=0.0", "+env.kwargs.seed=1"])
+    assert line == ["env=sprites_reach", "++env.kwargs.contact_penalty=0.0", "+env.kwargs.seed=1"]
+    check_overrides(line)
+    assert composed(*line).env.kwargs["contact_penalty"] == 0.0
+    assert free_form_overrides(["train.slurm_kwargs.timeout_min=5"]) == ["++train.slurm_kwargs.timeout_min=5"]
+
+
+@pytest.mark.parametrize(
+    ("line", "refused", "readers"),
+    [
+        (["algo.gamma=0.9"], "algo.gamma=0.9 is not read by algo=isodream", "the DreamerV2-style learner"),
+        (
+            ["algo.exploration_noise=0.3"],
+            "algo.exploration_noise=0.3 is not read by algo=isodream",
+            "isodream_v2",
+        ),
+        (["model.depth=8"], "model.depth=8 is not read by algo=isodream", "TorchRL's Dreamer"),
+        (
+            ["algo=torchrl_dreamer_v3", "train.grad_clip=10"],
+            "train.grad_clip=10.0 is not read",
+            "torchrl_dreamer",
+        ),
+        (
+            ["algo=isodream_v2", "train.lr_warmup=7"],
+            "train.lr_warmup=7 is not read",
+            "Iso-Dream on DreamerV3's",
+        ),
+    ],
+)
+def test_a_setting_the_learner_does_not_read_is_refused_naming_the_learners_that_do(line, refused, readers):
+    with pytest.raises(ConfigError, match=rf"{re.escape(refused)} .*{re.escape(readers)}"):
+        validate_config(composed(*line, "size=tiny"))
+
+
+def test_each_learner_reads_its_own_table_and_the_default_leaves_the_others_unset():
+    from isodream_rl.modules.isodream.settings import ISODREAM_SETTINGS
+    from isodream_rl.trainers.learners import ISODREAM_V2_SETTINGS, learner_of
+
+    default = resolved(composed("env=sprites"))
+    assert default.algo.lambda_inverse == ISODREAM_SETTINGS.lambda_inverse
+    assert default.train.lr_warmup == ISODREAM_SETTINGS.lr_warmup
+    reads = learner_of("isodream").values
+    unread = [key for key in ISODREAM_V2_SETTINGS if key not in reads and not key.startswith("model.")]
+    assert "algo.gamma" in unread and "train.grad_clip" in unread
+    assert all(getattr(getattr(default, k.split(".")[0]), k.split(".")[1]) is None for k in unread)
+    v2 = resolved(composed("env=sprites", "algo=isodream_v2"))
+    assert (v2.algo.gamma, v2.algo.lambda_reward, v2.train.grad_clip, v2.train.lr_warmup) == (
+        0.9,
+        2.0,
+        100.0,
+        None,
+    )
+
+
+def test_a_config_saved_before_the_settings_tables_reads_back_without_what_its_learner_never_read():
+    """Before each learner had its own table, every configuration held the DreamerV2-style learner's values; the
+    default's run folders made then resume as they are (those values dropped), and so do the DreamerV2-style ones."""
+    import dataclasses
+
+    from isodream_rl.trainers.config import config_from_dict
+    from isodream_rl.trainers.run_dir import differing_settings
+
+    saved = dataclasses.asdict(composed("size=quickstart"))
+    saved["algo"].update(gamma=0.9, lambda_reward=2.0, exploration_noise=0.3, free_branch_loss="kl")
+    saved["train"].update(grad_clip=100.0, adam_eps=1e-5)
+    cfg = config_from_dict(saved)
+    assert (cfg.algo.gamma, cfg.algo.exploration_noise, cfg.train.grad_clip) == (None, None, None)
+    validate_config(cfg)
+    assert differing_settings(saved, composed("size=quickstart")) == {}
+    old_v2 = dataclasses.asdict(resolved(composed("algo=isodream_v2")))
+    assert differing_settings(old_v2, composed("algo=isodream_v2")) == {}

@@ -14,8 +14,8 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
+from isodream_rl.run_utils.checkpoint import rng_state, set_rng_state
 from isodream_rl.trainers import ConfigError
-from isodream_rl.trainers.checkpoint import rng_state, set_rng_state
 from isodream_rl.trainers.openloop import open_loop_prediction
 from isodream_rl.trainers.registry import make_components
 from isodream_rl.trainers.run import evaluate_checkpoint

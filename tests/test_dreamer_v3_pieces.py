@@ -1,6 +1,8 @@
 """DreamerV3's shared pieces in the lower layers: the actor on any number of inputs, imagination's extra latent
 keys, one optimiser per parameter group."""
 
+import dataclasses
+
 import pytest
 import torch
 from tensordict.nn import TensorDictModule
@@ -9,7 +11,7 @@ from torchrl.data import Bounded
 from torchrl.modules import WorldModelWrapper
 from torchrl.trainers.algorithms import DreamerV3Optimizer
 
-from isodream_rl.modules.dreamer_v3 import DreamerV3ContinuousActor, DreamerV3Settings
+from isodream_rl.modules.dreamer_v3 import TORCHRL_DREAMER_V3_SETTINGS, DreamerV3ContinuousActor
 from isodream_rl.objectives.imagination_env import latent_dreamer_env
 from isodream_rl.trainers.dreamer_v3 import GROUPS, make_dreamer_v3_optimizers
 
@@ -49,7 +51,7 @@ def test_imagination_carries_extra_latent_keys_beside_state_and_belief():
 
 
 def test_one_optimiser_per_group_with_the_settings():
-    settings = DreamerV3Settings(agc=0.5, optimizer_eps=1e-8, lr_warmup=10)
+    settings = dataclasses.replace(TORCHRL_DREAMER_V3_SETTINGS, agc=0.5, optimizer_eps=1e-8, lr_warmup=10)
     groups = {name: [nn.Parameter(torch.zeros(2))] for name in GROUPS}
     rates = {"world_model": 1e-3, "actor": 2e-4, "value": 3e-4}
     optimizers = make_dreamer_v3_optimizers(groups, rates=rates, settings=settings)

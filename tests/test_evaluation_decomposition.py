@@ -9,7 +9,7 @@ from torch import nn
 
 from isodream_rl.data.sprites_episodes import collect_sprites_episodes, episode_windows
 from isodream_rl.evaluation import BRANCHES, CLASSES, branch_assignment, decomposition_scores
-from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
+from isodream_rl.modules.isodream_v2 import IsoDreamV2Config, IsoDreamV2WorldModel
 
 # one 4 x 4 frame: the agent in the top-left 2 pixels, two distractor pixels bottom-right, 12 of background
 AGENT = torch.zeros(4, 4, dtype=torch.bool)
@@ -147,7 +147,7 @@ def test_windows_without_ground_truth_or_of_the_wrong_shape_are_refused():
 
 @pytest.mark.parametrize("branches", [{}, {"free_branch": False, "static_branch": False}])
 def test_a_real_world_model_partitions_the_frame_between_its_branches(branches):
-    model = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2, **branches))
+    model = IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=2, **branches))
     windows = episode_windows(collect_sprites_episodes(episodes=1, steps=8, seed=0), window=4)
     scores = decomposition_scores(model, windows)
     assert set(scores) == {
@@ -164,7 +164,7 @@ def test_rollout_windows_are_cut_from_an_episode_and_too_short_ones_give_nothing
     from isodream_rl.envs import make_env
     from isodream_rl.trainers.evaluation import rollout_decomposition
 
-    model = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
+    model = IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=2))
     rollout = make_env("sprites", seed=0, return_masks=True, max_steps=7).rollout(7)
     assert set(rollout_decomposition(model, rollout, window=3)) >= {"iou_control_vs_agent", "reco_mse"}
     assert rollout_decomposition(model, rollout, window=10)["iou_static_vs_background"] >= 0.0  # one of 7

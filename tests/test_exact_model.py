@@ -2,47 +2,45 @@
 
 The model is the env itself written in torch, so these tests separate what the behavior learner can do from
 what a young world model lets it do: the default's learner (DreamerV3's, ``algo=isodream``,
-``isodream_rl.evaluation.exact_sprites_v3``), checked to be the one a run builds, must learn the task, and it must
+``isodream_rl.evaluation.exact_sprites_behavior``), checked to be the one a run builds, must learn the task, and it must
 recover once an early, systematic reward error of the model is gone (the lock-in that real runs show when their
 world model is still young). The DreamerV2-style learner (``algo=isodream_v2``) is checked to be the one a run of
 it builds and to train; how it learns and recovers, with and without its loc penalty, is
-``bench/exact_model.py --variants isodream_v2,paper``'s (``docs/results/exact_model.json``).
+``bench/exact_model.py --variants isodream_v2,paper``'s (``docs/results/exact_model_isodream_v2.json``).
 """
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.objectives import DreamerV3ActorLoss
 from torchrl.trainers.algorithms import DreamerV3Optimizer
 
 from isodream_rl.envs.sprites import SpritesEnv
 from isodream_rl.evaluation import ExactSpritesModel
-from isodream_rl.evaluation.exact_sprites_v3 import make_exact_model_v3_behavior
-from isodream_rl.modules.world_model_v3 import IsoDreamV3Config
-from isodream_rl.objectives import IsoDreamActorLoss
-from isodream_rl.objectives.isodream_v3 import make_isodream_v3
+from isodream_rl.evaluation.exact_sprites_behavior import make_exact_model_behavior
+from isodream_rl.modules.isodream.world_model import IsoDreamConfig
+from isodream_rl.objectives.isodream import make_isodream
+from isodream_rl.objectives.isodream_v2 import IsoDreamV2ActorLoss
 from isodream_rl.trainers import RunConfig
 from isodream_rl.trainers.exact_model import exact_model_learner, train_behavior_on_exact_model
-from isodream_rl.trainers.world_model_config import DREAMER_V3_ISODREAM
+from isodream_rl.trainers.learners import ISODREAM_ALGOS, resolved
 
 #: start states per update: a quarter of the bench's B * T = 512, so that the two learning tests take about 2.5
 #: minutes of one core (DreamerV3's learner: about 0.14 s per update)
 BATCH = 128
-SPRITES_GROUP = Path(__file__).resolve().parents[1] / "isodream_rl" / "configs" / "domain" / "sprites.yaml"
 
 
 def bench_behavior_config(algo: str = "isodream") -> RunConfig:
     """The learning bench's behavior (``size=bench``: 128-unit actor and value, horizon 15) of ``algo`` at the
-    library's defaults for sprites (``domain=sprites``, which ``env=sprites`` picks, sets the discount 0.9, which
-    DreamerV3's learner does not read), on ``[s, h]`` (the exact model has no noncontrollable branch)."""
+    library's defaults for sprites (``env.domain=sprites``, which ``env=sprites`` picks: the DreamerV2-style
+    learner's table has the discount 0.9 there, which DreamerV3's learner does not read), on ``[s, h]`` (the exact
+    model has no noncontrollable branch)."""
     cfg = RunConfig()
     cfg.algo.name = algo
-    cfg.algo.gamma = OmegaConf.load(SPRITES_GROUP).algo.gamma
+    cfg.env.domain = "sprites"
     cfg.algo.policy_input = "controllable"
     cfg.model.actor_units = cfg.model.value_units = 128
     cfg.train.threads = 1
@@ -100,9 +98,9 @@ def test_the_learner_learns_the_task_on_the_exact_model():
 
 
 def test_the_exact_model_trains_the_learner_of_algo_isodream():
-    """The actor, critic and losses on the exact model are those of ``make_isodream_v3`` (which composes its own),
+    """The actor, critic and losses on the exact model are those of ``make_isodream`` (which composes its own),
     and imagination steps the exact model, its reward error included."""
-    world_model_config = IsoDreamV3Config(
+    world_model_config = IsoDreamConfig(
         action_dim=2,
         hidden=16,
         image_depth=2,
@@ -112,11 +110,11 @@ def test_the_exact_model_trains_the_learner_of_algo_isodream():
         inverse_dynamics=False,
         reward_uses_free=False,
     )
-    run = make_isodream_v3(
+    run = make_isodream(
         world_model_config, policy_input="controllable", actor_units=8, value_units=8, horizon=7
     )
     model = ExactSpritesModel(reward_error=0.3, error_direction=(0.0, 1.0))
-    exact = make_exact_model_v3_behavior(model, actor_units=8, value_units=8, horizon=7)
+    exact = make_exact_model_behavior(model, actor_units=8, value_units=8, horizon=7)
     ours, theirs = exact.losses.actor_loss, run.actor_loss
     for name in (
         "imagination_horizon",
@@ -160,12 +158,13 @@ def test_the_exact_model_trains_the_learner_of_the_runs_algo(algo):
     cfg = bench_behavior_config(algo)
     learner = exact_model_learner(cfg, ExactSpritesModel())
     assert set(learner.optimizers) == {"actor", "value"}
-    if algo in DREAMER_V3_ISODREAM:
+    if algo in ISODREAM_ALGOS:
         assert isinstance(learner.actor_loss, DreamerV3ActorLoss) and learner.grad_clip == math.inf
         assert all(isinstance(opt, DreamerV3Optimizer) for opt in learner.optimizers.values())
         return
-    actor_loss = learner.actor_loss
-    assert isinstance(actor_loss, IsoDreamActorLoss) and learner.grad_clip == cfg.train.grad_clip
+    actor_loss, cfg = learner.actor_loss, resolved(cfg)
+    assert cfg.algo.gamma == 0.9  # the sprites domain's
+    assert isinstance(actor_loss, IsoDreamV2ActorLoss) and learner.grad_clip == cfg.train.grad_clip
     assert (actor_loss.loc_penalty, actor_loss.gamma) == (cfg.algo.actor_loc_penalty, cfg.algo.gamma)
     for name, lr in (("actor", cfg.train.actor_lr), ("value", cfg.train.value_lr)):
         optimizer = learner.optimizers[name]

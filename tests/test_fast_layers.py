@@ -8,17 +8,16 @@ import torch
 from tensordict import TensorDict
 from torch import nn
 
-from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
 from isodream_rl.modules.composition import MaskComposition
-from isodream_rl.modules.decoder import ConvDecoder
-from isodream_rl.modules.fast_paths import (
+from isodream_rl.modules.fast_paths import FusedMaskComposition, fused_compose_decoded
+from isodream_rl.modules.isodream_v2 import IsoDreamV2Config, IsoDreamV2WorldModel
+from isodream_rl.modules.isodream_v2.decoder import ConvDecoder
+from isodream_rl.modules.isodream_v2.fast_paths import (
     FastConvDecoder,
-    FusedMaskComposition,
     fast_filter_window,
-    fused_compose_decoded,
     paired_filter_window,
 )
-from isodream_rl.modules.rssm import filter_window
+from isodream_rl.modules.isodream_v2.rssm import filter_window
 
 
 def reference_decoder(decoder: ConvDecoder, latent: torch.Tensor) -> torch.Tensor:
@@ -85,7 +84,7 @@ def test_decoder_state_dict_keeps_the_layer_names_and_shapes():
 
 
 def test_single_threaded_rollout_has_the_loops_values_and_gradients_and_restores_the_thread_count():
-    wm = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
+    wm = IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=2))
     rssm_params = [*wm.control_rssm.parameters(), *wm.free_rssm.parameters()]
     control = torch.randn(2, 6, wm.config.hidden_dim, requires_grad=True)
     free = torch.randn(2, 6, wm.config.hidden_dim, requires_grad=True)
@@ -121,7 +120,7 @@ def test_paired_rollout_equals_the_branchwise_loop_in_values_and_gradients():
     """paired_filter_window (RSSMPair: both branches in one batched step) against the reference filter_window
     (filter_step: one observe_step per branch and step): same outputs, same random draws, same gradients for
     every RSSM parameter and both embedding projections."""
-    wm = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=3))
+    wm = IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=3))
     params = [*wm.control_rssm.parameters(), *wm.free_rssm.parameters()]
     with torch.no_grad():  # non-trivial layer-norm affine parameters, different per branch
         for p in params:
@@ -344,12 +343,12 @@ def test_a_world_model_gives_the_same_losses_and_gradients_with_and_without_fast
     """Two world models with the same weights, fast_paths=True (the default) and False (the reference forms):
     the same modules and state dict, and the same losses and gradients for every parameter on one batch with
     a reset inside the window, under the same seed."""
-    from isodream_rl.objectives import IsoDreamModelLoss
+    from isodream_rl.objectives.isodream_v2 import IsoDreamV2ModelLoss
 
     torch.manual_seed(0)
-    fast = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2, **overrides))
-    reference = IsoDreamWorldModel(
-        WorldModelConfig.from_preset("tiny", action_dim=2, fast_paths=False, **overrides)
+    fast = IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=2, **overrides))
+    reference = IsoDreamV2WorldModel(
+        IsoDreamV2Config.from_preset("tiny", action_dim=2, fast_paths=False, **overrides)
     )
     assert fast.state_dict().keys() == reference.state_dict().keys()
     reference.load_state_dict(fast.state_dict())
@@ -374,7 +373,7 @@ def test_a_world_model_gives_the_same_losses_and_gradients_with_and_without_fast
     )
 
     def run(model):
-        loss = IsoDreamModelLoss(model)
+        loss = IsoDreamV2ModelLoss(model)
         torch.manual_seed(2)
         losses, _ = loss(td.clone())
         params = list(model.parameters())

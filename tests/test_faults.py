@@ -41,24 +41,25 @@ from torchrl.envs.transforms import DTypeCastTransform, ObservationNorm, Transfo
 
 from isodream_rl.data import write_tiny_bair
 from isodream_rl.envs import make_env
-from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
-from isodream_rl.objectives import IsoDreamModelLoss
-from isodream_rl.run_lock import LOCK_FILE, lock_owner
+from isodream_rl.modules.isodream_v2 import IsoDreamV2Config, IsoDreamV2WorldModel
+from isodream_rl.objectives.isodream_v2 import IsoDreamV2ModelLoss
+from isodream_rl.run_utils import checkpoint as checkpoint_module
+from isodream_rl.run_utils.checkpoint import set_rng_state, write_manifest
+from isodream_rl.run_utils.run_folder import existing_run_files
+from isodream_rl.run_utils.run_lock import LOCK_FILE, lock_owner
 from isodream_rl.trainers import (
     CheckpointError,
     CheckpointManager,
     ConfigError,
+    IsoDreamV2Components,
     NonFiniteLossError,
-    RunComponents,
     RunConfig,
     evaluate_checkpoint,
     train,
 )
-from isodream_rl.trainers import checkpoint as checkpoint_module
-from isodream_rl.trainers.checkpoint import set_rng_state, write_manifest
 from isodream_rl.trainers.config import config_from_dict
 from isodream_rl.trainers.hooks import ReplayPreparation
-from isodream_rl.trainers.run_dir import existing_run_files
+from isodream_rl.trainers.run_dir import RUN_FILES
 from isodream_rl.trainers.saved_models import CheckpointMismatchError
 from tests.conftest import tiny_run_config
 
@@ -144,14 +145,14 @@ class Lineage:
             self.after[step] = [self.update(components) for _ in range(2)]
         self.live = components
 
-    def components(self, scratch: Path) -> RunComponents:
-        return RunComponents(self.cfg, action_dim=A, scratch_dir=scratch)
+    def components(self, scratch: Path) -> IsoDreamV2Components:
+        return IsoDreamV2Components(self.cfg, action_dim=A, scratch_dir=scratch)
 
-    def state(self, components: RunComponents) -> dict:
+    def state(self, components: IsoDreamV2Components) -> dict:
         return components.state(self.cfg, env_steps=0, trainer=None)
 
     @staticmethod
-    def update(components: RunComponents) -> float:
+    def update(components: IsoDreamV2Components) -> float:
         return float(components.stepper.step(None, components.replay_buffer.sample())["loss_model_reco"])
 
     def continue_from(self, tmp_path: Path, name: str = "scratch_b") -> tuple[Path, list[float]]:
@@ -656,7 +657,9 @@ def test_nan_or_inf_env_data_stops_the_run_in_one_line(case, num_envs, tmp_path,
     line = user_error(out)
     state, checkpoint = CheckpointManager(tmp_path / "run" / "checkpoints").load_latest()
     found = {"nan": "NaN", "inf": "inf", "-inf": "inf"}[value]
-    which = " (collector env 1 of 2)" if num_envs == 2 else ""  # both go bad at their 80th step; the first named
+    which = (
+        " (collector env 1 of 2)" if num_envs == 2 else ""
+    )  # both go bad at their 80th step; the first named
     assert line == (
         f"isodream-train: env.factory=tests.test_faults:bad_data_sprites{which} gave {key!r} holding {found} at "
         f"env step 80; the last checkpoint, run/checkpoints/{checkpoint.name}, is intact: fix the env, then "
@@ -776,7 +779,9 @@ def test_a_start_that_fails_leaves_no_run_and_the_corrected_command_starts(tmp_p
     monkeypatch.setattr(run_module, "make_components", broken)
     with pytest.raises(RuntimeError, match="injected build failure"):
         train(tiny_run(tmp_path / "run"))
-    assert existing_run_files(tmp_path / "run") == [] and not (tmp_path / "run" / LOCK_FILE).exists()
+    assert (
+        existing_run_files(tmp_path / "run", RUN_FILES) == [] and not (tmp_path / "run" / LOCK_FILE).exists()
+    )
     monkeypatch.undo()
     assert train(tiny_run(tmp_path / "run")).env_steps == 30
 
@@ -913,7 +918,7 @@ def model_batch(entries: dict | None = None, *, time: int = 4) -> TensorDict:
 
 @pytest.fixture(scope="module")
 def model_loss():
-    return IsoDreamModelLoss(IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=A)))
+    return IsoDreamV2ModelLoss(IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=A)))
 
 
 PIXELS = torch.randint(0, 256, (2, 4, 3, 64, 64), dtype=torch.uint8)
@@ -934,7 +939,7 @@ BAD_INPUTS = {
 
 @pytest.mark.parametrize("case", list(BAD_INPUTS), ids=list(BAD_INPUTS))
 def test_model_loss_refuses_bad_inputs(model_loss, case, said):
-    """refused: IsoDreamModelLoss (through the world model) on a bad batch | a ValueError naming what is
+    """refused: IsoDreamV2ModelLoss (through the world model) on a bad batch | a ValueError naming what is
     wrong and the fix (the range [0, 1] and how to get there for pixels)"""
     entries, message = BAD_INPUTS[case]
     with pytest.raises(ValueError, match=message) as error:
@@ -943,13 +948,13 @@ def test_model_loss_refuses_bad_inputs(model_loss, case, said):
 
 
 def test_one_step_window_is_refused_and_checks_can_be_skipped(model_loss, said):
-    """refused: IsoDreamModelLoss on a window of T=1 (was an internal tensordict error) | a ValueError asking
-    for 2 steps or more; IsoDreamWorldModel(check_inputs=False) skips the value checks"""
+    """refused: IsoDreamV2ModelLoss on a window of T=1 (was an internal tensordict error) | a ValueError asking
+    for 2 steps or more; IsoDreamV2WorldModel(check_inputs=False) skips the value checks"""
     with pytest.raises(ValueError, match="at least 2 steps.*got T=1") as error:
         model_loss(model_batch(time=1))
     said(error.value)
-    unchecked = IsoDreamModelLoss(
-        IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=A), check_inputs=False)
+    unchecked = IsoDreamV2ModelLoss(
+        IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=A), check_inputs=False)
     )
     losses, _ = unchecked(model_batch({("next", "pixels"): PIXELS.float()}))
     assert losses["loss_model_reco"] > 1e5  # the [0, 255] floats, taken as [0, 1]: why the check is on
@@ -1196,10 +1201,10 @@ def test_weights_of_other_widths_are_named_in_one_line(tmp_path, said):
     load_state_dict's size mismatches) | refused: one line naming the checkpoint, the model, a few keys with both
     shapes, and that the run's algo and model settings must be the saved ones"""
     cfg = tiny_run(tmp_path / "a")
-    state = RunComponents(cfg, action_dim=A, scratch_dir=tmp_path / "scratch_a").state(
+    state = IsoDreamV2Components(cfg, action_dim=A, scratch_dir=tmp_path / "scratch_a").state(
         cfg, env_steps=0, trainer=None
     )
-    narrow = RunComponents(
+    narrow = IsoDreamV2Components(
         tiny_run(tmp_path / "b", model__actor_units=8), action_dim=A, scratch_dir=tmp_path / "b"
     )
     with pytest.raises(CheckpointMismatchError) as error:

@@ -29,8 +29,8 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 import isodream_rl.cli
+from isodream_rl.run_utils.checkpoint import CheckpointManager
 from isodream_rl.trainers import run as run_module
-from isodream_rl.trainers.checkpoint import CheckpointManager
 
 RECORD = Path(__file__).parent / "data" / "fixed_seed.json"
 CONFIGS = Path(isodream_rl.cli.__file__).parent / "configs"
@@ -79,9 +79,7 @@ def run(name: str, run_dir: Path) -> dict:
         for model, tensors in state["models"].items()
         if isinstance(tensors, dict)
     }
-    losses = {
-        key: value for key, value in result.metrics.items() if key.startswith(("loss_", "grad_norm_"))
-    }
+    losses = {key: value for key, value in result.metrics.items() if key.startswith(("loss_", "grad_norm_"))}
     return {"updates": result.updates, "losses": losses, "weights": weights}
 
 

@@ -98,3 +98,17 @@ def test_isodream_train_runs_on_a_gymnasium_id_and_on_a_factory(tmp_path):
     assert train(cfg).updates > 0
     with pytest.raises(ConfigError, match="env.factory"):
         validate_config(tiny("bad", factory=f"{__name__}:no_such_function"))
+
+
+def test_an_env_with_a_discrete_action_space_is_refused_saying_what_to_give():
+    with pytest.raises(
+        ValueError, match=r"CartPole-v1 has a discrete action space \(Discrete\(2\)\).*continuous"
+    ):
+        make_env("CartPole-v1")
+    cfg = composed("env=gym", "env.name=CartPole-v1", "size=tiny")
+    from isodream_rl.trainers.run_lifecycle import probe_action_dim
+
+    with pytest.raises(
+        ConfigError, match=r"env.name='CartPole-v1'.*give an env whose action space is continuous"
+    ):
+        probe_action_dim(cfg)

@@ -4,8 +4,9 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from isodream_rl.modules import IsoDreamActor, IsoDreamWorldModel, PolicyInput, WorldModelConfig
-from isodream_rl.objectives import IsoDreamImagination, IsoDreamModelLoss
+from isodream_rl.modules import PolicyInput
+from isodream_rl.modules.isodream_v2 import IsoDreamV2Actor, IsoDreamV2Config, IsoDreamV2WorldModel
+from isodream_rl.objectives.isodream_v2 import IsoDreamV2Imagination, IsoDreamV2ModelLoss
 
 A, L, TAU, N = 2, 4, 3, 5
 
@@ -20,10 +21,10 @@ def _one_thread():
 
 
 def build(mode="attention", attention_window="start", **wm_kwargs):
-    wm = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=A, **wm_kwargs))
+    wm = IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=A, **wm_kwargs))
     policy_input = PolicyInput.for_world_model(wm, mode=mode, window=TAU, width=8)
-    imagination = IsoDreamImagination(wm, policy_input, horizon=L, attention_window=attention_window)
-    actor = IsoDreamActor(in_features=policy_input.out_features, action_dim=A, num_cells=8, depth=2)
+    imagination = IsoDreamV2Imagination(wm, policy_input, horizon=L, attention_window=attention_window)
+    actor = IsoDreamV2Actor(in_features=policy_input.out_features, action_dim=A, num_cells=8, depth=2)
     return wm, imagination, actor
 
 
@@ -122,7 +123,7 @@ def test_imagination_starts_from_every_posterior_of_the_replay_batch():
         },
         [batch, time],
     )
-    _, model_out = IsoDreamModelLoss(wm)(td)
+    _, model_out = IsoDreamV2ModelLoss(wm)(td)
     nxt = model_out["next"]
     start = [nxt[k].reshape(batch * time, -1) for k in ("state", "belief", "free_state", "free_belief")]
     out = imagination(*start, actor=actor)
@@ -134,8 +135,8 @@ def test_imagination_starts_from_every_posterior_of_the_replay_batch():
 def test_bad_configuration_is_rejected():
     wm, imagination, actor = build()
     with pytest.raises(ValueError, match="attention_window"):
-        IsoDreamImagination(wm, imagination.policy_input, attention_window="sliding")
+        IsoDreamV2Imagination(wm, imagination.policy_input, attention_window="sliding")
     with pytest.raises(ValueError, match="feature_dim"):
-        IsoDreamImagination(wm, PolicyInput(mode="attention", feature_dim=7, window=TAU, width=8))
+        IsoDreamV2Imagination(wm, PolicyInput(mode="attention", feature_dim=7, window=TAU, width=8))
     with pytest.raises(ValueError, match="flat"):
         imagination(*[s[None] for s in random_start(wm)], actor=actor)

@@ -7,7 +7,7 @@ from tensordict import TensorDict
 
 from isodream_rl.cli import probe_run
 from isodream_rl.evaluation.latent_probe import probe, ridge_cv, ridge_r2, sprite_centres
-from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
+from isodream_rl.modules.isodream_v2 import IsoDreamV2Config, IsoDreamV2WorldModel
 from isodream_rl.trainers import CheckpointError, train
 from isodream_rl.trainers.world_model_run import load_world_model, probe_scene
 from tests.test_cli import composed
@@ -38,7 +38,7 @@ def test_ridge_r2_is_one_for_a_linear_target_and_low_for_noise():
 
 def test_probe_scores_every_branch_and_sprite_with_seeded_samples():
     torch.manual_seed(0)
-    model = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
+    model = IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=2))
     scores = probe(model, window=8, episodes=4, episode_length=16)
     names = ["agent", "distractor_0", "distractor_1", "distractor_2"]
     assert set(scores) == {f"r2_{b}_{n}" for b in ("control", "free") for n in names}
@@ -101,7 +101,7 @@ def white_detector_trunk(model):
 
 def test_encoder_probe_reads_positions_off_the_trunk_and_picks_its_ridge():
     torch.manual_seed(0)
-    model = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
+    model = IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=2))
     white_detector_trunk(model)
     # a pool of 8 backgrounds, as the world-model recipe's: the white detector stays quiet on their textures
     scores = probe(model, window=8, episodes=16, episode_length=32, encoder=True, num_backgrounds=8)

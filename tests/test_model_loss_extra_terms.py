@@ -1,10 +1,10 @@
-"""Terms added to eq. 5 (``IsoDreamModelLoss(extra_terms=...)``): their place in the loss and their checks."""
+"""Terms added to eq. 5 (``IsoDreamV2ModelLoss(extra_terms=...)``): their place in the loss and their checks."""
 
 import pytest
 import torch
 
-from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
-from isodream_rl.objectives import IsoDreamModelLoss
+from isodream_rl.modules.isodream_v2 import IsoDreamV2Config, IsoDreamV2WorldModel
+from isodream_rl.objectives.isodream_v2 import IsoDreamV2ModelLoss
 from tests.test_world_model import make_batch
 
 
@@ -17,8 +17,9 @@ class _SquaredError(torch.nn.Module):
 
 def test_model_loss_adds_the_term_on_the_composite():
     torch.manual_seed(0)
-    loss = IsoDreamModelLoss(
-        IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2)), extra_terms=[_SquaredError()]
+    loss = IsoDreamV2ModelLoss(
+        IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=2)),
+        extra_terms=[_SquaredError()],
     )
     td = make_batch()
     losses, out = loss(td)
@@ -31,8 +32,8 @@ def test_model_loss_adds_the_term_on_the_composite():
 
 
 def test_extra_terms_must_add_new_loss_entries():
-    model = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
+    model = IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=2))
     for bad in ({"pyramid": torch.zeros(())}, {"loss_model_reco": torch.zeros(())}):
-        loss = IsoDreamModelLoss(model, extra_terms=[lambda reco, target, bad=bad: bad])
+        loss = IsoDreamV2ModelLoss(model, extra_terms=[lambda reco, target, bad=bad: bad])
         with pytest.raises(ValueError, match="new loss_"):
             loss(make_batch())

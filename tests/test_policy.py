@@ -11,19 +11,19 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules.utils import get_primers_from_module
 
 from isodream_rl.envs import make_env
-from isodream_rl.modules import (
-    IsoDreamActor,
-    IsoDreamValue,
-    IsoDreamWorldModel,
-    PolicyInput,
-    WorldModelConfig,
+from isodream_rl.modules import PolicyInput
+from isodream_rl.modules.isodream_v2 import (
+    IsoDreamV2Actor,
+    IsoDreamV2Config,
+    IsoDreamV2Value,
+    IsoDreamV2WorldModel,
 )
-from isodream_rl.modules.policy import IsoDreamPolicy
-from isodream_rl.objectives import (
-    IsoDreamActorLoss,
-    IsoDreamImagination,
-    IsoDreamModelLoss,
-    IsoDreamValueLoss,
+from isodream_rl.modules.isodream_v2.policy import IsoDreamV2Policy
+from isodream_rl.objectives.isodream_v2 import (
+    IsoDreamV2ActorLoss,
+    IsoDreamV2Imagination,
+    IsoDreamV2ModelLoss,
+    IsoDreamV2ValueLoss,
     make_target_updater,
 )
 
@@ -41,10 +41,10 @@ def _one_thread():
 
 
 def build_policy(mode="attention", **wm_kwargs):
-    wm = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=A, **wm_kwargs))
+    wm = IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=A, **wm_kwargs))
     policy_input = PolicyInput.for_world_model(wm, mode=mode, window=TAU, width=8)
-    actor = IsoDreamActor(in_features=policy_input.out_features, action_dim=A, num_cells=8, depth=2)
-    return IsoDreamPolicy(wm, actor, policy_input)
+    actor = IsoDreamV2Actor(in_features=policy_input.out_features, action_dim=A, num_cells=8, depth=2)
+    return IsoDreamV2Policy(wm, actor, policy_input)
 
 
 def make_envs(policy, num_envs=2, seed=0):
@@ -130,12 +130,12 @@ def test_evaluation_is_deterministic_under_a_seed_and_uses_the_mode():
 def test_collect_train_and_act_end_to_end(mode):
     policy = build_policy(mode, reward_uses_free=mode != "controllable")
     wm, actor, policy_input = policy.world_model, policy.actor, policy.policy_input
-    imagination = IsoDreamImagination(wm, policy_input, horizon=4)
-    value_loss = IsoDreamValueLoss(
-        IsoDreamValue(in_features=policy_input.out_features, num_cells=8), imagination
+    imagination = IsoDreamV2Imagination(wm, policy_input, horizon=4)
+    value_loss = IsoDreamV2ValueLoss(
+        IsoDreamV2Value(in_features=policy_input.out_features, num_cells=8), imagination
     )
-    actor_loss = IsoDreamActorLoss(actor, imagination, value_loss)
-    model_loss = IsoDreamModelLoss(wm)
+    actor_loss = IsoDreamV2ActorLoss(actor, imagination, value_loss)
+    model_loss = IsoDreamV2ModelLoss(wm)
     groups = actor_loss.parameter_groups()
     optimisers = {name: torch.optim.Adam(params, lr=1e-3) for name, params in groups.items()}
     updater = make_target_updater(value_loss, period=1)
@@ -175,17 +175,17 @@ def test_missing_primer_and_bad_configuration_are_reported():
     with pytest.raises(KeyError, match="make_tensordict_primer"):
         policy(td)
     with pytest.raises(ValueError, match="exploration_noise"):
-        IsoDreamPolicy(policy.world_model, policy.actor, policy.policy_input, exploration_noise=-1.0)
-    dreamer = IsoDreamWorldModel(WorldModelConfig.dreamerv2("tiny", action_dim=A))
+        IsoDreamV2Policy(policy.world_model, policy.actor, policy.policy_input, exploration_noise=-1.0)
+    dreamer = IsoDreamV2WorldModel(IsoDreamV2Config.dreamerv2("tiny", action_dim=A))
     with pytest.raises(ValueError, match="free branch"):
-        IsoDreamPolicy(dreamer, policy.actor, policy.policy_input)
+        IsoDreamV2Policy(dreamer, policy.actor, policy.policy_input)
 
 
 def test_single_branch_world_model_acts_on_the_controllable_state():
-    wm = IsoDreamWorldModel(WorldModelConfig.dreamerv2("tiny", action_dim=A))
+    wm = IsoDreamV2WorldModel(IsoDreamV2Config.dreamerv2("tiny", action_dim=A))
     policy_input = PolicyInput.for_world_model(wm, mode="controllable")
-    actor = IsoDreamActor(in_features=policy_input.out_features, action_dim=A, num_cells=8, depth=2)
-    policy = IsoDreamPolicy(wm, actor, policy_input)
+    actor = IsoDreamV2Actor(in_features=policy_input.out_features, action_dim=A, num_cells=8, depth=2)
+    policy = IsoDreamV2Policy(wm, actor, policy_input)
     assert set(policy.recurrent_spec().keys()) == {"state", "belief", "previous_action"}
     env = make_env("sprites", seed=0, max_steps=MAX_STEPS).append_transform(policy.make_tensordict_primer())
     with set_exploration_type(ExplorationType.DETERMINISTIC):
@@ -196,7 +196,7 @@ def test_single_branch_world_model_acts_on_the_controllable_state():
 
 def test_exploration_noise_is_added_to_sampled_actions_only():
     policy = build_policy()
-    noisy = IsoDreamPolicy(policy.world_model, policy.actor, policy.policy_input, exploration_noise=10.0)
+    noisy = IsoDreamV2Policy(policy.world_model, policy.actor, policy.policy_input, exploration_noise=10.0)
     td = policy.make_tensordict_primer().primers.zero().expand(64).clone()
     td.update(
         {

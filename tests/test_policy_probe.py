@@ -110,12 +110,12 @@ def test_the_learner_follows_the_algo():
 
 @pytest.mark.parametrize("algo", ["isodream", "torchrl_dreamer_v3"])
 def test_probe_reports_imagined_and_real_reaches_of_a_dreamer_v3_learner(tmp_path, algo):
-    from tests.test_isodream_v3 import v3_config
+    from tests.test_isodream import isodream_run_config
     from tests.test_torchrl_dreamer import tiny_config
 
     steps = {"prefill_steps": 10, "frames_per_batch": 10, "total_steps": 30}
     run = tmp_path / "run"
-    cfg = v3_config(run, **steps) if algo == "isodream" else tiny_config(run, algo, **steps)
+    cfg = isodream_run_config(run, **steps) if algo == "isodream" else tiny_config(run, algo, **steps)
     cfg.logging.final_eval_episodes = 0
     assert train(cfg).updates >= 1
 

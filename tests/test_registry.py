@@ -10,9 +10,10 @@ import pytest
 
 from isodream_rl.trainers.components import RunComponents
 from isodream_rl.trainers.config import ALGO_NAMES, ConfigError
-from isodream_rl.trainers.isodream_v3 import IsoDreamV3Components
+from isodream_rl.trainers.isodream import IsoDreamComponents
+from isodream_rl.trainers.isodream_v2 import IsoDreamV2Components
+from isodream_rl.trainers.learners import ISODREAM_ALGOS
 from isodream_rl.trainers.registry import ALGORITHMS, components_builder, register_algorithm
-from isodream_rl.trainers.world_model_config import DREAMER_V3_ISODREAM
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,20 +25,20 @@ def test_the_baselines_register_themselves_when_imported():
     assert components_builder("torchrl_dreamer_v3") is TorchRLDreamerV3Components
     assert set(ALGO_NAMES) <= set(ALGORITHMS)
     # the DreamerV2-style variants, and a name of the user's own (informational: the algo fields set the variant)
-    assert components_builder("dreamerv2") is components_builder("my_variant") is RunComponents
+    assert components_builder("dreamerv2") is components_builder("my_variant") is IsoDreamV2Components
 
 
 def test_the_default_and_its_ablations_are_dreamer_v3s_learner_and_isodream_v2_the_dreamerv2_style_one():
-    assert DREAMER_V3_ISODREAM == (
+    assert ISODREAM_ALGOS == (
         "isodream",
         "isodream_no_inverse",
         "isodream_no_attention",
         "isodream_no_static",
     )
-    for name in DREAMER_V3_ISODREAM:
-        assert components_builder(name) is IsoDreamV3Components, name
+    for name in ISODREAM_ALGOS:
+        assert components_builder(name) is IsoDreamComponents, name
     for name in ("isodream_v2", "isodream_paper", "dreamerv2"):
-        assert components_builder(name) is RunComponents, name
+        assert components_builder(name) is IsoDreamV2Components, name
 
 
 def test_the_former_name_of_the_default_is_refused_naming_the_new_one():

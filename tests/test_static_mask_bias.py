@@ -2,12 +2,12 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
+from isodream_rl.modules.isodream_v2 import IsoDreamV2Config, IsoDreamV2WorldModel
 
 
 def _masks(bias: float) -> dict[str, float]:
     torch.manual_seed(0)
-    model = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2, static_mask_bias=bias))
+    model = IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=2, static_mask_bias=bias))
     td = TensorDict(
         {
             "action": torch.zeros(2, 4, 2),
@@ -30,13 +30,13 @@ def test_static_mask_bias_gives_the_background_most_of_the_image_at_init():
 
 
 def test_static_mask_bias_is_the_default_prior_and_leaves_models_without_a_background_logit_alone():
-    assert WorldModelConfig(action_dim=2).static_mask_bias == 3.0
+    assert IsoDreamV2Config(action_dim=2).static_mask_bias == 3.0
     for options in ({"mask_mode": "sigmoid"}, {"static_branch": False}):
         torch.manual_seed(0)
-        biased = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2, **options))
+        biased = IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=2, **options))
         torch.manual_seed(0)
-        plain = IsoDreamWorldModel(
-            WorldModelConfig.from_preset("tiny", action_dim=2, static_mask_bias=0.0, **options)
+        plain = IsoDreamV2WorldModel(
+            IsoDreamV2Config.from_preset("tiny", action_dim=2, static_mask_bias=0.0, **options)
         )
         for (name, a), b in zip(biased.state_dict().items(), plain.state_dict().values()):
             assert torch.equal(a, b), name
@@ -44,7 +44,7 @@ def test_static_mask_bias_is_the_default_prior_and_leaves_models_without_a_backg
 
 def test_shift_static_mask_bias_moves_the_background_logit_only_and_needs_it():
     torch.manual_seed(0)
-    model = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2, static_mask_bias=1.0))
+    model = IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=2, static_mask_bias=1.0))
     before = {k: v.clone() for k, v in model.state_dict().items()}
     model.shift_static_mask_bias(2.5)
     changed = {k for k, v in model.state_dict().items() if not torch.equal(v, before[k])}
@@ -52,6 +52,6 @@ def test_shift_static_mask_bias_moves_the_background_logit_only_and_needs_it():
     assert key.startswith("static_decoder.") and key.endswith(".bias")
     assert torch.allclose(model.state_dict()[key] - before[key], torch.tensor([0.0, 0.0, 0.0, 2.5]))
     for options in ({"mask_mode": "sigmoid"}, {"static_branch": False}):
-        other = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2, **options))
+        other = IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=2, **options))
         with pytest.raises(ValueError, match="static branch in softmax mode"):
             other.shift_static_mask_bias(1.0)

@@ -17,12 +17,13 @@ ROOT = PACKAGE_DIR.name
 #: Each entry is a subpackage or a top-level module of isodream_rl (the package's own ``__init__`` is the lowest).
 LAYERS: tuple[frozenset[str], ...] = (
     # process-wide helpers
-    frozenset({"__init__", "process_settings", "user_errors", "run_lock", "csv_logs"}),
-    frozenset({"envs", "data", "modules"}),
+    frozenset({"__init__", "process_settings", "user_errors", "run_utils"}),
+    # video prediction stands on the data sets and the run utilities only, beside the RL side's lowest layer
+    frozenset({"envs", "data", "modules", "video_prediction"}),
     frozenset({"objectives"}),
     frozenset({"evaluation"}),
     frozenset({"trainers"}),
-    frozenset({"baselines", "video_prediction"}),
+    frozenset({"baselines"}),
     # the console entry points and their configuration
     frozenset({"cli", "cli_demo", "cli_overrides", "configs"}),
 )

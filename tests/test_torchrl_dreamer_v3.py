@@ -19,11 +19,11 @@ from torchrl.trainers.algorithms import DreamerV3Optimizer
 import isodream_rl.cli  # noqa: F401  (registers the config schema)
 from isodream_rl.baselines import DreamerV3Widths, TorchRLDreamerV3Components
 from isodream_rl.baselines.torchrl_dreamer_v3 import dreamer_v3_model_loss, make_torchrl_dreamer_v3
-from isodream_rl.modules.dreamer_v3 import DreamerV3Settings
+from isodream_rl.modules.dreamer_v3 import TORCHRL_DREAMER_V3_SETTINGS
+from isodream_rl.run_utils.checkpoint import set_rng_state
 from isodream_rl.trainers import CheckpointManager, ConfigError, RunConfig, validate_config
-from isodream_rl.trainers.builders import make_world_model_loss
-from isodream_rl.trainers.checkpoint import set_rng_state
 from isodream_rl.trainers.hooks import ReplayPreparation
+from isodream_rl.trainers.isodream_v2 import make_world_model_loss
 from tests.test_torchrl_dreamer import A, B, T, env_batch, replay_batch, tiny_config
 
 CONFIGS = Path(isodream_rl.cli.__file__).parent / "configs"
@@ -92,7 +92,7 @@ class TestComposition:
         assert abs(v3_count / ours_count - 1) < 0.07, (v3_count, ours_count)
 
     def test_dreamerv3_settings_are_those_of_torchrls_reproduction(self, components):
-        learner, settings = components.learner, DreamerV3Settings()
+        learner, settings = components.learner, TORCHRL_DREAMER_V3_SETTINGS
         model_loss, actor_loss, value_loss = learner.model_loss, learner.actor_loss, learner.value_loss
         assert (model_loss.kl_mode, model_loss.free_bits, model_loss.unimix) == ("separate", 1.0, 0.01)
         assert (model_loss.lambda_dynamic, model_loss.lambda_representation) == (1.0, 0.1)

@@ -9,8 +9,8 @@ from tensordict import TensorDict
 from isodream_rl.trainers import (
     ConfigError,
     IsoDreamOptimizationStepper,
+    IsoDreamV2Components,
     NonFiniteLossError,
-    RunComponents,
     RunConfig,
     validate_config,
 )
@@ -39,7 +39,7 @@ def replay_batch(batch: int = 2, time: int = 6, action_dim: int = 2) -> TensorDi
 def components(tmp_path_factory):
     torch.manual_seed(0)
     cfg = tiny_config(tmp_path_factory.mktemp("run"))
-    return RunComponents(cfg, action_dim=2, scratch_dir=tmp_path_factory.mktemp("scratch"))
+    return IsoDreamV2Components(cfg, action_dim=2, scratch_dir=tmp_path_factory.mktemp("scratch"))
 
 
 class TestConfig:
@@ -112,7 +112,7 @@ class TestStepper:
         torch.manual_seed(0)
         cfg = tiny_config(tmp_path)
         cfg.train.world_model_warmup = 2
-        stepper = RunComponents(cfg, action_dim=2, scratch_dir=tmp_path / "scratch").stepper
+        stepper = IsoDreamV2Components(cfg, action_dim=2, scratch_dir=tmp_path / "scratch").stepper
 
         def snapshot(name):
             return [p.detach().clone() for g in stepper.optimizers[name].param_groups for p in g["params"]]
@@ -156,7 +156,9 @@ class TestStepper:
 
     def test_a_first_skipped_update_returns_the_keys_of_a_full_one(self, tmp_path):
         # The Trainer averages the updates of a batch key by key from the first one's keys.
-        stepper = RunComponents(tiny_config(tmp_path), action_dim=2, scratch_dir=tmp_path / "rb").stepper
+        stepper = IsoDreamV2Components(
+            tiny_config(tmp_path), action_dim=2, scratch_dir=tmp_path / "rb"
+        ).stepper
         bad = replay_batch()
         bad.set(("next", "reward"), torch.full_like(bad.get(("next", "reward")), float("nan")))
         skipped, full = stepper.step(None, bad), stepper.step(None, replay_batch())
@@ -167,7 +169,7 @@ class TestStepper:
     def attention_after_one_sgd_update(tmp_path, *, through_actor: bool, actor_scale: float = 1.0):
         """The attention's parameters after one update with plain SGD (lr 1: the step is the gradient)."""
         torch.manual_seed(0)
-        parts = RunComponents(
+        parts = IsoDreamV2Components(
             tiny_config(tmp_path, attention_through_actor=through_actor), action_dim=2, scratch_dir=tmp_path
         )
         groups = parts.behavior.actor_loss.parameter_groups()

@@ -7,15 +7,16 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from isodream_rl.modules import (
+from isodream_rl.modules import MaskComposition
+from isodream_rl.modules.isodream_v2 import (
     ActionFreeRSSM,
     BranchedEncoder,
-    IsoDreamWorldModel,
-    MaskComposition,
-    WorldModelConfig,
+    IsoDreamV2Config,
+    IsoDreamV2WorldModel,
 )
-from isodream_rl.modules.config import DREAMERV2, PAPER_EXACT
-from isodream_rl.objectives import InverseDynamicsLoss, IsoDreamModelLoss, balanced_kl, gaussian_kl
+from isodream_rl.modules.isodream_v2.config import DREAMERV2, PAPER_EXACT
+from isodream_rl.objectives import InverseDynamicsLoss
+from isodream_rl.objectives.isodream_v2 import IsoDreamV2ModelLoss, balanced_kl, gaussian_kl
 
 B, T, A = 2, 6, 2
 
@@ -37,7 +38,7 @@ def make_batch(batch=B, time=T, action_dim=A, seed=0):
 
 
 def tiny(**kw):
-    return WorldModelConfig.from_preset("tiny", action_dim=A, **kw)
+    return IsoDreamV2Config.from_preset("tiny", action_dim=A, **kw)
 
 
 CONFIGS = {
@@ -129,7 +130,7 @@ class TestComposition:
 class TestWorldModel:
     @pytest.mark.parametrize("name", sorted(CONFIGS))
     def test_output_keys_and_shapes(self, name):
-        wm = IsoDreamWorldModel(tiny(**CONFIGS[name]))
+        wm = IsoDreamV2WorldModel(tiny(**CONFIGS[name]))
         out = wm(make_batch())
         cfg = wm.config
         for key in wm.out_keys:
@@ -154,14 +155,14 @@ class TestWorldModel:
             assert not nxt["action_pred_valid"][:, 0].any() and nxt["action_pred_valid"][:, 1:].all()
 
     def test_masks_sum_to_one_in_softmax_mode(self):
-        nxt = IsoDreamWorldModel(tiny())(make_batch())["next"]
+        nxt = IsoDreamV2WorldModel(tiny())(make_batch())["next"]
         masks = [nxt["mask_control"], nxt["mask_free"], nxt["mask_static"]]
         assert all((m >= 0).all() for m in masks)
         torch.testing.assert_close(sum(masks), torch.ones_like(masks[0]))
 
     @pytest.mark.parametrize("free_input", ["posterior", "prior"])
     def test_free_component_reads_the_current_frame_only_from_the_posterior(self, free_input):
-        wm = IsoDreamWorldModel(tiny(free_decoder_input=free_input))
+        wm = IsoDreamV2WorldModel(tiny(free_decoder_input=free_input))
         td = make_batch()
         changed = td.clone()
         changed["next", "pixels"][:, 4] = 255 - changed["next", "pixels"][:, 4]
@@ -176,7 +177,7 @@ class TestWorldModel:
         assert not torch.allclose(outputs[0][:, 5], outputs[1][:, 5])  # the prior sees it one step later
 
     def test_is_init_mid_window_resets_both_branches(self):
-        wm = IsoDreamWorldModel(tiny())
+        wm = IsoDreamV2WorldModel(tiny())
         td = make_batch()
         td["is_init"][:, 0] = True
         td["is_init"][0, 3] = True
@@ -197,22 +198,22 @@ class TestWorldModel:
         td = make_batch()
         del td["action"]
         with pytest.raises(KeyError, match=r"needs the key .*action"):
-            IsoDreamWorldModel(tiny())(td)
+            IsoDreamV2WorldModel(tiny())(td)
 
     def test_wrong_action_dims_are_rejected(self):
         td = make_batch(action_dim=3)
         with pytest.raises(ValueError, match=r"\[B, T, 2\]"):
-            IsoDreamWorldModel(tiny())(td)
+            IsoDreamV2WorldModel(tiny())(td)
 
     def test_wrong_image_size_is_rejected(self):
         td = make_batch()
         td["next", "pixels"] = torch.zeros(B, T, 3, 32, 32, dtype=torch.uint8)
         with pytest.raises(ValueError, match="64x64"):
-            IsoDreamWorldModel(tiny())(td)
+            IsoDreamV2WorldModel(tiny())(td)
 
     def test_flat_batch_is_rejected(self):
         with pytest.raises(ValueError, match=r"\[B, T\]"):
-            IsoDreamWorldModel(tiny())(make_batch().reshape(-1))
+            IsoDreamV2WorldModel(tiny())(make_batch().reshape(-1))
 
     def test_impossible_configs_fail_early(self):
         with pytest.raises(ValueError, match="free_branch"):
@@ -220,12 +221,12 @@ class TestWorldModel:
         with pytest.raises(ValueError, match="static branch"):
             tiny(static_branch=False, mask_mode="sigmoid")
         with pytest.raises(ValueError, match="unknown size preset"):
-            WorldModelConfig.from_preset("huge", action_dim=2)
+            IsoDreamV2Config.from_preset("huge", action_dim=2)
         with pytest.raises(ValueError, match="free_decoder_input 'state'"):
             tiny(free_decoder_input="state")
 
     def test_short_windows_reuse_their_last_frame_for_the_background(self):
-        wm = IsoDreamWorldModel(tiny(static_frames=10))
+        wm = IsoDreamV2WorldModel(tiny(static_frames=10))
         out = wm(make_batch(time=3))
         assert out["background"].shape == (B, 3, 3, 64, 64)
 
@@ -261,7 +262,7 @@ def _grad_norm(params):
 class TestInverseDynamicsLoss:
     @pytest.mark.parametrize("inverse_input", ["state", "embedding"])
     def test_gradient_reaches_controllable_branch_not_free_branch(self, inverse_input):
-        wm = IsoDreamWorldModel(tiny(inverse_input=inverse_input))
+        wm = IsoDreamV2WorldModel(tiny(inverse_input=inverse_input))
         out = wm(make_batch())
         InverseDynamicsLoss()(out)["loss_inverse"].backward()
         assert _grad_norm(wm.encoder.trunk.parameters()) > 0
@@ -306,7 +307,7 @@ class TestInverseDynamicsLoss:
 class TestModelLoss:
     @pytest.mark.parametrize("name", sorted(CONFIGS))
     def test_loss_terms_are_finite_scalars(self, name):
-        loss = IsoDreamModelLoss(IsoDreamWorldModel(tiny(**CONFIGS[name])))
+        loss = IsoDreamV2ModelLoss(IsoDreamV2WorldModel(tiny(**CONFIGS[name])))
         losses, out = loss(make_batch())
         cfg = loss.world_model.config
         expected = {"loss_model_reco", "loss_model_reward", "loss_model_kl_control"}
@@ -318,7 +319,7 @@ class TestModelLoss:
         assert ("next", "state") in out.keys(True)
 
     def test_image_loss_is_half_squared_error_summed_over_pixels(self):
-        loss = IsoDreamModelLoss(IsoDreamWorldModel(tiny()))
+        loss = IsoDreamV2ModelLoss(IsoDreamV2WorldModel(tiny()))
         td = make_batch()
         losses, out = loss(td)
         target = td["next", "pixels"].float() / 255 - 0.5
@@ -326,7 +327,7 @@ class TestModelLoss:
         torch.testing.assert_close(losses["loss_model_reco"], expected)
 
     def test_recon_only_free_branch_gets_no_kl_gradient(self):
-        loss = IsoDreamModelLoss(IsoDreamWorldModel(tiny()), free_branch_loss="recon_only", free_nats=0.0)
+        loss = IsoDreamV2ModelLoss(IsoDreamV2WorldModel(tiny()), free_branch_loss="recon_only", free_nats=0.0)
         losses, _ = loss(make_batch())
         assert "loss_model_kl_free" not in losses.keys() and "kl_free" in losses.keys()
         loss.total(losses).backward()
@@ -345,7 +346,7 @@ class TestModelLoss:
             },
             td.batch_size,
         )
-        loss = IsoDreamModelLoss(IsoDreamWorldModel(tiny()))
+        loss = IsoDreamV2ModelLoss(IsoDreamV2WorldModel(tiny()))
         torch.manual_seed(1)
         reference, _ = loss(td)
         loss.set_keys(action="act", is_init="first", pixels=("next", "obs"), reward=("next", "rew"))
@@ -355,7 +356,7 @@ class TestModelLoss:
             torch.testing.assert_close(remapped[key], reference[key])
 
     def test_set_keys_remaps_the_world_models_output_keys(self):
-        class RenamedOutputs(IsoDreamWorldModel):
+        class RenamedOutputs(IsoDreamV2WorldModel):
             """Writes every output under ``("next", "out_<key>")``: a world model with other key names."""
 
             def forward(self, tensordict):
@@ -367,9 +368,9 @@ class TestModelLoss:
 
         td = make_batch()
         torch.manual_seed(0)
-        reference, _ = IsoDreamModelLoss(IsoDreamWorldModel(tiny()))(td.clone())
+        reference, _ = IsoDreamV2ModelLoss(IsoDreamV2WorldModel(tiny()))(td.clone())
         with pytest.raises(KeyError, match="reco_pixels"):
-            IsoDreamModelLoss(RenamedOutputs(tiny()))(td.clone())
+            IsoDreamV2ModelLoss(RenamedOutputs(tiny()))(td.clone())
         output_keys = [
             "reco_pixels",
             "reward_pred",
@@ -388,7 +389,7 @@ class TestModelLoss:
             "action_pred_valid",
         ]
         torch.manual_seed(0)
-        loss = IsoDreamModelLoss(RenamedOutputs(tiny()))
+        loss = IsoDreamV2ModelLoss(RenamedOutputs(tiny()))
         loss.set_keys(**{key: ("next", f"out_{key}") for key in output_keys})
         remapped, _ = loss(td.clone())
         assert set(remapped.keys()) == set(reference.keys())
@@ -396,9 +397,9 @@ class TestModelLoss:
             torch.testing.assert_close(remapped[key], reference[key])
 
     def test_paper_exact_loss_uses_eq5s_alpha(self):
-        model = IsoDreamWorldModel(WorldModelConfig.paper_exact("tiny", action_dim=A))
-        assert IsoDreamModelLoss(model).inverse_loss.lambda_inverse == 30.0
-        assert IsoDreamModelLoss.paper_exact(model).inverse_loss.lambda_inverse == 1.0
+        model = IsoDreamV2WorldModel(IsoDreamV2Config.paper_exact("tiny", action_dim=A))
+        assert IsoDreamV2ModelLoss(model).inverse_loss.lambda_inverse == 30.0
+        assert IsoDreamV2ModelLoss.paper_exact(model).inverse_loss.lambda_inverse == 1.0
         config = model.config
         assert (config.inverse_input, config.decoder_input, config.clamp_gradient) == (
             "state",
@@ -411,7 +412,7 @@ class TestModelLoss:
         td = make_batch()
         del td["next", "reward"]
         with pytest.raises(KeyError, match="reward"):
-            IsoDreamModelLoss(IsoDreamWorldModel(tiny()))(td)
+            IsoDreamV2ModelLoss(IsoDreamV2WorldModel(tiny()))(td)
 
 
 def structured_batch(batch=2, time=8, seed=0):
@@ -451,7 +452,7 @@ def test_total_loss_falls_when_overfitting_one_batch(precision, steps, lr):
     torch.set_num_threads(1)  # tiny tensors: one thread is faster and immune to a loaded machine
     try:
         torch.manual_seed(0)
-        loss = IsoDreamModelLoss(IsoDreamWorldModel(tiny(precision=precision)))
+        loss = IsoDreamV2ModelLoss(IsoDreamV2WorldModel(tiny(precision=precision)))
         optimizer = torch.optim.Adam(loss.parameters(), lr=lr)
         td = structured_batch(time=6)
         history = []
@@ -470,7 +471,7 @@ def test_total_loss_falls_when_overfitting_one_batch(precision, steps, lr):
 
 
 def test_decoder_matmul_first_layer_equals_the_transposed_convolution():
-    from isodream_rl.modules.fast_paths import FastConvDecoder
+    from isodream_rl.modules.isodream_v2.fast_paths import FastConvDecoder
 
     decoder = FastConvDecoder(in_features=20, out_channels=4, depth=4)
     latent = torch.randn(3, 20)

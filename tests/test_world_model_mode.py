@@ -28,6 +28,7 @@ from isodream_rl.trainers import (
     world_model_run,
 )
 from isodream_rl.trainers import run as run_module
+from isodream_rl.trainers.learners import resolved
 from isodream_rl.trainers.world_model_run import collect_episodes
 from tests.conftest import cli_process
 
@@ -117,7 +118,8 @@ def test_the_world_model_exp_holds_the_demos_defaults():
     assert cfg.env.kwargs == {"task": "none", "max_steps": 200, "num_backgrounds": 8, "background_seed": 0}
     assert (cfg.logging.log_every, cfg.logging.eval_every) == (20, 200)
     # the demo's loss: reward head on [s, h] at weight 1 (the sprites RL preset's are (s, z) and 2)
-    assert (cfg.algo.reward_uses_free, cfg.algo.lambda_reward, cfg.algo.lambda_inverse) == (False, 1.0, 30.0)
+    algo = resolved(cfg).algo
+    assert (algo.reward_uses_free, algo.lambda_reward, algo.lambda_inverse) == (False, 1.0, 30.0)
 
 
 def test_without_an_exp_mode_world_model_needs_an_algo_whose_world_model_it_trains():

@@ -6,7 +6,7 @@
 
 What both share around TorchRL's pieces (the run parts' replay side and checkpoint check) is in
 :mod:`isodream_rl.baselines.common`; what Iso-Dream's learners share with them lives in the lower layers: the acting
-policy's carried state (:class:`~isodream_rl.modules.policy.CarriedStatePolicy`), imagination's specs
+policy's carried state (:class:`~isodream_rl.modules.isodream_v2.policy.CarriedStatePolicy`), imagination's specs
 (:mod:`isodream_rl.objectives.imagination_env`), the stepper's replay preparation
 (:class:`~isodream_rl.trainers.stepper.ZeroStateStepper`), DreamerV3's settings, actor and input check
 (:mod:`isodream_rl.modules.dreamer_v3`), its stepper and optimisers (:mod:`isodream_rl.trainers.dreamer_v3`).

@@ -6,7 +6,7 @@
 
 The other shared pieces live in the lower layers, where Iso-Dream's learners use them too:
 :func:`~isodream_rl.objectives.imagination_env.latent_dreamer_env` (a ``DreamerEnv`` over ``state``/``belief``
-with its specs set by hand), :class:`~isodream_rl.modules.policy.CarriedStatePolicy` (an acting policy that carries
+with its specs set by hand), :class:`~isodream_rl.modules.isodream_v2.policy.CarriedStatePolicy` (an acting policy that carries
 its recurrent state under TorchRL's ``("next", ...)`` convention) and
 :class:`~isodream_rl.trainers.stepper.ZeroStateStepper` (a stepper that turns a flat replay sample into the loss's
 input, zero root ``state``/``belief`` added).
@@ -14,23 +14,18 @@ input, zero root ``state``/``belief`` added).
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Sequence
 from pathlib import Path
 from typing import ClassVar
 
-from isodream_rl.modules.config import SIZE_PRESETS
+from isodream_rl.modules.sizes import SIZE_PRESETS
 from isodream_rl.trainers.components import RunComponents, make_replay_parts
 from isodream_rl.trainers.config import RunConfig
 
-logger = logging.getLogger(__name__)
 
-
-def preset_widths(cfg: RunConfig, keys: Sequence[str], *, algo: str) -> dict[str, int]:
-    """The size-preset fields ``keys`` of ``cfg`` (``SIZE_PRESETS[model.size]``, the ``model.<field>`` it sets applied).
-
-    The other model fields it sets (``precision`` aside, which each baseline reads itself) are logged as ignored by
-    ``algo``.
+def preset_widths(cfg: RunConfig, keys: Sequence[str]) -> dict[str, int]:
+    """The size-preset fields ``keys`` of ``cfg`` (``SIZE_PRESETS[model.size]``, the ``model.<field>`` it sets applied;
+    the others are refused by :func:`~isodream_rl.trainers.config.validate_config`).
 
     Raises:
         ValueError: an unknown size preset.
@@ -38,9 +33,6 @@ def preset_widths(cfg: RunConfig, keys: Sequence[str], *, algo: str) -> dict[str
     if cfg.model.size not in SIZE_PRESETS:
         raise ValueError(f"unknown size preset {cfg.model.size!r}; valid: {sorted(SIZE_PRESETS)}")
     overrides = cfg.model.world_model_fields()
-    ignored = sorted(set(overrides) - set(keys) - {"precision"})
-    if ignored:
-        logger.info("%s ignores the Iso-Dream model fields %s", algo, ignored)
     return {key: int(overrides.get(key, SIZE_PRESETS[cfg.model.size][key])) for key in keys}
 
 

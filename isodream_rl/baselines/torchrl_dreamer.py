@@ -61,15 +61,17 @@ from torchrl.objectives import DreamerActorLoss, DreamerModelLoss, DreamerValueL
 from torchrl.objectives.utils import ValueEstimators
 
 from isodream_rl.baselines.common import BaselineComponents, preset_widths
-from isodream_rl.modules.policy import CarriedStatePolicy
+from isodream_rl.modules.carried_state import CarriedStatePolicy
 from isodream_rl.objectives.imagination_env import latent_dreamer_env
 from isodream_rl.trainers.builders import make_adam
 from isodream_rl.trainers.config import RunConfig
+from isodream_rl.trainers.learners import model_fields_read, resolved
 from isodream_rl.trainers.registry import register_algorithm
 from isodream_rl.trainers.stepper import ZeroStateStepper
 
-#: The size-preset fields this baseline reads (``SIZE_PRESETS`` merged with the ``model.<field>`` settings).
-SIZE_KEYS = ("depth", "state_dim", "belief_dim", "hidden_dim", "units")
+#: The size-preset fields this baseline reads (``SIZE_PRESETS`` merged with the ``model.<field>`` settings), from
+#: its settings table.
+SIZE_KEYS = tuple(name for name in model_fields_read("torchrl_dreamer") if name != "precision")
 #: Std of the acting policy's additive Gaussian noise (TorchRL's example: ``networks.exploration_noise``).
 EXPLORATION_NOISE = 0.3
 
@@ -79,7 +81,7 @@ _SAMPLING = (None, ExplorationType.RANDOM)
 def dreamer_sizes(cfg: RunConfig) -> dict[str, int]:
     """Widths of the run's size preset, the ``model.<field>`` settings applied: ``depth`` (TorchRL's ``channels``),
     ``state_dim``, ``belief_dim`` (``rnn_hidden_dim``), ``hidden_dim``, ``units`` (reward MLP)."""
-    return preset_widths(cfg, SIZE_KEYS, algo="torchrl_dreamer")
+    return preset_widths(cfg, SIZE_KEYS)
 
 
 # ---------------------------------------------------------------------------------------------- world model
@@ -208,7 +210,7 @@ class TorchRLDreamerPolicy(CarriedStatePolicy):
     ``module`` is a ``TensorDictSequential``: ``ObsEncoder`` (float ``"pixels"`` -> ``"encoded_latents"``),
     ``RSSMPosterior`` (``"belief"``, ``"encoded_latents"`` -> ``"state"``), ``DreamerActor`` + ``TanhNormal``
     (-> ``"action"``), ``RSSMPrior`` (-> ``("next", "belief")``), then ``AdditiveGaussianModule``. This wrapper
-    (a :class:`~isodream_rl.modules.policy.CarriedStatePolicy`, carrying ``"state"``/``"belief"``) feeds it and
+    (a :class:`~isodream_rl.modules.isodream_v2.policy.CarriedStatePolicy`, carrying ``"state"``/``"belief"``) feeds it and
     keeps the env's tensordict clean:
 
     - uint8 ``"pixels"`` ``[*B, 3, 64, 64]`` become floats in [0, 1] (TorchRL's example: ``ToTensorImage``);
@@ -341,6 +343,112 @@ class TorchRLDreamerBehavior:
     policy: TorchRLDreamerPolicy
 
 
+def _rssm_parts(
+    action_spec: Bounded, *, depth: int, state_dim: int, belief_dim: int, hidden_dim: int, device
+) -> tuple[ObsEncoder, ObsDecoder, RSSMPrior, RSSMPosterior]:
+    """TorchRL's Dreamer encoder, decoder, prior and posterior at the given widths (:func:`make_torchrl_dreamer`)."""
+    encoder = ObsEncoder(channels=depth, num_layers=4, in_channels=3, device=device)
+    decoder = ObsDecoder(
+        channels=depth, num_layers=4, latent_dim=state_dim + belief_dim, out_channels=3, device=device
+    )
+    prior = RSSMPrior(
+        action_spec,
+        hidden_dim=hidden_dim,
+        rnn_hidden_dim=belief_dim,
+        state_dim=state_dim,
+        action_dim=action_spec.shape[-1],
+        device=device,
+    )
+    posterior = RSSMPosterior(
+        hidden_dim=hidden_dim,
+        state_dim=state_dim,
+        rnn_hidden_dim=belief_dim,
+        obs_embed_dim=32 * depth,
+        device=device,
+    )
+    return encoder, decoder, prior, posterior
+
+
+def _normal_value(*, latent_dim: int, units: int, device) -> ProbabilisticTensorDictSequential:
+    """The value of TorchRL's Dreamer example: a 3-layer ``units``-wide ELU MLP on ``[state, belief]`` with an
+    ``IndependentNormal(scale=1)`` head."""
+    return ProbabilisticTensorDictSequential(
+        TensorDictModule(
+            MLP(
+                in_features=latent_dim,
+                out_features=1,
+                depth=3,
+                num_cells=units,
+                activation_class=nn.ELU,
+                device=device,
+            ),
+            in_keys=["state", "belief"],
+            out_keys=["loc"],
+        ),
+        ProbabilisticTensorDictModule(
+            in_keys=["loc"],
+            out_keys=["state_value"],
+            distribution_class=IndependentNormal,
+            distribution_kwargs={"scale": 1.0, "event_dim": 1},
+        ),
+    )
+
+
+def _behavior(
+    *,
+    actor_module: nn.Module,
+    actor: ProbabilisticTensorDictSequential,
+    value: ProbabilisticTensorDictSequential,
+    model_based_env: DreamerEnv,
+    encoder: nn.Module,
+    posterior: RSSMPosterior,
+    prior: RSSMPrior,
+    action_spec: Bounded,
+    horizon: int,
+    gamma: float,
+    lmbda: float,
+    exploration_noise: float,
+    state_dim: int,
+    belief_dim: int,
+    device,
+) -> TorchRLDreamerBehavior:
+    """The behaviour side of :func:`make_torchrl_dreamer` (same arguments): the actor and value losses and the
+    acting policy around the encoder, posterior, actor and prior."""
+    # DreamerActor's MLP is lazy: one dry pass sizes it before the optimisers collect the parameters.
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        probe = TensorDict(
+            {"state": torch.zeros(1, state_dim), "belief": torch.zeros(1, belief_dim)}, [1], device=device
+        )
+        value(actor(probe))
+
+    actor_loss = DreamerActorLoss(
+        actor, value, model_based_env, imagination_horizon=horizon, discount_loss=True
+    )
+    actor_loss.make_value_estimator(ValueEstimators.TDLambda, gamma=gamma, lmbda=lmbda)
+    value_loss = DreamerValueLoss(value, discount_loss=True, gamma=gamma)
+    policy = TorchRLDreamerPolicy(
+        _acting_sequence(
+            encoder=encoder,
+            posterior=posterior,
+            actor=actor_module,
+            prior=prior,
+            action_spec=action_spec,
+            exploration_noise=exploration_noise,
+            device=device,
+        ),
+        state_dim=state_dim,
+        belief_dim=belief_dim,
+    )
+    return TorchRLDreamerBehavior(
+        actor=actor,
+        value=value,
+        model_based_env=model_based_env,
+        actor_loss=actor_loss,
+        value_loss=value_loss,
+        policy=policy,
+    )
+
+
 def make_torchrl_dreamer(
     *,
     action_dim: int,
@@ -391,25 +499,8 @@ def make_torchrl_dreamer(
         ``(model_loss, behavior)``; ``model_loss.world_model`` is the ``WorldModelWrapper``.
     """
     action_spec = Bounded(-1.0, 1.0, (action_dim,), device=device)
-    encoder = ObsEncoder(channels=depth, num_layers=4, in_channels=3, device=device)
-    decoder = ObsDecoder(
-        channels=depth, num_layers=4, latent_dim=state_dim + belief_dim, out_channels=3, device=device
-    )
-    prior = RSSMPrior(
-        action_spec,
-        hidden_dim=hidden_dim,
-        rnn_hidden_dim=belief_dim,
-        state_dim=state_dim,
-        action_dim=action_dim,
-        device=device,
-    )
-    posterior = RSSMPosterior(
-        hidden_dim=hidden_dim,
-        state_dim=state_dim,
-        rnn_hidden_dim=belief_dim,
-        obs_embed_dim=32 * depth,
-        device=device,
-    )
+    widths = {"depth": depth, "state_dim": state_dim, "belief_dim": belief_dim, "hidden_dim": hidden_dim}
+    encoder, decoder, prior, posterior = _rssm_parts(action_spec, **widths, device=device)
     latent_dim = state_dim + belief_dim
     reward = MLP(
         in_features=latent_dim,
@@ -436,58 +527,23 @@ def make_torchrl_dreamer(
         out_features=action_dim, depth=3, num_cells=actor_units, activation_class=nn.ELU, device=device
     )
     actor = _tanh_normal_actor(actor_module, action_spec)
-    value = ProbabilisticTensorDictSequential(
-        TensorDictModule(
-            MLP(
-                in_features=latent_dim,
-                out_features=1,
-                depth=3,
-                num_cells=value_units,
-                activation_class=nn.ELU,
-                device=device,
-            ),
-            in_keys=["state", "belief"],
-            out_keys=["loc"],
-        ),
-        ProbabilisticTensorDictModule(
-            in_keys=["loc"],
-            out_keys=["state_value"],
-            distribution_class=IndependentNormal,
-            distribution_kwargs={"scale": 1.0, "event_dim": 1},
-        ),
-    )
-    # DreamerActor's MLP is lazy: one dry pass sizes it before the optimisers collect the parameters.
-    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
-        probe = TensorDict(
-            {"state": torch.zeros(1, state_dim), "belief": torch.zeros(1, belief_dim)}, [1], device=device
-        )
-        value(actor(probe))
-
-    actor_loss = DreamerActorLoss(
-        actor, value, model_based_env, imagination_horizon=horizon, discount_loss=True
-    )
-    actor_loss.make_value_estimator(ValueEstimators.TDLambda, gamma=gamma, lmbda=lmbda)
-    value_loss = DreamerValueLoss(value, discount_loss=True, gamma=gamma)
-    policy = TorchRLDreamerPolicy(
-        _acting_sequence(
-            encoder=encoder,
-            posterior=posterior,
-            actor=actor_module,
-            prior=prior,
-            action_spec=action_spec,
-            exploration_noise=exploration_noise,
-            device=device,
-        ),
-        state_dim=state_dim,
-        belief_dim=belief_dim,
-    )
-    behavior = TorchRLDreamerBehavior(
+    value = _normal_value(latent_dim=latent_dim, units=value_units, device=device)
+    behavior = _behavior(
+        actor_module=actor_module,
         actor=actor,
         value=value,
         model_based_env=model_based_env,
-        actor_loss=actor_loss,
-        value_loss=value_loss,
-        policy=policy,
+        encoder=encoder,
+        posterior=posterior,
+        prior=prior,
+        action_spec=action_spec,
+        horizon=horizon,
+        gamma=gamma,
+        lmbda=lmbda,
+        exploration_noise=exploration_noise,
+        state_dim=state_dim,
+        belief_dim=belief_dim,
+        device=device,
     )
     return model_loss, behavior
 
@@ -654,6 +710,7 @@ class TorchRLDreamerComponents(BaselineComponents):
         scratch_dir: Path,
         exploration_noise: float = EXPLORATION_NOISE,
     ) -> None:
+        cfg = resolved(cfg)
         train, algo, model = cfg.train, cfg.algo, cfg.model
         sizes = dreamer_sizes(cfg)
         precision = model.precision or "fp32"

@@ -56,8 +56,9 @@ Where this departs from TorchRL's settings, and why:
   instead of DreamerV3's 4e-5 for all: the budget is the run's (a few thousand updates, where DreamerV3's
   rate is set for hundreds of thousands), as ``algo=torchrl_dreamer`` trains with the run's rates rather than
   TorchRL's Dreamer example's. The optimiser's own settings (clip 0.3, eps 1e-20, 1000-update warm-up) are
-  TorchRL's; ``train.adam_eps`` and ``train.grad_clip`` are not read.
-- discount: ``algo.gamma`` is not read; the continuation head's ``1 - 1/333`` discounts, as in DreamerV3.
+  TorchRL's (:data:`~isodream_rl.modules.dreamer_v3.TORCHRL_DREAMER_V3_SETTINGS`); ``train.adam_eps`` and
+  ``train.grad_clip`` are refused (:func:`~isodream_rl.trainers.learners.unread_setting_errors`).
+- discount: ``algo.gamma`` is refused; the continuation head's ``1 - 1/333`` discounts, as in DreamerV3.
 - actions: the acting policy clamps its sample to [-1, 1], where TorchRL's reproduction clips in the env and
   stores the raw sample; the world model sees the same either way (``RSSMPriorV3``'s block GRU divides an
   action by ``max(|a|, 1)``).
@@ -120,6 +121,7 @@ from torchrl.objectives.utils import SoftUpdate
 from isodream_rl.baselines.common import BaselineComponents, preset_widths
 from isodream_rl.modules.dreamer_v3 import (
     PIXELS,
+    TORCHRL_DREAMER_V3_SETTINGS,
     DreamerV3ContinuousActor,
     DreamerV3Settings,
     SequenceActingPolicy,
@@ -128,7 +130,7 @@ from isodream_rl.modules.dreamer_v3 import (
     continuation_probability,
     two_hot_value,
 )
-from isodream_rl.modules.world_model_v3 import BranchWidths, dreamer_v3_classes, make_rssm
+from isodream_rl.modules.isodream.world_model import BranchWidths, dreamer_v3_classes, make_rssm
 from isodream_rl.objectives.dreamer_v3_behavior import (
     dreamer_v3_model_loss_settings,
     make_dreamer_v3_behavior,
@@ -137,12 +139,14 @@ from isodream_rl.objectives.dreamer_v3_behavior import (
 from isodream_rl.objectives.imagination_env import latent_dreamer_env
 from isodream_rl.trainers.config import ConfigError, RunConfig
 from isodream_rl.trainers.dreamer_v3 import dreamer_v3_checkpoint_modules, make_dreamer_v3_stepper
+from isodream_rl.trainers.learners import model_fields_read
 from isodream_rl.trainers.registry import register_algorithm
 
 #: ``hidden`` of DreamerV3's size rule per unit of our preset's ``hidden_dim`` (fitted to Iso-Dream's counts).
 HIDDEN_PER_HIDDEN_DIM = 1.875
-#: The size-preset field this baseline reads (``SIZE_PRESETS`` merged with the ``model.<field>`` settings).
-SIZE_KEYS = ("hidden_dim",)
+#: The size-preset field this baseline reads (``SIZE_PRESETS`` merged with the ``model.<field>`` settings), from
+#: its settings table.
+SIZE_KEYS = tuple(name for name in model_fields_read("torchrl_dreamer_v3") if name != "precision")
 
 
 @dataclass(frozen=True)
@@ -178,7 +182,7 @@ class DreamerV3Widths:
             ValueError: an unknown size preset.
             ConfigError: a precision other than fp32.
         """
-        hidden_dim = preset_widths(cfg, SIZE_KEYS, algo="torchrl_dreamer_v3")["hidden_dim"]
+        hidden_dim = preset_widths(cfg, SIZE_KEYS)["hidden_dim"]
         precision = cfg.model.precision or "fp32"
         if precision != "fp32":
             raise ConfigError(
@@ -354,7 +358,7 @@ class TorchRLDreamerV3Learner:
 
 
 def dreamer_v3_model_loss(
-    world_model: TensorDictModuleBase, *, settings: DreamerV3Settings = DreamerV3Settings()
+    world_model: TensorDictModuleBase, *, settings: DreamerV3Settings = TORCHRL_DREAMER_V3_SETTINGS
 ) -> DreamerV3ModelLoss:
     """``DreamerV3ModelLoss`` as TorchRL's reproduction configures it for pixels: separate dynamics and
     representation KL, squared error on ``pixels / 255`` (no symlog), two-hot reward, continuation trained to
@@ -367,7 +371,7 @@ def make_torchrl_dreamer_v3(
     action_dim: int,
     widths: DreamerV3Widths,
     horizon: int = 15,
-    settings: DreamerV3Settings = DreamerV3Settings(),
+    settings: DreamerV3Settings = TORCHRL_DREAMER_V3_SETTINGS,
     device: str | torch.device = "cpu",
 ) -> TorchRLDreamerV3Learner:
     """TorchRL's DreamerV3 modules and losses composed as its reproduction composes them, at ``widths``.
@@ -467,7 +471,7 @@ class TorchRLDreamerV3Components(BaselineComponents):
         *,
         action_dim: int,
         scratch_dir: Path,
-        settings: DreamerV3Settings = DreamerV3Settings(),
+        settings: DreamerV3Settings = TORCHRL_DREAMER_V3_SETTINGS,
     ) -> None:
         train = cfg.train
         widths = DreamerV3Widths.from_run(cfg)

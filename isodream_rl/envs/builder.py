@@ -78,9 +78,17 @@ class SimulatorFaultGuard(gym.Wrapper):
     def __init__(self, env: gym.Env, *, name: str | None = None) -> None:
         super().__init__(env)
         space = env.action_space
+        self.name = name or getattr(env.spec, "id", None) or type(env.unwrapped).__name__
         if not isinstance(space, gym.spaces.Box):
-            raise ValueError(f"SimulatorFaultGuard needs a Box action space, got {space}.")
-        self.name = name or type(env.unwrapped).__name__
+            discrete = isinstance(
+                space, (gym.spaces.Discrete, gym.spaces.MultiDiscrete, gym.spaces.MultiBinary)
+            )
+            raise ValueError(
+                f"{self.name} has a {'discrete' if discrete else 'non-continuous'} action space ({space}), and the "
+                "agents here act with continuous "
+                "actions in [-1, 1]: give an env whose action space is continuous (a gymnasium Box), such as "
+                "Pendulum-v1"
+            )
         self._low = space.low.astype(np.float64)
         self._high = space.high.astype(np.float64)
         self._rescale = not (np.all(self._low == -1.0) and np.all(self._high == 1.0))

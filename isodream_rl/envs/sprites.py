@@ -48,6 +48,55 @@ def _ring(radius: int) -> np.ndarray:
     return (d2 <= radius * radius + radius) & (d2 > (radius - 2) ** 2 + radius - 2)
 
 
+def _check_arguments(
+    *,
+    task: str,
+    image_size: int,
+    num_distractors: int,
+    max_steps: int,
+    speeds: tuple[float, float],
+    num_backgrounds: int | None,
+    sprite_size: float,
+    distractor_colours: Sequence[str] | None,
+    agent_colour: str,
+    target_style: str,
+    progress_reward: float,
+    render_mode: str | None,
+) -> None:
+    """Refuse an argument of :class:`SpritesEnv` out of its range, in one line naming it (``speeds``: the agent's
+    and the distractors')."""
+    if task not in SPRITES_TASKS:
+        raise ValueError(f"Unknown sprites task {task!r}; expected one of {SPRITES_TASKS}.")
+    if not isinstance(image_size, int) or image_size < 16:
+        raise ValueError(f"image_size must be an int >= 16, got {image_size!r}.")
+    if not 0 <= num_distractors <= len(DISTRACTOR_COLOURS):
+        raise ValueError(f"num_distractors must be in [0, {len(DISTRACTOR_COLOURS)}], got {num_distractors}.")
+    if max_steps < 1:
+        raise ValueError(f"max_steps must be >= 1, got {max_steps}.")
+    agent_speed, distractor_speed = speeds
+    if agent_speed < 0 or distractor_speed < 0:
+        raise ValueError(f"speeds must be >= 0, got agent {agent_speed} and distractor {distractor_speed}.")
+    if num_backgrounds is not None and (not isinstance(num_backgrounds, int) or num_backgrounds < 1):
+        raise ValueError(f"num_backgrounds must be None or an int >= 1, got {num_backgrounds!r}.")
+    if not 0.0 < sprite_size <= 0.2:
+        raise ValueError(f"sprite_size must be in (0, 0.2] (a fraction of image_size), got {sprite_size!r}.")
+    if distractor_colours is not None:
+        unknown = [c for c in distractor_colours if c not in DISTRACTOR_COLOURS]
+        if unknown or len(distractor_colours) != num_distractors:
+            raise ValueError(
+                f"distractor_colours must name one colour of {sorted(DISTRACTOR_COLOURS)} per distractor "
+                f"({num_distractors}), got {list(distractor_colours)!r}."
+            )
+    if agent_colour not in AGENT_COLOURS:
+        raise ValueError(f"agent_colour must be one of {sorted(AGENT_COLOURS)}, got {agent_colour!r}.")
+    if target_style not in TARGET_STYLES:
+        raise ValueError(f"target_style must be one of {TARGET_STYLES}, got {target_style!r}.")
+    if not np.isfinite(progress_reward):
+        raise ValueError(f"progress_reward must be a finite float, got {progress_reward!r}.")
+    if render_mode not in (None, "rgb_array"):
+        raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}.")
+
+
 class SpritesEnv(gym.Env):
     """Agent sprite, bouncing distractor sprites and a static textured background, rendered with numpy.
 
@@ -159,41 +208,20 @@ class SpritesEnv(gym.Env):
         distractor_colours: Sequence[str] | None = None,
         agent_colour: str = "white",
     ) -> None:
-        if task not in SPRITES_TASKS:
-            raise ValueError(f"Unknown sprites task {task!r}; expected one of {SPRITES_TASKS}.")
-        if not isinstance(image_size, int) or image_size < 16:
-            raise ValueError(f"image_size must be an int >= 16, got {image_size!r}.")
-        if not 0 <= num_distractors <= len(DISTRACTOR_COLOURS):
-            raise ValueError(
-                f"num_distractors must be in [0, {len(DISTRACTOR_COLOURS)}], got {num_distractors}."
-            )
-        if max_steps < 1:
-            raise ValueError(f"max_steps must be >= 1, got {max_steps}.")
-        if agent_speed < 0 or distractor_speed < 0:
-            raise ValueError(
-                f"speeds must be >= 0, got agent {agent_speed} and distractor {distractor_speed}."
-            )
-        if num_backgrounds is not None and (not isinstance(num_backgrounds, int) or num_backgrounds < 1):
-            raise ValueError(f"num_backgrounds must be None or an int >= 1, got {num_backgrounds!r}.")
-        if not 0.0 < sprite_size <= 0.2:
-            raise ValueError(
-                f"sprite_size must be in (0, 0.2] (a fraction of image_size), got {sprite_size!r}."
-            )
-        if distractor_colours is not None:
-            unknown = [c for c in distractor_colours if c not in DISTRACTOR_COLOURS]
-            if unknown or len(distractor_colours) != num_distractors:
-                raise ValueError(
-                    f"distractor_colours must name one colour of {sorted(DISTRACTOR_COLOURS)} per distractor "
-                    f"({num_distractors}), got {list(distractor_colours)!r}."
-                )
-        if agent_colour not in AGENT_COLOURS:
-            raise ValueError(f"agent_colour must be one of {sorted(AGENT_COLOURS)}, got {agent_colour!r}.")
-        if target_style not in TARGET_STYLES:
-            raise ValueError(f"target_style must be one of {TARGET_STYLES}, got {target_style!r}.")
-        if not np.isfinite(progress_reward):
-            raise ValueError(f"progress_reward must be a finite float, got {progress_reward!r}.")
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}.")
+        _check_arguments(
+            task=task,
+            image_size=image_size,
+            num_distractors=num_distractors,
+            max_steps=max_steps,
+            speeds=(agent_speed, distractor_speed),
+            num_backgrounds=num_backgrounds,
+            sprite_size=sprite_size,
+            distractor_colours=distractor_colours,
+            agent_colour=agent_colour,
+            target_style=target_style,
+            progress_reward=progress_reward,
+            render_mode=render_mode,
+        )
         self.image_size = image_size
         self.num_distractors = num_distractors
         self.task = task

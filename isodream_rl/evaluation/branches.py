@@ -12,7 +12,7 @@ from torch import nn
 
 from isodream_rl.data.sprites_episodes import episode_windows, model_input
 from isodream_rl.evaluation.decomposition import branch_assignment, score_decomposition
-from isodream_rl.modules.encoder import preprocess_pixels
+from isodream_rl.modules.pixels import preprocess_pixels
 
 #: Rows of :func:`branch_grid`: (label, key under "next" or root, kind).
 _ROWS = (
@@ -50,7 +50,7 @@ def branch_grid(output: TensorDictBase, *, sample: int = 0, steps: int = 10, sca
     output.
 
     Args:
-        output: the ``[B, T]`` output tensordict of :class:`~isodream_rl.modules.IsoDreamWorldModel`.
+        output: the ``[B, T]`` output tensordict of :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel`.
         sample: which window of the batch.
         steps: how many time steps (columns), evenly spread over the window.
         scale: pixel upscaling factor.
@@ -102,7 +102,7 @@ def score_branches(
       against the background, ~0.3-0.5); ``reco_error_agent`` the same on the agent's pixels.
 
     Args:
-        world_model: an :class:`~isodream_rl.modules.IsoDreamWorldModel` (or a module with its output keys).
+        world_model: an :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel` (or a module with its output keys).
         data: flat ``[episodes * steps]`` episodes, ``steps`` a multiple of ``window``.
         window: steps per window; each is filtered from zero states.
         device: where the world model runs.

@@ -22,7 +22,7 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
-from isodream_rl.modules.world_model_v3 import IsoDreamV3WorldModel
+from isodream_rl.modules.isodream.world_model import IsoDreamWorldModel
 
 #: The world model's branches, in the order their masks are stacked.
 BRANCHES = ("control", "free", "static")
@@ -157,13 +157,13 @@ def decomposition_scores(
     largest mask, by default).
 
     The single-branch DreamerV2 baseline (``algo=dreamerv2``: the same
-    :class:`~isodream_rl.modules.IsoDreamWorldModel` with the other branches off) is scored the same way:
+    :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel` with the other branches off) is scored the same way:
     its one image is the ``control`` branch, which holds every pixel, so ``iou_control_vs_agent`` is the
     agent's share of the frame, and the branches it lacks hold none (``iou_free_vs_distractors = 0``,
     ``background_share_static = 0``).
 
     Args:
-        world_model: an :class:`~isodream_rl.modules.IsoDreamWorldModel` (or a module with its output keys).
+        world_model: an :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel` (or a module with its output keys).
         windows: ``[N, T]``: ``"action"`` ``[N, T, A]``, ``"is_init"`` ``[N, T, 1]``, ``("next", "pixels")``
             uint8 ``[N, T, 3, H, W]`` and the ground truth ``("next", "mask_agent")``,
             ``("next", "mask_distractors")`` bool ``[N, T, H, W]``; any other key is ignored.
@@ -184,9 +184,9 @@ def decomposition_scores(
         ValueError: windows without the ground truth or of the wrong shapes (:func:`check_windows`).
 
     Examples:
-        >>> from isodream_rl.modules import IsoDreamWorldModel, WorldModelConfig
+        >>> from isodream_rl.modules import IsoDreamV2WorldModel, IsoDreamV2Config
         >>> from isodream_rl.data.sprites_episodes import collect_sprites_episodes, episode_windows
-        >>> model = IsoDreamWorldModel(WorldModelConfig.from_preset("tiny", action_dim=2))
+        >>> model = IsoDreamV2WorldModel(IsoDreamV2Config.from_preset("tiny", action_dim=2))
         >>> windows = episode_windows(collect_sprites_episodes(episodes=1, steps=8), window=8)
         >>> scores = decomposition_scores(model, windows)
         >>> 0.0 <= scores["iou_control_vs_agent"] <= 1.0
@@ -195,7 +195,7 @@ def decomposition_scores(
     check_windows(windows)
     inputs = windows.select(*_MODEL_KEYS).to(device)
     output = world_model(inputs)
-    if isinstance(world_model, IsoDreamV3WorldModel):  # its composite is in pixels / 255 units
+    if isinstance(world_model, IsoDreamWorldModel):  # its composite is in pixels / 255 units
         output.set(("next", "reco_pixels"), output.get(("next", "reco_pixels")) - 0.5)
     return score_decomposition(output, windows, threshold=threshold)
 

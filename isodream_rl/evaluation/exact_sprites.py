@@ -1,10 +1,10 @@
 """The behavior learner on an exact model: sprites ``reach`` written as a differentiable simulator.
 
-:class:`ExactSpritesModel` stands in for a trained world model in :class:`~isodream_rl.objectives.IsoDreamImagination`:
+:class:`ExactSpritesModel` stands in for a trained world model in :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2Imagination`:
 its latent state is the true simulator state (agent and target positions, in units of the frame side), its
 controllable prior is the env's step (move by ``agent_speed * action``, clamp at the walls, the progress
 reward, ``+reach_reward`` and a new target at least 6 radii away on a reach) and its reward head reads the
-reward of that step. Trained on it, the actor, value and losses of :func:`~isodream_rl.trainers.builders.make_behavior`
+reward of that step. Trained on it, the actor, value and losses of :func:`~isodream_rl.trainers.isodream_v2.make_behavior`
 face no model error at all, so what they learn is what the behavior learner can learn; an optional reward error
 (``reward_error`` per unit action along one fixed direction, for the first ``error_updates`` updates) is the
 young world model's systematic mistake, to check that the learner recovers once the model is right.
@@ -55,7 +55,7 @@ class ExactSpritesModel(nn.Module):
     (:meth:`imagine_step`) has no reach event: no ``reach_reward`` and no respawn, only the progress term, as a
     young world model that has not yet learnt the rare reaches; :meth:`step` (the evaluation) keeps them.
 
-    It duck-types the parts of :class:`~isodream_rl.modules.IsoDreamWorldModel` that behavior learning reads
+    It duck-types the parts of :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel` that behavior learning reads
     (``config``, ``control_rssm.imagine_step``, ``reward_features``, ``reward_head``, ``discount_head``,
     ``autocast``); it has no parameters.
 

@@ -3,7 +3,7 @@
 A missing object in a branch's mask has two possible causes: the branch's state does not carry the
 object (a representation problem), or it does and the mask never lets the branch draw it (a composition
 problem: a softmax mask shut at ~0 passes no gradient). This probe tells them apart. It runs a trained
-:class:`~isodream_rl.modules.IsoDreamWorldModel` over random-action sprites windows, fits a ridge
+:class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel` over random-action sprites windows, fits a ridge
 regression from each branch's posterior features (``[state, belief]``, ``[free_state, free_belief]``) to
 each sprite's centre (the centroid of its ground-truth pixels), and reports the held-out R^2 per sprite
 and branch: near 1, the branch knows where the sprite is; at or below 0 (worse than the mean
@@ -31,7 +31,7 @@ from typing import Any
 import torch
 
 from isodream_rl.data.sprites_episodes import collect_sprites_episodes, episode_windows, model_input
-from isodream_rl.modules import IsoDreamWorldModel
+from isodream_rl.modules.isodream_v2 import IsoDreamV2WorldModel
 
 
 def sprite_centres(truth, num_distractors: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -79,7 +79,7 @@ def ridge_r2(
 
 
 @torch.no_grad()
-def branch_features(model: IsoDreamWorldModel, data, *, window: int) -> dict[str, torch.Tensor]:
+def branch_features(model: IsoDreamV2WorldModel, data, *, window: int) -> dict[str, torch.Tensor]:
     """Posterior features ``[N, D]`` of each dynamic branch over flat episode data cut into windows.
 
     The first ``window // 4`` steps of each window are dropped (the filter is still settling there)."""
@@ -116,7 +116,7 @@ def ridge_cv(
 
 
 @torch.no_grad()
-def encoder_features(model: IsoDreamWorldModel, data, *, window: int) -> dict[str, torch.Tensor]:
+def encoder_features(model: IsoDreamV2WorldModel, data, *, window: int) -> dict[str, torch.Tensor]:
     """Encoder features ``[N, D]`` of the same frames as :func:`branch_features` (the same steps dropped):
     ``trunk`` (2x2-pooled shared trunk map), ``embed_control`` and, with the noncontrollable branch,
     ``embed_free``."""
@@ -132,7 +132,7 @@ def encoder_features(model: IsoDreamWorldModel, data, *, window: int) -> dict[st
 
 
 def probe(
-    model: IsoDreamWorldModel,
+    model: IsoDreamV2WorldModel,
     *,
     window: int = 16,
     episodes: int = 32,

@@ -1,36 +1,30 @@
-"""Iso-Dream modules: encoder, decoupled RSSM, masked decoders, inverse dynamics, heads, world model."""
+"""Iso-Dream's modules. The default learner's (``algo=isodream``, :mod:`isodream_rl.modules.isodream`): the
+decoupled world model on TorchRL's DreamerV3 parts, its configuration, actor, critic and acting policy; and the
+pieces both learners build on: the future-state attention (eq. 6), the inverse-dynamics cell, the mask
+composition (eq. 4), the size presets.
 
-from isodream_rl.modules.actor import IsoDreamActor
+The DreamerV2-style learner's modules (``algo=isodream_v2``, ``isodream_paper``, ``dreamerv2``) are exported by
+:mod:`isodream_rl.modules.isodream_v2`.
+"""
+
 from isodream_rl.modules.attention import POLICY_INPUTS, FutureStateAttention, PolicyInput
 from isodream_rl.modules.composition import MaskComposition
-from isodream_rl.modules.config import SIZE_PRESETS, WorldModelConfig
-from isodream_rl.modules.decoder import ConvDecoder
-from isodream_rl.modules.encoder import BranchedEncoder
-from isodream_rl.modules.heads import make_discount_head, make_reward_head
 from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
-from isodream_rl.modules.policy import IsoDreamPolicy
-from isodream_rl.modules.rssm import ActionConditionedRSSM, ActionFreeRSSM, LayerNormGRUCell, RSSMCell
-from isodream_rl.modules.value import IsoDreamValue
-from isodream_rl.modules.world_model import IsoDreamWorldModel
+from isodream_rl.modules.isodream.behavior import IsoDreamPolicy, PolicyFeatures, make_actor, make_value
+from isodream_rl.modules.isodream.world_model import IsoDreamConfig, IsoDreamWorldModel
+from isodream_rl.modules.sizes import SIZE_PRESETS
 
 __all__ = [
-    "ActionConditionedRSSM",
-    "ActionFreeRSSM",
-    "BranchedEncoder",
-    "ConvDecoder",
+    "POLICY_INPUTS",
+    "SIZE_PRESETS",
     "FutureStateAttention",
     "InverseDynamicsCell",
-    "IsoDreamActor",
+    "IsoDreamConfig",
     "IsoDreamPolicy",
-    "IsoDreamValue",
     "IsoDreamWorldModel",
-    "LayerNormGRUCell",
     "MaskComposition",
-    "POLICY_INPUTS",
+    "PolicyFeatures",
     "PolicyInput",
-    "RSSMCell",
-    "SIZE_PRESETS",
-    "WorldModelConfig",
-    "make_discount_head",
-    "make_reward_head",
+    "make_actor",
+    "make_value",
 ]

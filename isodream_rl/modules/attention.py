@@ -191,7 +191,7 @@ class PolicyInput(nn.Module):
 
     @classmethod
     def for_world_model(cls, world_model, *, mode: str, **kwargs) -> PolicyInput:
-        """A policy input sized for ``world_model`` (an ``IsoDreamWorldModel``); checks it has a free branch."""
+        """A policy input sized for ``world_model`` (an ``IsoDreamV2WorldModel``); checks it has a free branch."""
         cfg = world_model.config
         if mode != "controllable" and not cfg.free_branch:
             raise ValueError(

@@ -21,7 +21,7 @@ training diverge on the sprites scene (docs/results/world_model_demo.md).
 :meth:`MaskComposition.compose_decoded` composes straight from the decoders' ``RGB + logit`` outputs, the
 operations one by one (:meth:`MaskComposition.bound`, then :meth:`MaskComposition.forward`): the reference
 form. The world model builds :class:`~isodream_rl.modules.fast_paths.FusedMaskComposition` instead when
-``WorldModelConfig.fast_paths`` is set (the same function, one autograd node in softmax mode).
+``IsoDreamV2Config.fast_paths`` is set (the same function, one autograd node in softmax mode).
 """
 
 from __future__ import annotations
@@ -31,7 +31,9 @@ from torch import nn
 
 MASK_MODES = ("softmax", "sigmoid")
 BRANCHES = ("control", "free", "static")
-#: The preprocessed pixel range (``isodream_rl.modules.encoder.preprocess_pixels``).
+#: What a dynamic branch's decoder may draw at each step: its posterior, or its one-step prior (both learners).
+DECODER_STATES = ("posterior", "prior")
+#: The preprocessed pixel range (``isodream_rl.modules.pixels.preprocess_pixels``).
 PIXEL_RANGE = (-0.5, 0.5)
 CLAMP_GRADIENTS = ("zero", "inward")
 

@@ -31,8 +31,8 @@ from tensordict.nn import (
 from torch import nn
 from torchrl.modules import DreamerV3MLP, IndependentNormal, SymExpTwoHot
 
-from isodream_rl.modules.encoder import check_pixel_values, check_pixels
-from isodream_rl.modules.policy import CarriedStatePolicy
+from isodream_rl.modules.carried_state import CarriedStatePolicy
+from isodream_rl.modules.pixels import check_pixel_values, check_pixels
 
 #: The observation key of the world model (uint8 pixels of the step's outcome).
 PIXELS = ("next", "pixels")
@@ -40,50 +40,78 @@ PIXELS = ("next", "pixels")
 
 @dataclass(frozen=True)
 class DreamerV3Settings:
-    """DreamerV3's settings as TorchRL's DreamerV3 reproduction sets them; one home per value."""
+    """DreamerV3's settings (Hafner et al. 2023): the fields of each DreamerV3 learner's table, which names every
+    value (:data:`TORCHRL_DREAMER_V3_SETTINGS`, ``algo=torchrl_dreamer_v3``'s;
+    :data:`~isodream_rl.modules.isodream.settings.ISODREAM_SETTINGS`, the default learner's)."""
 
-    num_categoricals: int = 32
+    num_categoricals: int
     """Categorical variables of the stochastic state."""
-    unimix: float = 0.01
+    unimix: float
     """Uniform mixture of every categorical (latents, KL)."""
-    num_blocks: int = 8
+    num_blocks: int
     """Blocks of the block GRU and of the decoder's input projection."""
-    prior_layers: int = 2
+    prior_layers: int
     """Hidden layers of the prior's logit MLP."""
-    num_bins: int = 255
+    num_bins: int
     """Two-hot bins of the reward and value heads."""
-    free_bits: float = 1.0
+    free_bits: float
     """Free nats of each KL term (on the sum over the categoricals)."""
-    lambda_dynamic: float = 1.0
+    lambda_dynamic: float
     """Weight of the dynamics KL (trains the prior)."""
-    lambda_representation: float = 0.1
+    lambda_representation: float
     """Weight of the representation KL (trains the posterior)."""
-    continuation_horizon: float = 333.0
+    continuation_horizon: float
     """The continuation head learns ``1 - 1 / horizon`` on non-terminal steps: DreamerV3's discount."""
-    lmbda: float = 0.95
+    lmbda: float
     """lambda of the lambda-returns."""
-    entropy_bonus: float = 3e-4
+    entropy_bonus: float
     """eta, the actor's entropy weight."""
-    return_normalization_rate: float = 0.01
+    return_normalization_rate: float
     """EMA rate of the 5th / 95th return percentiles."""
-    return_normalization_min_scale: float = 1.0
+    return_normalization_min_scale: float
     """Floor of the return-normalisation divisor."""
-    slow_critic_regularization: float = 1.0
+    slow_critic_regularization: float
     """Weight of the critic's regression towards its slow copy."""
-    slow_critic_tau: float = 0.02
+    slow_critic_tau: float
     """Rate of the slow critic's ``SoftUpdate``."""
-    replay_value_loss_weight: float = 0.3
+    replay_value_loss_weight: float
     """Weight of the critic loss on replayed posteriors."""
-    policy_min_std: float = 0.1
+    policy_min_std: float
     """Lower bound of the actor's std."""
-    policy_max_std: float = 1.0
+    policy_max_std: float
     """Upper bound of the actor's std."""
-    agc: float = 0.3
+    agc: float
     """Adaptive gradient clipping: largest gradient norm per unit of parameter norm."""
-    optimizer_eps: float = 1e-20
+    optimizer_eps: float
     """Epsilon of the optimiser's RMS denominator."""
-    lr_warmup: int = 1000
+    lr_warmup: int
     """Updates of linear learning-rate warm-up (the first update has learning rate 0)."""
+
+
+#: ``algo=torchrl_dreamer_v3``'s settings: DreamerV3's as TorchRL's DreamerV3 reproduction sets them.
+TORCHRL_DREAMER_V3_SETTINGS = DreamerV3Settings(
+    num_categoricals=32,
+    unimix=0.01,
+    num_blocks=8,
+    prior_layers=2,
+    num_bins=255,
+    free_bits=1.0,
+    lambda_dynamic=1.0,
+    lambda_representation=0.1,
+    continuation_horizon=333.0,
+    lmbda=0.95,
+    entropy_bonus=3e-4,
+    return_normalization_rate=0.01,
+    return_normalization_min_scale=1.0,
+    slow_critic_regularization=1.0,
+    slow_critic_tau=0.02,
+    replay_value_loss_weight=0.3,
+    policy_min_std=0.1,
+    policy_max_std=1.0,
+    agc=0.3,
+    optimizer_eps=1e-20,
+    lr_warmup=1000,
+)
 
 
 class WindowInputCheck(TensorDictModuleBase):
@@ -222,7 +250,7 @@ class SequenceActingPolicy(CarriedStatePolicy):
     ``"state"``, ``"belief"``, ``"previous_action"`` (resetting them at ``is_init`` itself) and writes the new
     ``"state"``, ``"belief"`` and the sampled (or, under a deterministic exploration type, mean) ``"action"``: the
     action is clamped to [-1, 1] and becomes the next ``previous_action`` (a
-    :class:`~isodream_rl.modules.policy.CarriedStatePolicy`: prime the env with :meth:`make_tensordict_primer`).
+    :class:`~isodream_rl.modules.isodream_v2.policy.CarriedStatePolicy`: prime the env with :meth:`make_tensordict_primer`).
 
     Args:
         module: the acting sequence.

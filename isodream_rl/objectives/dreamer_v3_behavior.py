@@ -1,13 +1,13 @@
 """DreamerV3's behaviour losses on any imagination env: TorchRL's ``DreamerV3ActorLoss`` and ``DreamerV3ValueLoss``
 with DreamerV3's settings, and the slow critic's ``SoftUpdate``.
 
-:func:`make_dreamer_v3_behavior` composes them as :func:`~isodream_rl.objectives.isodream_v3.make_isodream_v3`
+:func:`make_dreamer_v3_behavior` composes them as :func:`~isodream_rl.objectives.isodream.make_isodream`
 (``algo=isodream``) and :func:`~isodream_rl.baselines.torchrl_dreamer_v3.make_torchrl_dreamer_v3`
 (``algo=torchrl_dreamer_v3``) do: REINFORCE with the 5th-95th percentile return normalisation, the entropy bonus
 on normalised returns, TD(lambda) with ``gamma = 1`` (the continuation model's probabilities discount), a two-hot
 critic with the slow-critic regulariser. It takes the actor, the critic, the imagination ``DreamerEnv`` and the
 continuation model as arguments, so that the same learner trains on a world model's imagination or on
-:class:`~isodream_rl.evaluation.ExactSpritesModel` (:mod:`isodream_rl.evaluation.exact_sprites_v3`).
+:class:`~isodream_rl.evaluation.ExactSpritesModel` (:mod:`isodream_rl.evaluation.exact_sprites_behavior`).
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ def make_dreamer_v3_behavior(
     *,
     continuation: TensorDictModuleBase,
     horizon: int = 15,
-    settings: DreamerV3Settings = DreamerV3Settings(),
+    settings: DreamerV3Settings,
 ) -> DreamerV3Behavior:
     """``DreamerV3ActorLoss`` + ``DreamerV3ValueLoss`` + ``SoftUpdate`` with DreamerV3's settings (module docstring).
 
@@ -86,7 +86,7 @@ def make_dreamer_v3_loss(
     model_loss: DreamerV3ModelLoss,
     behavior: DreamerV3Behavior,
     *,
-    settings: DreamerV3Settings = DreamerV3Settings(),
+    settings: DreamerV3Settings,
 ) -> DreamerV3Loss:
     """``DreamerV3Loss`` over a world-model loss and :func:`make_dreamer_v3_behavior`'s losses: the world model,
     imagination from every posterior, actor, critic, and the critic on the replayed posteriors (weight
@@ -101,7 +101,7 @@ def make_dreamer_v3_loss(
     )
 
 
-def dreamer_v3_model_loss_settings(settings: DreamerV3Settings = DreamerV3Settings()) -> dict:
+def dreamer_v3_model_loss_settings(settings: DreamerV3Settings) -> dict:
     """``DreamerV3ModelLoss``'s keyword arguments as TorchRL's reproduction configures it for pixels: separate
     dynamics and representation KL, squared error on ``pixels / 255`` (no symlog), two-hot reward, continuation
     trained to ``1 - 1 / continuation_horizon``; the output keeps its graph for the replay-value term."""

@@ -20,8 +20,8 @@ class InverseDynamicsLoss(LossModule):
 
     Args:
         lambda_inverse: a scale on the term; the default 1 gives the plain log-loss. It is not eq. 5's
-            weight: ``alpha`` belongs to the weighted sum, :class:`~isodream_rl.objectives.IsoDreamModelLoss`,
-            whose ``lambda_inverse`` (default in ``LOSS_WEIGHTS``, ``objectives/world_model.py``) it passes here.
+            weight: ``alpha`` belongs to the weighted sum, :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2ModelLoss`,
+            whose ``lambda_inverse`` (default in ``LOSS_WEIGHTS``, ``objectives/isodream_v2/world_model.py``) it passes here.
         loss_type: ``"gaussian"``: ``-log N(a; a~, I)`` up to a constant, ``0.5 * sum_dims (a - a~)^2``
             (the authors' code); ``"l2"``: ``sum_dims (a - a~)^2`` (the paper's notation).
 

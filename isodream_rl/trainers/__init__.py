@@ -1,6 +1,8 @@
-"""Training: configuration, Trainer assembly, algorithm registry, optimisation stepper, hooks, checkpoints."""
+"""Training: configuration, the learners' run parts (the default's :class:`IsoDreamComponents`, the DreamerV2-style
+learner's :class:`IsoDreamV2Components`) and their settings tables, Trainer assembly, algorithm registry,
+optimisation stepper, hooks."""
 
-from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
+from isodream_rl.run_utils.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.components import RunComponents
 from isodream_rl.trainers.config import (
     AlgoConfig,
@@ -13,6 +15,8 @@ from isodream_rl.trainers.config import (
     TrainConfig,
     validate_config,
 )
+from isodream_rl.trainers.isodream import IsoDreamComponents
+from isodream_rl.trainers.isodream_v2 import IsoDreamV2Components
 from isodream_rl.trainers.registry import register_algorithm
 from isodream_rl.trainers.run import evaluate_checkpoint, train
 from isodream_rl.trainers.run_lifecycle import RunResult
@@ -26,7 +30,9 @@ __all__ = [
     "CheckpointManager",
     "ConfigError",
     "EnvConfig",
+    "IsoDreamComponents",
     "IsoDreamOptimizationStepper",
+    "IsoDreamV2Components",
     "LoggingConfig",
     "ModelConfig",
     "NonFiniteLossError",

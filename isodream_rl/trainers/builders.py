@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import functools
 import importlib
-from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -15,22 +14,7 @@ from torchrl.record.loggers import Logger, get_logger
 
 from isodream_rl.envs import make_env
 from isodream_rl.envs.finite import FiniteEnvData
-from isodream_rl.modules import (
-    IsoDreamActor,
-    IsoDreamValue,
-    IsoDreamWorldModel,
-    PolicyInput,
-    WorldModelConfig,
-)
-from isodream_rl.modules.policy import IsoDreamPolicy
-from isodream_rl.objectives import (
-    IsoDreamActorLoss,
-    IsoDreamImagination,
-    IsoDreamModelLoss,
-    IsoDreamValueLoss,
-    make_target_updater,
-)
-from isodream_rl.trainers.config import RunConfig, world_model_overrides
+from isodream_rl.trainers.config import RunConfig
 
 #: What the replay buffer stores per step. The root ``"pixels"`` is left out: it is the previous step's
 #: ``("next", "pixels")``, and the world model filters ``o_{t+1}`` only, so storing it would double the bytes.
@@ -121,29 +105,6 @@ def make_replay_buffer(cfg: RunConfig, *, scratch_dir: str | Path) -> TensorDict
     )
 
 
-def make_world_model_config(cfg: RunConfig, *, action_dim: int) -> WorldModelConfig:
-    """``WorldModelConfig`` of the size preset with the algorithm's branch switches."""
-    return WorldModelConfig.from_preset(cfg.model.size, action_dim=action_dim, **world_model_overrides(cfg))
-
-
-def make_world_model_loss(cfg: RunConfig, *, action_dim: int, extra_terms=()) -> IsoDreamModelLoss:
-    """The world model and its loss (eq. 5) with the algorithm's weights and free-branch mode, plus
-    ``extra_terms`` (see :class:`~isodream_rl.objectives.IsoDreamModelLoss`)."""
-    world_model = IsoDreamWorldModel(
-        make_world_model_config(cfg, action_dim=action_dim), device=cfg.train.device
-    )
-    algo = cfg.algo
-    return IsoDreamModelLoss(
-        world_model,
-        lambda_reward=algo.lambda_reward,
-        lambda_inverse=algo.lambda_inverse,
-        free_nats=algo.free_nats,
-        kl_balance=algo.kl_balance,
-        free_branch_loss=algo.free_branch_loss,
-        extra_terms=extra_terms,
-    )
-
-
 def make_adam(params, *, lr: float, eps: float) -> torch.optim.Adam:
     """Adam over ``params`` (the paper's optimiser for all three parameter groups)."""
     params = list(params)
@@ -174,50 +135,3 @@ def close_logger(logger: Logger) -> None:
 def count_parameters(module: nn.Module) -> int:
     """Number of trainable parameters."""
     return sum(p.numel() for p in module.parameters() if p.requires_grad)
-
-
-@dataclass
-class Behavior:
-    """The behavior side of a run (paper §3.3-3.4): policy input, actor, value, their losses and the policy."""
-
-    policy_input: PolicyInput
-    actor_loss: IsoDreamActorLoss
-    value_loss: IsoDreamValueLoss
-    target_updater: object
-    policy: IsoDreamPolicy
-
-
-def make_behavior(cfg: RunConfig, world_model: IsoDreamWorldModel) -> Behavior:
-    """Future-state attention (or plain [s, h]), actor, value with its slow target, losses and acting policy."""
-    algo, model, device = cfg.algo, cfg.model, cfg.train.device
-    policy_input = PolicyInput.for_world_model(
-        world_model, mode=algo.policy_input, window=algo.attention_window, width=model.attention_dim
-    )
-    imagination = IsoDreamImagination(world_model, policy_input, horizon=algo.horizon)
-    value_loss = IsoDreamValueLoss(
-        IsoDreamValue(in_features=policy_input.out_features, num_cells=model.value_units, device=device),
-        imagination,
-    )
-    actor = IsoDreamActor(
-        in_features=policy_input.out_features,
-        action_dim=world_model.config.action_dim,
-        num_cells=model.actor_units,
-        device=device,
-    )
-    actor_loss = IsoDreamActorLoss(
-        actor,
-        imagination,
-        value_loss,
-        gamma=algo.gamma,
-        lmbda=algo.lmbda,
-        entropy_bonus=algo.actor_entropy,
-        loc_penalty=algo.actor_loc_penalty,
-        attention_through_actor=algo.attention_through_actor,
-    )
-    return Behavior(
-        policy_input=policy_input,
-        actor_loss=actor_loss,
-        value_loss=value_loss,
-        target_updater=make_target_updater(value_loss, period=algo.slow_target_every),
-        policy=IsoDreamPolicy(world_model, actor, policy_input, exploration_noise=algo.exploration_noise),
-    )

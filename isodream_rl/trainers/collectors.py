@@ -91,7 +91,7 @@ def make_collector(
     Args:
         cfg: the run configuration (``env``, ``train.frames_per_batch``, ``train.collector_backend`` and the
             ``train`` fields of the chosen backend).
-        policy: the acting policy (:class:`~isodream_rl.modules.IsoDreamPolicy`).
+        policy: the acting policy (:class:`~isodream_rl.modules.isodream_v2.IsoDreamV2Policy`).
         total_frames: agent steps still to collect (the whole run minus what a resumed run already has).
         init_random_frames: random-policy steps still to collect (the prefill).
         env_transform: ``() -> Transform`` appended to each env (the policy's recurrent-state primer).

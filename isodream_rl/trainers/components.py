@@ -1,9 +1,9 @@
-"""The parts of an Iso-Dream run (any of its variants, and the DreamerV2 baseline): models, losses, optimisers,
-stepper, replay buffer and the hooks whose state a checkpoint holds.
+"""The interface of a run's parts, :class:`RunComponents` (models, losses, optimisers, stepper, replay buffer and the
+hooks whose state a checkpoint holds), and the replay side every algorithm's run shares (:func:`make_replay_parts`).
 
-:class:`RunComponents` is also the interface other algorithms give their parts (the TorchRL baselines of
-:mod:`isodream_rl.baselines` subclass it); :mod:`isodream_rl.trainers.registry` builds the one ``algo.name``
-names.
+Each learner gives its parts this interface: the default's :class:`~isodream_rl.trainers.isodream.IsoDreamComponents`,
+the DreamerV2-style learner's :class:`~isodream_rl.trainers.isodream_v2.IsoDreamV2Components`, the TorchRL baselines'
+(:mod:`isodream_rl.baselines`); :mod:`isodream_rl.trainers.registry` builds the one ``algo.name`` names.
 """
 
 from __future__ import annotations
@@ -15,19 +15,11 @@ from torchrl.data import TensorDictReplayBuffer
 from torchrl.trainers import Trainer
 
 from isodream_rl.trainers import trainer_state
-from isodream_rl.trainers.builders import (
-    collector_env_suffix,
-    env_label,
-    make_adam,
-    make_behavior,
-    make_replay_buffer,
-    make_world_model_loss,
-)
+from isodream_rl.trainers.builders import collector_env_suffix, env_label, make_replay_buffer
 from isodream_rl.trainers.config import RunConfig
 from isodream_rl.trainers.hooks import EpisodeReturns, ReplayPreparation
 from isodream_rl.trainers.run_lifecycle import run_state
 from isodream_rl.trainers.saved_models import load_saved_models
-from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
 
 
 def make_replay_parts(
@@ -52,53 +44,23 @@ def make_replay_parts(
 
 
 class RunComponents:
-    """Models, losses, optimisers, stepper and replay buffer of a run (everything a checkpoint holds).
-
-    Args:
-        cfg: the run configuration.
-        action_dim: width of the env's action.
-        scratch_dir: folder of the replay buffer's memmap files.
+    """Models, losses, optimisers, stepper and replay buffer of a run (everything a checkpoint holds): the interface
+    a learner's parts give the run. A subclass builds them in ``__init__(cfg, *, action_dim, scratch_dir)`` and names
+    its checkpoint's models in :meth:`modules`.
 
     Attributes:
-        model_loss, world_model, behavior (:class:`~isodream_rl.trainers.builders.Behavior`), stepper
-        (:class:`IsoDreamOptimizationStepper`), replay_buffer, preparation, returns (the replay and
-        episode-return hooks).
+        model_loss, world_model (``None`` where the evaluation has no open-loop prediction), behavior (with
+        ``policy``), stepper (an :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper`), replay_buffer,
+        preparation, returns (the replay and episode-return hooks).
     """
 
-    #: the ``algo.name`` of the run, named by :meth:`load_models` (this class serves Iso-Dream's DreamerV2-style
-    #: variants and ``algo=dreamerv2``; a subclass registered under one name sets it on the class)
+    #: the ``algo.name`` of the run, named by :meth:`load_models` (set by ``__init__``, or on the class by a subclass
+    #: registered under one name)
     algo: str
 
-    def __init__(self, cfg: RunConfig, *, action_dim: int, scratch_dir: Path) -> None:
-        train = cfg.train
-        self.algo = cfg.algo.name
-        self.model_loss = make_world_model_loss(cfg, action_dim=action_dim)
-        self.world_model = self.model_loss.world_model
-        self.behavior = make_behavior(cfg, self.world_model)
-        groups = self.behavior.actor_loss.parameter_groups()
-        self.stepper = IsoDreamOptimizationStepper(
-            model_loss=self.model_loss,
-            world_model_optimizer=make_adam(
-                groups["world_model"], lr=train.world_model_lr, eps=train.adam_eps
-            ),
-            actor_loss=self.behavior.actor_loss,
-            value_loss=self.behavior.value_loss,
-            actor_optimizer=make_adam(groups["actor"], lr=train.actor_lr, eps=train.adam_eps),
-            value_optimizer=make_adam(groups["value"], lr=train.value_lr, eps=train.adam_eps),
-            target_updater=self.behavior.target_updater,
-            sequence_length=train.sequence_length,
-            grad_clip=train.grad_clip,
-            max_nonfinite=train.max_nonfinite_updates,
-            world_model_warmup=train.world_model_warmup,
-        )
-        self.replay_buffer, self.preparation, self.returns = make_replay_parts(cfg, scratch_dir=scratch_dir)
-
     def modules(self) -> dict[str, torch.nn.Module]:
-        return {
-            "world_model": self.world_model,
-            "actor_loss": self.behavior.actor_loss,
-            "value_loss": self.behavior.value_loss,
-        }
+        """The trained modules (and any other state a checkpoint holds), by checkpoint name."""
+        raise NotImplementedError(f"{type(self).__name__} must define modules(): its checkpoint's models")
 
     def state(
         self, cfg: RunConfig, *, env_steps: int, trainer: Trainer | None, evaluation=None, wall_s: float = 0.0

@@ -2,25 +2,26 @@
 
 The YAML groups in ``isodream_rl/configs`` (``env``, ``size``, ``algo``) fill these dataclasses; Hydra checks
 types against them, and :func:`validate_config` rejects impossible combinations with a message saying what to
-change, before any env or model is built.
+change, before any env or model is built. The settings only some learners read are ``None`` here, "the learner's
+value": each learner's table gives it (:mod:`isodream_rl.trainers.learners`), and a value given for a learner that
+does not read it is refused.
 """
 
 from __future__ import annotations
 
 import importlib.util
 import typing
-from dataclasses import dataclass, field, fields, make_dataclass
+from dataclasses import dataclass, field, make_dataclass
 from typing import Any
 
-from isodream_rl.modules.config import DREAMERV2, PAPER_EXACT, SIZE_PRESETS, WorldModelConfig
-from isodream_rl.objectives.world_model import FREE_BRANCH_MODES, LOSS_WEIGHTS, PAPER_WEIGHTS
-from isodream_rl.trainers.world_model_config import (
-    DREAMER_V3_ISODREAM,
-    DREAMER_V3_LEARNERS,
-    MODES,
-    WorldModelModeConfig,
-    world_model_mode_errors,
-)
+from isodream_rl.modules.isodream_v2.config import DREAMERV2, PAPER_EXACT, IsoDreamV2Config
+from isodream_rl.modules.sizes import SIZE_PRESETS
+from isodream_rl.objectives.isodream_v2.world_model import FREE_BRANCH_MODES
+from isodream_rl.run_utils.device import device_error
+from isodream_rl.trainers.learners import WORLD_MODEL_FIELDS, resolved, unread_setting_errors
+from isodream_rl.trainers.renames import drop_unread_settings, renamed_algo_error, saved_algo_name
+from isodream_rl.trainers.world_model_config import MODES, WorldModelModeConfig, world_model_mode_errors
+from isodream_rl.user_errors import ConfigError
 
 POLICY_INPUTS = ("controllable", "attention", "concat")
 COLLECTOR_BACKENDS = ("sync", "multiprocess", "ray", "distributed")
@@ -31,8 +32,8 @@ LOGGER_BACKENDS = ("csv", "tensorboard", "wandb")
 _ALL_BRANCHES = {"free_branch": True, "static_branch": True, "inverse_dynamics": True}
 #: The branch switches of each ``algo=<name>`` preset: their one home (the algo YAML files set the other
 #: fields). ``AlgoConfig``'s switches left ``None`` take these (:func:`resolve_algo`); a name not here takes
-#: ``isodream``'s. The single-branch ones are DreamerV2's (:data:`~isodream_rl.modules.config.DREAMERV2`).
-#: Which learner each name builds: :data:`~isodream_rl.trainers.world_model_config.DREAMER_V3_ISODREAM`.
+#: ``isodream``'s. The single-branch ones are DreamerV2's (:data:`~isodream_rl.modules.isodream_v2.config.DREAMERV2`).
+#: Which learner each name builds: :mod:`isodream_rl.trainers.learners`.
 ALGO_BRANCHES: dict[str, dict[str, bool]] = {
     "isodream": _ALL_BRANCHES,
     "isodream_v2": _ALL_BRANCHES,
@@ -45,32 +46,6 @@ ALGO_BRANCHES: dict[str, dict[str, bool]] = {
     "torchrl_dreamer_v3": DREAMERV2,
 }
 ALGO_NAMES = tuple(ALGO_BRANCHES)
-#: ``old name -> (new name, why)`` of the ``algo`` presets that were renamed: ``algo=<old>`` is refused with a
-#: message naming the new one (:func:`renamed_algo_error`), and a configuration saved under the old name (a
-#: checkpoint, ``run_config.json``) is read under the new one (:func:`config_from_dict`).
-RENAMED_ALGOS: dict[str, tuple[str, str]] = {
-    "isodream_v3": (
-        "isodream",
-        "Iso-Dream on DreamerV3's learner became the default; the DreamerV2-style learner is algo=isodream_v2",
-    ),
-}
-#: ``name -> settings``: the ``algo`` names that were Iso-Dream on the DreamerV2-style learner until they became
-#: Iso-Dream on DreamerV3's learner (:data:`~isodream_rl.trainers.world_model_config.DREAMER_V3_ISODREAM`), with the
-#: settings beside ``algo=isodream_v2`` that build the variant each was then (its branch switch or policy input;
-#: the ``algo`` fields of a configuration saved then hold the same values). A saved configuration does not tell
-#: such a run from a later one; its checkpoint's weights do (:mod:`isodream_rl.trainers.saved_models`), and
-#: ``algo=isodream_v2`` with these settings may resume it
-#: (:func:`~isodream_rl.trainers.run_dir.differing_settings`).
-FORMER_DREAMER_V2_ALGOS: dict[str, tuple[str, ...]] = {
-    "isodream": (),
-    "isodream_no_inverse": ("algo.inverse_dynamics=false",),
-    "isodream_no_attention": ("algo.policy_input=controllable",),
-    "isodream_no_static": ("algo.static_branch=false",),
-}
-
-
-class ConfigError(ValueError):
-    """An invalid training configuration; the message names the field and what to change."""
 
 
 @dataclass
@@ -92,6 +67,10 @@ class EnvConfig:
     """Envs collecting in parallel; above 1 a multi-process TorchRL collector runs one env per process."""
     action_repeat: int = 1
     """Simulator steps per agent step, as the env applies it (only used to report simulator frames)."""
+    domain: str = "sprites"
+    """The kind of scene, ``"carla"``, ``"dmc"`` or ``"sprites"``, set by the env group (``configs/domain/``): which
+    of the paper's per-domain choices apply (the policy input and the reward's inputs in ``algo``; a learner's own
+    per-domain values in its table, :mod:`isodream_rl.trainers.learners`)."""
 
 
 @dataclass
@@ -99,7 +78,7 @@ class _ModelSizes:
     """The behavior's widths and the world model's size preset (the rest of ``model`` is :data:`ModelConfig`)."""
 
     size: str = "small"
-    """A preset of ``WorldModelConfig``'s widths, a key of ``isodream_rl.modules.config.SIZE_PRESETS``."""
+    """A size preset, a key of ``isodream_rl.modules.sizes.SIZE_PRESETS``."""
     actor_units: int = 400
     """Width of the actor MLP (4 layers in the paper)."""
     value_units: int = 400
@@ -108,86 +87,90 @@ class _ModelSizes:
     """Width of the future-state attention's Q/K/V projections (500 in the authors' code)."""
 
     def world_model_fields(self) -> dict[str, Any]:
-        """The ``WorldModelConfig`` fields this section sets (those not ``None``), as ``{field: value}``."""
+        """The ``IsoDreamV2Config`` fields this section sets (those not ``None``), as ``{field: value}``."""
         return {name: getattr(self, name) for name in WORLD_MODEL_FIELDS if getattr(self, name) is not None}
 
 
-#: The ``WorldModelConfig`` fields that ``model.<field>`` sets: all but ``action_dim`` (the env's).
-WORLD_MODEL_FIELDS = tuple(f.name for f in fields(WorldModelConfig) if f.name != "action_dim")
-
-
 def _world_model_section() -> list[tuple[str, Any, Any]]:
-    """``WorldModelConfig``'s fields as optional schema fields, default ``None``: "the preset's value"."""
-    hints = typing.get_type_hints(WorldModelConfig)
+    """``IsoDreamV2Config``'s fields as optional schema fields, default ``None``: "the preset's value"."""
+    hints = typing.get_type_hints(IsoDreamV2Config)
     return [(name, hints[name] | None, field(default=None)) for name in WORLD_MODEL_FIELDS]
 
 
 #: The ``model`` section: the size preset and behavior widths (``_ModelSizes``), then every field of
-#: :class:`~isodream_rl.modules.config.WorldModelConfig` but ``action_dim``, typed as there and ``None`` by
+#: :class:`~isodream_rl.modules.isodream_v2.config.IsoDreamV2Config` but ``action_dim``, typed as there and ``None`` by
 #: default: ``None`` keeps the size preset's value, or the one the algo sets (``world_model_overrides``), and a
-#: value replaces it (``model.precision=bf16``, ``model.depth=8``). Derived from ``WorldModelConfig``, the one
-#: home of the field list, so a field added there is a setting here with no change.
+#: value replaces it (``model.precision=bf16``, ``model.depth=8``). Derived from ``IsoDreamV2Config``, the one
+#: home of the field list, so a field added there is a setting here with no change. The DreamerV2-style learner
+#: reads them all; the others read the few their learner's table names
+#: (:func:`~isodream_rl.trainers.learners.model_fields_read`) and refuse the rest.
 ModelConfig = make_dataclass("ModelConfig", _world_model_section(), bases=(_ModelSizes,))
 ModelConfig.__module__ = __name__
 ModelConfig.__doc__ = (
-    "World-model and behavior sizes: ``size`` picks a preset of ``WorldModelConfig``, whose fields "
+    "World-model and behavior sizes: ``size`` picks a preset of ``IsoDreamV2Config``, whose fields "
     "``model.<field>`` may set (``None``: the preset's or the algo's value)."
 )
 
 
 @dataclass
 class AlgoConfig:
-    """The algorithm variant: which branches exist, how they learn and what the policy reads."""
+    """The algorithm variant: which branches exist, how they learn and what the policy reads.
+
+    The fields from ``paper_exact`` on are read by some learners only (:mod:`isodream_rl.trainers.learners`):
+    ``None`` is the learner's value, and a value is refused for a learner that does not read it."""
 
     name: str = "isodream"
-    """Preset name, one of ``ALGO_NAMES``; it picks the learner (:mod:`isodream_rl.trainers.registry`):
-    Iso-Dream on DreamerV3's learner for ``isodream`` and its ablations
-    (:data:`~isodream_rl.trainers.world_model_config.DREAMER_V3_ISODREAM`), the DreamerV2-style one for
-    ``isodream_v2``, ``isodream_paper``, ``dreamerv2`` and a name of your own; the other fields set the variant."""
+    """Preset name, one of ``ALGO_NAMES``; it picks the learner (:mod:`isodream_rl.trainers.learners`): Iso-Dream on
+    DreamerV3's learner for ``isodream`` and its ablations, the DreamerV2-style one for ``isodream_v2``,
+    ``isodream_paper``, ``dreamerv2`` and a name of your own; the other fields set the variant."""
     free_branch: bool | None = None
     """The action-free (noncontrollable) branch (``None``: the preset's, :data:`ALGO_BRANCHES`)."""
     static_branch: bool | None = None
     """The static background branch (``None``: the preset's)."""
     inverse_dynamics: bool | None = None
     """The inverse-dynamics cell and its loss (``None``: the preset's)."""
-    paper_exact: bool = False
-    """The paper's settings where the library's defaults depart from them (``WorldModelConfig.paper_exact``;
-    ``algo=isodream_paper``), and eq. 5's ``lambda_inverse`` when that is left ``None``."""
-    free_branch_loss: str = "kl"
-    """``"kl"`` (CARLA: the free branch has its KL term) or ``"recon_only"`` (DMC, paper §3.2)."""
     reward_uses_free: bool = False
     """Reward head on ``[s, h, z, h']`` (CARLA) instead of ``[s, h]`` (DMC)."""
     policy_input: str = "attention"
     """``"controllable"`` ([s, h], DMC), ``"attention"`` (eq. 6, CARLA) or ``"concat"`` ([s, h, z, h'])."""
-    attention_through_actor: bool = False
-    """Let the actor loss train the attention too (the authors train it with the value loss only)."""
     attention_window: int = 5
     """tau, the number of noncontrollable states the attention reads (current plus tau - 1 future)."""
     horizon: int = 15
     """L, the imagination horizon."""
-    gamma: float = 0.99
-    """Discount of the lambda-returns."""
-    lmbda: float = 0.95
-    """lambda of the lambda-returns."""
-    actor_entropy: float = 1e-4
-    """Entropy bonus of the actor loss."""
-    actor_loc_penalty: float = 0.1
-    """Weight of the squared pre-tanh action mean in the actor loss (``IsoDreamActorLoss(loc_penalty=...)``): keeps
-    the policy from locking in on an early model error; 0 is the paper's loss (``algo=isodream_paper``)."""
-    exploration_noise: float = 0.0
-    """Std of the Gaussian noise added to the acting policy's sampled actions during collection (clamped to
-    [-1, 1]; 0 as the authors; DreamerV1 and TorchRL's Dreamer example use 0.3)."""
-    lambda_reward: float = LOSS_WEIGHTS["lambda_reward"]
-    """Weight of the reward log-loss (``reward_scale``: 2 in the authors' DMC and CARLA configs)."""
     lambda_inverse: float | None = None
-    """alpha, the weight of the inverse-dynamics loss; ``None``: the loss's default (``LOSS_WEIGHTS``), or with
-    ``paper_exact`` eq. 5's (``PAPER_WEIGHTS``), which goes with the paper's inverse input."""
-    free_nats: float = 1.0
-    """Free nats of each branch's KL."""
-    kl_balance: float = 0.8
-    """DreamerV2 KL balancing."""
-    slow_target_every: int = 100
-    """Updates between hard copies of the value network into its slow target."""
+    """alpha, the weight of the inverse-dynamics loss (both Iso-Dream learners; each has its own value)."""
+    paper_exact: bool | None = None
+    """The DreamerV2-style learner: the paper's settings where the library's defaults depart from them
+    (``IsoDreamV2Config.paper_exact``; ``algo=isodream_paper``), and eq. 5's ``lambda_inverse``."""
+    free_branch_loss: str | None = None
+    """The DreamerV2-style learner: ``"kl"`` (CARLA: the free branch has its KL term) or ``"recon_only"`` (DMC, paper
+    §3.2)."""
+    attention_through_actor: bool | None = None
+    """The DreamerV2-style learner: let the actor loss train the attention too (the authors train it with the value
+    loss only)."""
+    gamma: float | None = None
+    """The DreamerV2-style learner and TorchRL's Dreamer: discount of the lambda-returns (DreamerV3's learners
+    discount by their continuation head)."""
+    lmbda: float | None = None
+    """The DreamerV2-style learner and TorchRL's Dreamer: lambda of the lambda-returns."""
+    actor_entropy: float | None = None
+    """The DreamerV2-style learner: entropy bonus of the actor loss."""
+    actor_loc_penalty: float | None = None
+    """The DreamerV2-style learner: weight of the squared pre-tanh action mean in the actor loss
+    (``IsoDreamV2ActorLoss(loc_penalty=...)``): keeps the policy from locking in on an early model error; 0 is the
+    paper's loss (``algo=isodream_paper``)."""
+    exploration_noise: float | None = None
+    """The DreamerV2-style learner: std of the Gaussian noise added to the acting policy's sampled actions during
+    collection (clamped to [-1, 1]; 0 as the authors; DreamerV1 and TorchRL's Dreamer example use 0.3)."""
+    lambda_reward: float | None = None
+    """The DreamerV2-style learner and TorchRL's Dreamer: weight of the reward log-loss (``reward_scale``: 2 in the
+    authors' DMC and CARLA configs)."""
+    free_nats: float | None = None
+    """The DreamerV2-style learner and TorchRL's Dreamer: free nats of each branch's KL."""
+    kl_balance: float | None = None
+    """The DreamerV2-style learner: DreamerV2 KL balancing."""
+    slow_target_every: int | None = None
+    """The DreamerV2-style learner: updates between hard copies of the value network into its slow target."""
 
 
 @dataclass
@@ -214,18 +197,18 @@ class TrainConfig:
     """Adam learning rate of the actor."""
     value_lr: float = 8e-5
     """Adam learning rate of the value network and the future-state attention."""
-    adam_eps: float = 1e-5
-    """Adam epsilon of all three optimisers."""
-    grad_clip: float = 100.0
-    """Gradient-norm clip of all three optimisers."""
+    adam_eps: float | None = None
+    """The DreamerV2-style learner and TorchRL's Dreamer: Adam epsilon of all three optimisers (DreamerV3's learners:
+    their ``DreamerV3Optimizer``'s own)."""
+    grad_clip: float | None = None
+    """The DreamerV2-style learner and TorchRL's Dreamer: gradient-norm clip of all three optimisers (DreamerV3's
+    learners clip adaptively)."""
     world_model_warmup: int = 0
     """Updates of the world model alone (after the prefill) before the actor and value start learning;
     0 as the authors (DreamerV1 calls this pretraining)."""
     lr_warmup: int | None = None
     """DreamerV3's learners (``algo=isodream``, its ablations, ``algo=torchrl_dreamer_v3``): updates of linear
-    learning-rate warm-up of their ``DreamerV3Optimizer`` (the first update has learning rate 0); ``None``:
-    DreamerV3's 1000 (:class:`~isodream_rl.modules.dreamer_v3.DreamerV3Settings`). The DreamerV2-style learners
-    have no warm-up and refuse a value."""
+    learning-rate warm-up of their ``DreamerV3Optimizer`` (the first update has learning rate 0)."""
     max_nonfinite_updates: int = 5
     """K: this many updates in a row with a NaN/inf loss or gradient stop the run."""
     collector_backend: str = "sync"
@@ -328,29 +311,13 @@ class RunConfig:
 
 
 def resolve_algo(algo: AlgoConfig) -> AlgoConfig:
-    """Fill the fields of ``algo`` left ``None`` with the values its preset implies (in place; returned).
-
-    The branch switches: :data:`ALGO_BRANCHES` of ``algo.name``; ``lambda_inverse``:
-    :data:`~isodream_rl.objectives.world_model.LOSS_WEIGHTS`'s, or with ``paper_exact``
-    :data:`~isodream_rl.objectives.world_model.PAPER_WEIGHTS`'s. Runs when a :class:`RunConfig` is made (Hydra's
-    ``OmegaConf.to_object``, ``config_from_dict``, ``RunConfig()``); a value given anywhere is kept.
-    """
+    """Fill the branch switches of ``algo`` left ``None`` with :data:`ALGO_BRANCHES` of ``algo.name`` (in place;
+    returned). Runs when a :class:`RunConfig` is made (Hydra's ``OmegaConf.to_object``, ``config_from_dict``,
+    ``RunConfig()``); a value given anywhere is kept."""
     for name, value in ALGO_BRANCHES.get(algo.name, ALGO_BRANCHES["isodream"]).items():
         if getattr(algo, name) is None:
             setattr(algo, name, value)
-    if algo.lambda_inverse is None:
-        weights = {**LOSS_WEIGHTS, **(PAPER_WEIGHTS if algo.paper_exact else {})}
-        algo.lambda_inverse = weights["lambda_inverse"]
     return algo
-
-
-def renamed_algo_error(name: str) -> str | None:
-    """Why ``algo=name`` is refused when ``name`` is a former preset name (:data:`RENAMED_ALGOS`), with the name to
-    give instead; ``None`` for any other name."""
-    if name not in RENAMED_ALGOS:
-        return None
-    new_name, why = RENAMED_ALGOS[name]
-    return f"algo={name} is now algo={new_name} ({why})"
 
 
 def _choice(errors: list[str], name: str, value, valid) -> None:
@@ -359,101 +326,66 @@ def _choice(errors: list[str], name: str, value, valid) -> None:
 
 
 def _positive(errors: list[str], name: str, value, minimum: int | float = 1) -> None:
-    if value < minimum:
+    if value is not None and value < minimum:
         errors.append(f"{name}={value} must be >= {minimum}")
 
 
-def device_error(device: str, *, setting: str = "train.device") -> str | None:
-    """Why ``device`` cannot be used on this machine, or ``None``; the message names it as ``setting`` (the
-    config field or command-line flag the user gave it with) and says what to set instead."""
-    import torch
-
-    try:
-        kind = torch.device(device).type
-    except (RuntimeError, TypeError) as err:
-        return f"{setting}={device!r} is not a torch device ({err})"
-    if kind == "cuda" and not torch.cuda.is_available():
-        return f"{setting}={device!r} but this machine has no usable CUDA GPU: set {setting}=cpu"
-    if kind == "mps" and not torch.backends.mps.is_available():
-        return f"{setting}={device!r} but MPS is not available here: set {setting}=cpu"
-    return None
-
-
-def validate_config(cfg: RunConfig) -> None:
-    """Check cross-field constraints; raise :class:`ConfigError` listing every problem and its fix.
-
-    Args:
-        cfg: a filled :class:`RunConfig`.
-
-    Raises:
-        ConfigError: with one line per problem, naming the field(s) and what to change.
-    """
+def _name_errors(cfg: RunConfig) -> list[str]:
+    """The mode, a former ``algo`` name, the settings the learner does not read, the device and the seed."""
     errors: list[str] = []
     _choice(errors, "mode", cfg.mode, MODES)
     renamed = renamed_algo_error(cfg.algo.name)
-    if renamed:
-        errors.append(renamed)
+    errors += [renamed] if renamed else unread_setting_errors(cfg)
     unusable = device_error(cfg.train.device)
     if unusable:
         errors.append(unusable)
-    for name in ("world_model_lr", "actor_lr", "value_lr"):  # 0 freezes that part (tests use it)
-        if not getattr(cfg.train, name) >= 0:
-            errors.append(f"train.{name}={getattr(cfg.train, name)} must be >= 0")
-    for name in ("adam_eps", "grad_clip"):
-        if not getattr(cfg.train, name) > 0:
-            errors.append(f"train.{name}={getattr(cfg.train, name)} must be > 0")
     if not 0 <= cfg.train.seed < 2**32:  # numpy's seed range
         errors.append(f"train.seed={cfg.train.seed} must be in [0, 2**32 - 1]")
-    if cfg.model.size in SIZE_PRESETS:
-        try:  # the values, as the world model will check them when it is built
-            WorldModelConfig.from_preset(cfg.model.size, action_dim=1, **world_model_overrides(cfg))
-        except (TypeError, ValueError) as err:
-            errors.append(f"model={cfg.model.world_model_fields()} with the algo's branches: {err}")
-    if cfg.mode == "world_model":
-        errors += world_model_mode_errors(cfg)
-        if errors:
-            raise ConfigError("invalid training configuration:\n  - " + "\n  - ".join(errors))
-        return
-    algo, train, env = cfg.algo, cfg.train, cfg.env
-    _choice(errors, "model.size", cfg.model.size, SIZE_PRESETS)
-    _choice(errors, "algo.policy_input", algo.policy_input, POLICY_INPUTS)
-    _choice(errors, "algo.free_branch_loss", algo.free_branch_loss, FREE_BRANCH_MODES)
-    _choice(errors, "train.collector_backend", train.collector_backend, COLLECTOR_BACKENDS)
-    _choice(errors, "logging.backend", cfg.logging.backend, LOGGER_BACKENDS)
-    _choice(errors, "train.distributed_launcher", train.distributed_launcher, DISTRIBUTED_LAUNCHERS)
-    _choice(errors, "train.distributed_backend", train.distributed_backend, DISTRIBUTED_BACKENDS)
-    for name, value in (
-        ("env.num_envs", env.num_envs),
-        ("env.action_repeat", env.action_repeat),
-        ("train.total_steps", train.total_steps),
-        ("train.train_every", train.train_every),
-        ("train.frames_per_batch", train.frames_per_batch),
-        ("train.batch_size", train.batch_size),
-        ("train.sequence_length", train.sequence_length),
-        ("train.max_nonfinite_updates", train.max_nonfinite_updates),
-        ("train.threads", train.threads),
-        ("train.collector_cpus", train.collector_cpus),
-        ("algo.horizon", algo.horizon),
-        ("algo.attention_window", algo.attention_window),
-        ("algo.slow_target_every", algo.slow_target_every),
-        ("checkpoint.every_updates", cfg.checkpoint.every_updates),
-        ("logging.log_every", cfg.logging.log_every),
-        ("logging.eval_episodes", cfg.logging.eval_episodes),
-    ):
-        _positive(errors, name, value)
-    _positive(errors, "checkpoint.keep", cfg.checkpoint.keep, 2)
-    _positive(errors, "train.prefill_steps", train.prefill_steps, 0)
-    _positive(errors, "train.world_model_warmup", train.world_model_warmup, 0)
-    if train.lr_warmup is not None:
-        _positive(errors, "train.lr_warmup", train.lr_warmup, 0)
-        if algo.name not in DREAMER_V3_LEARNERS:
-            errors.append(
-                f"train.lr_warmup={train.lr_warmup} is the learning-rate warm-up of DreamerV3's optimisers, "
-                f"which algo={algo.name} does not use: drop it, or pick one of {list(DREAMER_V3_LEARNERS)}"
-            )
-    _positive(errors, "logging.eval_every", cfg.logging.eval_every, 0)
-    _positive(errors, "logging.final_eval_episodes", cfg.logging.final_eval_episodes, 0)
+    return errors
 
+
+def _model_errors(cfg: RunConfig) -> list[str]:
+    """The ``model.<field>`` values given, as the DreamerV2-style world model checks them when it is built."""
+    if cfg.model.size not in SIZE_PRESETS:
+        return []
+    try:
+        IsoDreamV2Config.from_preset(cfg.model.size, action_dim=1, **world_model_overrides(cfg))
+    except (TypeError, ValueError) as err:
+        return [f"model={cfg.model.world_model_fields()} with the algo's branches: {err}"]
+    return []
+
+
+def _learner_value_errors(cfg: RunConfig) -> list[str]:
+    """The values of the learner-specific settings of ``cfg`` (resolved: each its learner's or the one given) that
+    no learner can train with; ``None`` is a setting the learner does not read."""
+    algo, train = cfg.algo, cfg.train
+    errors: list[str] = []
+    for name in ("world_model_lr", "actor_lr", "value_lr"):  # 0 freezes that part (tests use it)
+        if not getattr(train, name) >= 0:
+            errors.append(f"train.{name}={getattr(train, name)} must be >= 0")
+    for name in ("adam_eps", "grad_clip"):
+        value = getattr(train, name)
+        if value is not None and not value > 0:
+            errors.append(f"train.{name}={value} must be > 0")
+    _positive(errors, "train.lr_warmup", train.lr_warmup, 0)
+    _positive(errors, "algo.slow_target_every", algo.slow_target_every)
+    if algo.free_branch_loss is not None:
+        _choice(errors, "algo.free_branch_loss", algo.free_branch_loss, FREE_BRANCH_MODES)
+    for name in ("actor_loc_penalty", "exploration_noise"):
+        value = getattr(algo, name)
+        if value is not None and value < 0:
+            errors.append(f"algo.{name}={value} must be >= 0")
+    if algo.gamma is not None and not 0.0 < algo.gamma <= 1.0:
+        errors.append(f"algo.gamma={algo.gamma} must be in (0, 1]")
+    if algo.lmbda is not None and not 0.0 <= algo.lmbda <= 1.0:
+        errors.append(f"algo.lmbda={algo.lmbda} must be in [0, 1]")
+    return errors
+
+
+def _branch_errors(algo: AlgoConfig) -> list[str]:
+    """The settings that read a branch, or the attention, the variant does not have."""
+    errors: list[str] = []
+    _choice(errors, "algo.policy_input", algo.policy_input, POLICY_INPUTS)
     if algo.policy_input in ("attention", "concat") and not algo.free_branch:
         errors.append(
             f"algo.policy_input={algo.policy_input!r} reads the noncontrollable branch, but "
@@ -474,44 +406,81 @@ def validate_config(cfg: RunConfig) -> None:
             "algo.free_branch_loss=recon_only configures the noncontrollable branch, which is off "
             "(algo.free_branch=false): set algo.free_branch_loss=kl or algo.free_branch=true"
         )
-    if 0 < cfg.logging.eval_every <= cfg.logging.log_every:
+    return errors
+
+
+def _schedule_errors(cfg: RunConfig) -> list[str]:
+    """Counts that must be positive, and the collection, replay and evaluation schedules that do not fit together."""
+    train, env, logging = cfg.train, cfg.env, cfg.logging
+    errors: list[str] = []
+    _choice(errors, "model.size", cfg.model.size, SIZE_PRESETS)
+    for name, value in (
+        ("env.num_envs", env.num_envs),
+        ("env.action_repeat", env.action_repeat),
+        ("train.total_steps", train.total_steps),
+        ("train.train_every", train.train_every),
+        ("train.frames_per_batch", train.frames_per_batch),
+        ("train.batch_size", train.batch_size),
+        ("train.sequence_length", train.sequence_length),
+        ("train.max_nonfinite_updates", train.max_nonfinite_updates),
+        ("train.threads", train.threads),
+        ("train.collector_cpus", train.collector_cpus),
+        ("algo.horizon", cfg.algo.horizon),
+        ("algo.attention_window", cfg.algo.attention_window),
+        ("checkpoint.every_updates", cfg.checkpoint.every_updates),
+        ("logging.log_every", logging.log_every),
+        ("logging.eval_episodes", logging.eval_episodes),
+    ):
+        _positive(errors, name, value)
+    _positive(errors, "checkpoint.keep", cfg.checkpoint.keep, 2)
+    _positive(errors, "train.prefill_steps", train.prefill_steps, 0)
+    _positive(errors, "train.world_model_warmup", train.world_model_warmup, 0)
+    _positive(errors, "logging.eval_every", logging.eval_every, 0)
+    _positive(errors, "logging.final_eval_episodes", logging.final_eval_episodes, 0)
+    if 0 < logging.eval_every <= logging.log_every:
         errors.append(
-            f"logging.eval_every={cfg.logging.eval_every} must exceed logging.log_every={cfg.logging.log_every}: "
+            f"logging.eval_every={logging.eval_every} must exceed logging.log_every={logging.log_every}: "
             "TorchRL's Trainer writes a scalar only once more than log_every steps have passed since its last "
             "write, so evaluations closer together than that would not be logged"
         )
-    if algo.actor_loc_penalty < 0:
-        errors.append(f"algo.actor_loc_penalty={algo.actor_loc_penalty} must be >= 0")
-    if algo.exploration_noise < 0:
-        errors.append(f"algo.exploration_noise={algo.exploration_noise} must be >= 0")
-    if not 0.0 < algo.gamma <= 1.0 or not 0.0 <= algo.lmbda <= 1.0:
-        errors.append(f"algo.gamma={algo.gamma} must be in (0, 1] and algo.lmbda={algo.lmbda} in [0, 1]")
     if train.frames_per_batch >= 1 and train.frames_per_batch % (train.train_every * env.num_envs):
         errors.append(
             f"train.frames_per_batch={train.frames_per_batch} must be a multiple of train.train_every * "
             f"env.num_envs = {train.train_every * env.num_envs}"
         )
-    if train.buffer_size < train.sequence_length * env.num_envs:
+    window_steps = train.sequence_length * env.num_envs
+    if train.buffer_size < window_steps:
         errors.append(
             f"train.buffer_size={train.buffer_size} cannot hold one window per env "
-            f"(train.sequence_length * env.num_envs = {train.sequence_length * env.num_envs})"
+            f"(train.sequence_length * env.num_envs = {window_steps})"
         )
-    window_steps = train.sequence_length * env.num_envs
     if train.prefill_steps < window_steps and train.prefill_steps < train.total_steps:
         errors.append(
             f"train.prefill_steps={train.prefill_steps} is shorter than one replay window per env "
             f"(train.sequence_length * env.num_envs = {window_steps}): raise the prefill or shorten the window"
         )
-    if cfg.logging.video_context >= cfg.logging.video_length or cfg.logging.video_context < 2:
+    if logging.video_context >= logging.video_length or logging.video_context < 2:
         errors.append(
-            f"logging.video_context={cfg.logging.video_context} must be >= 2 and below "
-            f"logging.video_length={cfg.logging.video_length}"
+            f"logging.video_context={logging.video_context} must be >= 2 and below "
+            f"logging.video_length={logging.video_length}"
         )
-    if cfg.logging.video_length > train.sequence_length:
+    if logging.video_length > train.sequence_length:
         errors.append(
-            f"logging.video_length={cfg.logging.video_length} must not exceed train.sequence_length="
+            f"logging.video_length={logging.video_length} must not exceed train.sequence_length="
             f"{train.sequence_length} (the prediction reads one replay window)"
         )
+    return errors
+
+
+def _collection_errors(cfg: RunConfig) -> list[str]:
+    """The collector backend, its launcher and what it needs installed; the logger; a custom env factory; the
+    replay a resume needs."""
+    train, env = cfg.train, cfg.env
+    errors: list[str] = []
+    _choice(errors, "train.collector_backend", train.collector_backend, COLLECTOR_BACKENDS)
+    _choice(errors, "logging.backend", cfg.logging.backend, LOGGER_BACKENDS)
+    _choice(errors, "train.distributed_launcher", train.distributed_launcher, DISTRIBUTED_LAUNCHERS)
+    _choice(errors, "train.distributed_backend", train.distributed_backend, DISTRIBUTED_BACKENDS)
     if env.num_envs > 1 and train.collector_backend == "sync" and train.frames_per_batch < env.num_envs:
         errors.append("train.frames_per_batch must be at least env.num_envs")
     if train.collector_backend == "ray":
@@ -551,6 +520,29 @@ def validate_config(cfg: RunConfig) -> None:
             "resume=true restores the replay buffer from the checkpoint: set checkpoint.replay=true (a resumed "
             "run with an empty buffer would sample windows that do not exist)"
         )
+    return errors
+
+
+def validate_config(cfg: RunConfig) -> None:
+    """Check cross-field constraints; raise :class:`ConfigError` listing every problem and its fix.
+
+    The settings of ``cfg``'s learner are checked at the values it reads (each its table's where ``cfg`` leaves it
+    ``None``, :func:`~isodream_rl.trainers.learners.resolved`); a value given for a setting it does not read is
+    refused, naming the learners that read it.
+
+    Args:
+        cfg: a filled :class:`RunConfig`.
+
+    Raises:
+        ConfigError: with one line per problem, naming the field(s) and what to change.
+    """
+    errors = _name_errors(cfg)
+    settings = resolved(cfg)
+    errors += _model_errors(settings) + _learner_value_errors(settings)
+    if cfg.mode == "world_model":
+        errors += world_model_mode_errors(settings)
+    else:
+        errors += _branch_errors(settings.algo) + _schedule_errors(cfg) + _collection_errors(cfg)
     if errors:
         raise ConfigError("invalid training configuration:\n  - " + "\n  - ".join(errors))
 
@@ -560,42 +552,35 @@ def validate_config(cfg: RunConfig) -> None:
 FORMER_BEHAVIOUR = {("algo", "actor_loc_penalty"): 0.0}
 
 
-def _saved_algo_name(name: str, *, mode: str) -> str:
-    """The name today of the ``algo.name`` of a configuration saved with ``mode``: a renamed preset's new name
-    (:data:`RENAMED_ALGOS`); in ``mode=world_model``, which trains the DreamerV2-style world model whatever the
-    name, ``isodream_v2`` for a name that is now Iso-Dream on DreamerV3's learner (a run saved before
-    ``algo=isodream`` became it; its branch switches were saved with it)."""
-    name = RENAMED_ALGOS.get(name, (name,))[0]
-    return "isodream_v2" if mode == "world_model" and name in DREAMER_V3_ISODREAM else name
-
-
 def config_from_dict(data: dict) -> RunConfig:
     """Rebuild a :class:`RunConfig` from ``dataclasses.asdict`` output (as stored in checkpoints and
     ``run_config.json``); fields added since it was written take their defaults, except those of
     :data:`FORMER_BEHAVIOUR`, which take the value the run was trained with; a ``model.overrides`` dict (written
     before the ``model`` section had the world model's fields) sets those fields; an ``algo.name`` saved before a
-    rename is read as its name today (:func:`_saved_algo_name`)."""
+    rename is read as its name today, and the settings its learner does not read are dropped
+    (:mod:`isodream_rl.trainers.renames`)."""
     import dataclasses
 
     sections = {f.name: f.type for f in dataclasses.fields(RunConfig)}
+    data = {name: value for name, value in data.items() if name in sections}
+    for (section, key), value in FORMER_BEHAVIOUR.items():
+        if isinstance(data.get(section), dict):
+            data[section] = {key: value, **data[section]}
+    model = data.get("model")
+    if isinstance(model, dict) and "overrides" in model:  # before model.<field>
+        data["model"] = {**model["overrides"], **{key: v for key, v in model.items() if key != "overrides"}}
+    if isinstance(data.get("algo"), dict) and "name" in data["algo"]:
+        name = saved_algo_name(data["algo"]["name"], mode=data.get("mode", "rl"))
+        data = drop_unread_settings({**data, "algo": {**data["algo"], "name": name}})
     kwargs = {}
     for name, value in data.items():
-        if name not in sections:
-            continue
         section_type = globals().get(str(sections[name]))
-        if isinstance(value, dict):
-            former = {key: v for (section, key), v in FORMER_BEHAVIOUR.items() if section == name}
-            value = {**former, **value}
-        if name == "model" and isinstance(value, dict) and "overrides" in value:  # before model.<field>
-            value = {**value["overrides"], **{key: v for key, v in value.items() if key != "overrides"}}
-        if name == "algo" and isinstance(value, dict) and "name" in value:
-            value = {**value, "name": _saved_algo_name(value["name"], mode=data.get("mode", "rl"))}
         kwargs[name] = section_type(**value) if isinstance(value, dict) and section_type else value
     return RunConfig(**kwargs)
 
 
 def world_model_overrides(cfg: RunConfig) -> dict[str, Any]:
-    """The ``WorldModelConfig`` fields set by the algorithm preset, merged with those ``model`` sets."""
+    """The ``IsoDreamV2Config`` fields set by the algorithm preset, merged with those ``model`` sets."""
     algo = cfg.algo
     fields_from_algo = {
         **(PAPER_EXACT if algo.paper_exact else {}),

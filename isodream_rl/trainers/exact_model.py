@@ -5,12 +5,12 @@ exact model of sprites ``reach`` and trains it as a real run does, optionally wi
 reward error:
 
 - the DreamerV2-style learner (``algo=isodream_v2``, ``isodream_paper``, ``dreamerv2``: every ``algo`` not in
-  :data:`~isodream_rl.trainers.world_model_config.DREAMER_V3_ISODREAM`):
-  :func:`~isodream_rl.trainers.builders.make_behavior` (the actor, value, losses and their settings, as a real run has them), trained the way
+  :data:`~isodream_rl.trainers.learners.ISODREAM_ALGOS`):
+  :func:`~isodream_rl.trainers.isodream_v2.make_behavior` (the actor, value, losses and their settings, as a real run has them), trained the way
   :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` does after its world-model step;
 - ``algo=isodream`` (the default) and its ablations, DreamerV3's learner:
-  :func:`~isodream_rl.evaluation.exact_sprites_v3.make_exact_model_v3_behavior`
-  (the actor and two-hot critic of ``make_actor_v3`` / ``make_value_v3``, ``DreamerV3ActorLoss`` (REINFORCE)
+  :func:`~isodream_rl.evaluation.exact_sprites_behavior.make_exact_model_behavior`
+  (the actor and two-hot critic of ``make_actor`` / ``make_value``, ``DreamerV3ActorLoss`` (REINFORCE)
   and ``DreamerV3ValueLoss`` with DreamerV3's settings, the exact continuation ``1 - 1/333``), a
   ``DreamerV3Optimizer`` per group (:func:`~isodream_rl.trainers.dreamer_v3.make_dreamer_v3_optimizers`) and
   the slow critic's ``SoftUpdate``, the way :class:`~isodream_rl.trainers.dreamer_v3.DreamerV3OptimizationStepper`
@@ -35,13 +35,15 @@ from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from isodream_rl.evaluation.exact_sprites import ExactSpritesModel, reference_returns
-from isodream_rl.evaluation.exact_sprites_v3 import make_exact_model_v3_behavior
+from isodream_rl.evaluation.exact_sprites_behavior import make_exact_model_behavior
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings
-from isodream_rl.trainers.builders import make_adam, make_behavior
+from isodream_rl.modules.isodream.settings import ISODREAM_SETTINGS
+from isodream_rl.trainers.builders import make_adam
 from isodream_rl.trainers.config import RunConfig
 from isodream_rl.trainers.dreamer_v3 import make_dreamer_v3_optimizers
+from isodream_rl.trainers.isodream_v2 import make_behavior
+from isodream_rl.trainers.learners import ISODREAM_ALGOS, resolved
 from isodream_rl.trainers.stepper import loss_sum
-from isodream_rl.trainers.world_model_config import DREAMER_V3_ISODREAM
 
 
 @dataclass
@@ -89,7 +91,7 @@ def train_behavior_on_exact_model(
     the sum of their losses, then the slow value target, as the run's stepper does after its world-model step:
     Adam clipped at ``cfg.train.grad_clip`` and the hard copy every ``algo.slow_target_every`` updates
     (:class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper`), or with ``cfg.algo.name`` in
-    :data:`~isodream_rl.trainers.world_model_config.DREAMER_V3_ISODREAM` (``algo=isodream``, the default, and its
+    :data:`~isodream_rl.trainers.learners.ISODREAM_ALGOS` (``algo=isodream``, the default, and its
     ablations) DreamerV3's optimisers (adaptive clipping, learning-rate warm-up) and the slow critic's
     ``SoftUpdate`` (:class:`~isodream_rl.trainers.dreamer_v3.DreamerV3OptimizationStepper`; module docstring).
     For the first ``error_updates`` updates the model's reward carries ``reward_error`` along
@@ -108,9 +110,9 @@ def train_behavior_on_exact_model(
         seed: seeds torch (the networks and the imagined actions) and the model's starts.
         model_kwargs: extra :class:`ExactSpritesModel` arguments (``sprite_size`` ...).
         progress: print one line per evaluation.
-        settings: DreamerV3's settings (``None``: the library's,
-            :class:`~isodream_rl.modules.dreamer_v3.DreamerV3Settings`); the DreamerV2-style learner does not read
-            them.
+        settings: DreamerV3's settings (``None``: the default learner's table,
+            :data:`~isodream_rl.modules.isodream.settings.ISODREAM_SETTINGS`); the DreamerV2-style learner does not
+            read them.
     """
     if cfg.algo.policy_input != "controllable":
         raise ValueError(
@@ -122,55 +124,74 @@ def train_behavior_on_exact_model(
         reward_error=reward_error, error_direction=error_direction, seed=seed, **(model_kwargs or {})
     )
     learner = exact_model_learner(cfg, model, settings=settings)
-    actor_loss, value_loss, optimizers = learner.actor_loss, learner.value_loss, learner.optimizers
     result = ExactModelResult()
     result.scripted_return, result.constant_return = reference_returns(model, episodes=eval_episodes)
-
-    def evaluate(step: int, metrics: TensorDict | None) -> None:
-        scores = model.episode_returns(learner.policy, episodes=eval_episodes)
-        result.updates.append(step)
-        result.returns.append(scores["return"])
-        result.reaches.append(scores["reaches"])
-        result.cosine.append(scores["cosine"])
-        if metrics is not None:
-            result.entropy.append(float(metrics["actor_entropy"]))
-            result.grad_norm_actor.append(float(metrics["grad_norm_actor"]))
-            result.mean_abs_action.append(float(metrics["mean_abs_action"]))
-        if progress:
-            print(
-                f"update {step}: return {scores['return']:.1f} (scripted {result.scripted_return:.1f}), "
-                f"cosine {scores['cosine']:.2f}, entropy {result.entropy[-1] if result.entropy else math.nan:.2f}",
-                flush=True,
-            )
-
     start_time = time.perf_counter()
-    evaluate(0, None)
+    _evaluate(result, model, learner, step=0, metrics=None, episodes=eval_episodes, progress=progress)
     for step in range(1, updates + 1):
         model.reward_error = reward_error if step <= error_updates else 0.0
-        state, belief = model.initial_state(batch)
-        start = TensorDict(dict(zip(learner.start_keys, (state, belief))), [batch])
-        actor_losses, imagined = actor_loss(start)
-        value_losses, _ = value_loss(imagined)
-        loss = loss_sum(actor_losses) + loss_sum(value_losses)
-        for opt in optimizers.values():
-            opt.zero_grad(set_to_none=True)
-        loss.backward()
-        norms = {
-            name: nn.utils.clip_grad_norm_(
-                [p for g in opt.param_groups for p in g["params"]], learner.grad_clip
-            )
-            for name, opt in optimizers.items()
-        }
-        for opt in optimizers.values():
-            opt.step()
-        learner.target_updater.step()
+        metrics = _update(learner, model, batch=batch)
         if step % eval_every == 0 or step == updates:
-            metrics = actor_losses.detach().clone()
-            metrics["grad_norm_actor"] = norms["actor"].detach()
-            metrics["mean_abs_action"] = imagined["action"].abs().mean()
-            evaluate(step, metrics)
+            _evaluate(
+                result, model, learner, step=step, metrics=metrics, episodes=eval_episodes, progress=progress
+            )
     result.wall_s = time.perf_counter() - start_time
     return result
+
+
+def _update(learner: ExactModelLearner, model: ExactSpritesModel, *, batch: int) -> TensorDict:
+    """One behavior update from ``batch`` random starts of ``model``: both losses backpropagated, each optimiser's
+    gradients clipped and stepped, the slow value updated; the actor loss's entries with the actor's gradient norm
+    and the mean absolute imagined action."""
+    state, belief = model.initial_state(batch)
+    start = TensorDict(dict(zip(learner.start_keys, (state, belief))), [batch])
+    actor_losses, imagined = learner.actor_loss(start)
+    value_losses, _ = learner.value_loss(imagined)
+    loss = loss_sum(actor_losses) + loss_sum(value_losses)
+    optimizers = learner.optimizers
+    for opt in optimizers.values():
+        opt.zero_grad(set_to_none=True)
+    loss.backward()
+    norms = {
+        name: nn.utils.clip_grad_norm_([p for g in opt.param_groups for p in g["params"]], learner.grad_clip)
+        for name, opt in optimizers.items()
+    }
+    for opt in optimizers.values():
+        opt.step()
+    learner.target_updater.step()
+    metrics = actor_losses.detach().clone()
+    metrics["grad_norm_actor"] = norms["actor"].detach()
+    metrics["mean_abs_action"] = imagined["action"].abs().mean()
+    return metrics
+
+
+def _evaluate(
+    result: ExactModelResult,
+    model: ExactSpritesModel,
+    learner: ExactModelLearner,
+    *,
+    step: int,
+    metrics: TensorDict | None,
+    episodes: int,
+    progress: bool,
+) -> None:
+    """Play ``episodes`` episodes of the deterministic policy on ``model`` and append them (and ``metrics``, the
+    update's) to ``result``; with ``progress``, one line."""
+    scores = model.episode_returns(learner.policy, episodes=episodes)
+    result.updates.append(step)
+    result.returns.append(scores["return"])
+    result.reaches.append(scores["reaches"])
+    result.cosine.append(scores["cosine"])
+    if metrics is not None:
+        result.entropy.append(float(metrics["actor_entropy"]))
+        result.grad_norm_actor.append(float(metrics["grad_norm_actor"]))
+        result.mean_abs_action.append(float(metrics["mean_abs_action"]))
+    if progress:
+        print(
+            f"update {step}: return {scores['return']:.1f} (scripted {result.scripted_return:.1f}), "
+            f"cosine {scores['cosine']:.2f}, entropy {result.entropy[-1] if result.entropy else math.nan:.2f}",
+            flush=True,
+        )
 
 
 @dataclass
@@ -193,16 +214,17 @@ def exact_model_learner(
     cfg: RunConfig, model: ExactSpritesModel, *, settings: DreamerV3Settings | None = None
 ) -> ExactModelLearner:
     """The behavior learner of ``cfg.algo.name`` on ``model`` (module docstring): DreamerV3's for ``algo=isodream``
-    and its ablations (:data:`~isodream_rl.trainers.world_model_config.DREAMER_V3_ISODREAM`; ``settings``:
+    and its ablations (:data:`~isodream_rl.trainers.learners.ISODREAM_ALGOS`; ``settings``:
     DreamerV3's, ``None`` for the library's), the DreamerV2-style one for every other name."""
-    if cfg.algo.name in DREAMER_V3_ISODREAM:
-        return _dreamer_v3_learner(cfg, model, settings or DreamerV3Settings())
+    if cfg.algo.name in ISODREAM_ALGOS:
+        return _dreamer_v3_learner(cfg, model, settings or ISODREAM_SETTINGS)
     return _dreamer_v2_learner(cfg, model)
 
 
 def _dreamer_v2_learner(cfg: RunConfig, model: ExactSpritesModel) -> ExactModelLearner:
     """The run's DreamerV2-style behavior (``make_behavior``), Adam per group clipped at ``train.grad_clip``, the
     actor's mode as the policy."""
+    cfg = resolved(cfg)
     behavior = make_behavior(cfg, model)
     actor_loss, value_loss = behavior.actor_loss, behavior.value_loss
     actor = actor_loss.actor
@@ -226,7 +248,7 @@ def _dreamer_v3_learner(
     """``algo=isodream``'s behavior (DreamerV3's learner) on the exact model, a ``DreamerV3Optimizer`` per group
     (its own adaptive clipping: the loop only measures the norms, as ``DreamerV3OptimizationStepper``), the
     actor's mean (``tanh(loc)``) as the policy."""
-    behavior = make_exact_model_v3_behavior(
+    behavior = make_exact_model_behavior(
         model,
         actor_units=cfg.model.actor_units,
         value_units=cfg.model.value_units,

@@ -11,6 +11,7 @@ from tensordict import TensorDictBase
 from torchrl.trainers import TrainerHookBase
 
 from isodream_rl.envs.finite import raise_marked_fault
+from isodream_rl.run_utils.signals import StopOnSignal
 from isodream_rl.trainers.builders import REPLAY_KEYS, STREAM_KEY
 
 logger = logging.getLogger(__name__)
@@ -143,38 +144,6 @@ class Throughput(TrainerHookBase):
     def register(self, trainer, name: str = "throughput") -> None:
         self._trainer = trainer
         trainer.register_op("post_steps_log", self)
-
-
-class StopOnSignal:
-    """Turns the first SIGINT/SIGTERM into "checkpoint, then stop" at the end of the current batch.
-
-    A second signal of the same kind gets the default behavior (immediate stop), for a user who insists.
-    Use as a context manager around ``trainer.train()``.
-    """
-
-    def __init__(self) -> None:
-        self.received: int | None = None
-        self._previous: dict[int, object] = {}
-
-    def _handle(self, signum, frame) -> None:
-        if self.received is not None:
-            signal.signal(signum, signal.SIG_DFL)
-            signal.raise_signal(signum)
-            return
-        self.received = signum
-        logger.warning(
-            "%s received: saving a checkpoint at the end of this batch, then stopping",
-            signal.Signals(signum).name,
-        )
-
-    def __enter__(self) -> StopOnSignal:
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            self._previous[signum] = signal.signal(signum, self._handle)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        for signum, handler in self._previous.items():
-            signal.signal(signum, handler)
 
 
 class PeriodicCheckpoint(TrainerHookBase):

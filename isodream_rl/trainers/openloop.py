@@ -14,9 +14,9 @@ import torch
 from PIL import Image, ImageDraw
 from tensordict import TensorDict, TensorDictBase
 
-from isodream_rl.modules import IsoDreamWorldModel
-from isodream_rl.modules.encoder import IMAGE_SHAPE
-from isodream_rl.modules.world_model_v3 import IsoDreamV3WorldModel
+from isodream_rl.modules.isodream.world_model import IsoDreamWorldModel
+from isodream_rl.modules.isodream_v2 import IsoDreamV2WorldModel
+from isodream_rl.modules.pixels import IMAGE_SHAPE
 
 #: Columns of each GIF frame: (label, key in the prediction tensordict, kind).
 _COLUMNS = (
@@ -33,13 +33,13 @@ _COLUMNS = (
 
 @torch.no_grad()
 def open_loop_prediction(
-    world_model: IsoDreamWorldModel | IsoDreamV3WorldModel, window: TensorDictBase, *, context: int = 5
+    world_model: IsoDreamV2WorldModel | IsoDreamWorldModel, window: TensorDictBase, *, context: int = 5
 ) -> TensorDictBase:
     """Filter ``context`` steps of ``window``, imagine the rest with its actions, decode every step.
 
     Args:
-        world_model: the trained world model (an ``IsoDreamV3WorldModel`` predicts with its own
-            :meth:`~isodream_rl.modules.world_model_v3.IsoDreamV3WorldModel.open_loop`).
+        world_model: the trained world model (an ``IsoDreamWorldModel`` predicts with its own
+            :meth:`~isodream_rl.modules.isodream.world_model.IsoDreamWorldModel.open_loop`).
         window: a ``[B, T]`` replay window with ``("next", "pixels")`` uint8 ``[B, T, 3, 64, 64]`` and
             ``"action"`` ``[B, T, A]``, on any device (a replay sample is on the CPU).
         context: observed steps, ``2 <= context < T`` (the world model filters windows of 2 steps or more).
@@ -54,7 +54,7 @@ def open_loop_prediction(
         raise ValueError(f"context must be in [2, {time - 1}] for a window of {time} steps, got {context}")
     device = next(world_model.parameters()).device
     window = window.select("action", ("next", "pixels"), "is_init", strict=False).to(device)
-    if isinstance(world_model, IsoDreamV3WorldModel):
+    if isinstance(world_model, IsoDreamWorldModel):
         return world_model.open_loop(window, context=context)
     cfg = world_model.config
     was_training = world_model.training

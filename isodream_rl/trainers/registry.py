@@ -1,11 +1,11 @@
 """The algorithms ``isodream-train`` can build, by ``algo.name``: a registry ``name -> components builder``.
 
 Iso-Dream (the default) and its ablations are Iso-Dream on DreamerV3's learner,
-:class:`~isodream_rl.trainers.isodream_v3.IsoDreamV3Components`
-(:data:`~isodream_rl.trainers.world_model_config.DREAMER_V3_ISODREAM`); the DreamerV2-style learner
-(``isodream_v2``, ``isodream_paper``) and the DreamerV2 baseline are
-:class:`~isodream_rl.trainers.components.RunComponents`, registered here; so is any other name (``algo.name``
-is informational for them: the ``algo`` fields set the variant). An algorithm defined elsewhere registers its builder where it is defined, with
+:class:`~isodream_rl.trainers.isodream.IsoDreamComponents`
+(:data:`~isodream_rl.trainers.learners.ISODREAM_ALGOS`); the DreamerV2-style learner (``isodream_v2``,
+``isodream_paper``) and the DreamerV2 baseline are :class:`~isodream_rl.trainers.isodream_v2.IsoDreamV2Components`,
+registered here; so is any other name (``algo.name`` is informational for it: the ``algo`` fields set the variant).
+An algorithm defined elsewhere registers its builder where it is defined, with
 :func:`register_algorithm` (in the spirit of SheepRL's ``@register_algorithm``); the TorchRL baselines of
 :mod:`isodream_rl.baselines` do so when they are imported, which ``isodream-train`` does::
 
@@ -22,9 +22,11 @@ from pathlib import Path
 from typing import Protocol, TypeVar
 
 from isodream_rl.trainers.components import RunComponents
-from isodream_rl.trainers.config import ALGO_NAMES, ConfigError, RunConfig, renamed_algo_error
-from isodream_rl.trainers.isodream_v3 import IsoDreamV3Components
-from isodream_rl.trainers.world_model_config import DREAMER_V3_ISODREAM, TORCHRL_BASELINES
+from isodream_rl.trainers.config import ALGO_NAMES, ConfigError, RunConfig
+from isodream_rl.trainers.isodream import IsoDreamComponents
+from isodream_rl.trainers.isodream_v2 import IsoDreamV2Components
+from isodream_rl.trainers.learners import ISODREAM_ALGOS, TORCHRL_BASELINES
+from isodream_rl.trainers.renames import renamed_algo_error
 
 
 class ComponentsBuilder(Protocol):
@@ -38,8 +40,8 @@ Builder = TypeVar("Builder", bound=ComponentsBuilder)
 
 #: ``algo.name -> builder`` of every algorithm registered so far
 ALGORITHMS: dict[str, ComponentsBuilder] = {
-    **dict.fromkeys((name for name in ALGO_NAMES if name not in TORCHRL_BASELINES), RunComponents),
-    **dict.fromkeys(DREAMER_V3_ISODREAM, IsoDreamV3Components),
+    **dict.fromkeys((name for name in ALGO_NAMES if name not in TORCHRL_BASELINES), IsoDreamV2Components),
+    **dict.fromkeys(ISODREAM_ALGOS, IsoDreamComponents),
 }
 
 #: the module that registers each algorithm defined outside the trainers, named when it is not registered yet
@@ -64,13 +66,13 @@ def register_algorithm(*names: str) -> Callable[[Builder], Builder]:
 
 
 def components_builder(name: str) -> ComponentsBuilder:
-    """The builder registered for ``algo.name`` ``name``; :class:`~isodream_rl.trainers.components.RunComponents`
+    """The builder registered for ``algo.name`` ``name``; :class:`~isodream_rl.trainers.isodream_v2.IsoDreamV2Components`
     for a name nobody registered (an Iso-Dream variant named by its user).
 
     Raises:
         ConfigError: ``name`` is an algorithm defined outside the trainers (:data:`DEFINED_IN`) whose module has
             not been imported yet (the message names it), or a former name
-            (:data:`~isodream_rl.trainers.config.RENAMED_ALGOS`; the message names the new one).
+            (:data:`~isodream_rl.trainers.renames.RENAMED_ALGOS`; the message names the new one).
     """
     if name in ALGORITHMS:
         return ALGORITHMS[name]
@@ -82,7 +84,7 @@ def components_builder(name: str) -> ComponentsBuilder:
             f"invalid training configuration: algo.name={name!r} is not registered yet: it is registered when "
             f"{DEFINED_IN[name]} is imported (isodream-train imports it)"
         )
-    return RunComponents
+    return IsoDreamV2Components
 
 
 def make_components(cfg: RunConfig, *, action_dim: int, scratch_dir: Path) -> RunComponents:

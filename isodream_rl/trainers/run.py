@@ -14,21 +14,23 @@ import time
 from pathlib import Path
 
 import torch
+from torchrl.envs import EnvBase
 from torchrl.trainers import ReplayBufferTrainer, Trainer, UpdateWeights
 
-from isodream_rl.csv_logs import csv_log_sizes
 from isodream_rl.envs.builder import ground_truth_mask_keys
+from isodream_rl.run_utils.checkpoint import CheckpointError, CheckpointManager
+from isodream_rl.run_utils.csv_logs import csv_log_sizes
+from isodream_rl.run_utils.disk_space import ReplayReservation
 from isodream_rl.trainers import trainer_state, world_model_run
 from isodream_rl.trainers.builders import checked_env_factory, close_logger, make_logger
-from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.collectors import make_collector
+from isodream_rl.trainers.components import RunComponents
 from isodream_rl.trainers.config import (
     ConfigError,
     RunConfig,
     device_error,
     validate_config,
 )
-from isodream_rl.trainers.disk_space import ReplayReservation
 from isodream_rl.trainers.evaluation import (
     Evaluation,
     final_decomposition,
@@ -37,6 +39,7 @@ from isodream_rl.trainers.evaluation import (
     save_episode_gif,
 )
 from isodream_rl.trainers.hooks import Throughput
+from isodream_rl.trainers.learners import TORCHRL_BASELINES
 from isodream_rl.trainers.registry import make_components
 from isodream_rl.trainers.run_dir import hold_run_dir, resuming, write_run_config
 from isodream_rl.trainers.run_lifecycle import (
@@ -51,7 +54,6 @@ from isodream_rl.trainers.run_lifecycle import (
     write_summary,
 )
 from isodream_rl.trainers.saved_models import saved_run_config
-from isodream_rl.trainers.world_model_config import TORCHRL_BASELINES
 from isodream_rl.trainers.world_model_run import LatentProbe
 
 logger = logging.getLogger(__name__)
@@ -67,7 +69,7 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
     ``resume``, restore the newest readable checkpoint; train until ``train.total_steps`` or a signal.
 
     The run folder is held by this process while it trains (:func:`~isodream_rl.trainers.run_dir.hold_run_dir`);
-    a resumed run cuts its CSV logs back to what they held at its checkpoint (:mod:`isodream_rl.csv_logs`).
+    a resumed run cuts its CSV logs back to what they held at its checkpoint (:mod:`isodream_rl.run_utils.csv_logs`).
 
     Args:
         cfg: the run's configuration.
@@ -91,53 +93,58 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
         return _train_rl(cfg)
 
 
-def _train_rl(cfg: RunConfig) -> RunResult:
-    """:func:`train` in ``mode=rl``, in the run folder it holds."""
-    started, run_dir, pictures, logs = begin_run(cfg)
-    train_cfg = cfg.train
-    checkpoints = CheckpointManager(run_dir / "checkpoints", keep=cfg.checkpoint.keep)
-    resumed_from, state = None, None
-    if resuming(cfg):
-        state, resumed_from = resume_state(cfg, checkpoints, required_keys=STATE_KEYS)
-    action_dim = probe_action_dim(cfg)
-
+def _make_run_components(cfg: RunConfig, run_dir: Path) -> RunComponents:
+    """The run's parts for the env's action width, the replay buffer's memmap files under
+    ``<run_dir>/replay_scratch``."""
     scratch = run_dir / "replay_scratch"
     # The memmap files of an earlier process of this run (killed, or finished) are stale: the replay data
     # that matters is in the checkpoints.
     shutil.rmtree(scratch, ignore_errors=True)
-    components = make_components(cfg, action_dim=action_dim, scratch_dir=scratch)
-    stepper, policy = components.stepper, components.behavior.policy
-    if state is not None:
-        checkpoints.load_replay(resumed_from, components.replay_buffer)
-        restore_run_state(
-            state,
-            checkpoint=resumed_from,
-            load_models=functools.partial(components.load_models, checkpoint=resumed_from),
-            stepper=stepper,
-            logs=logs,
-        )
-        components.preparation.load_state_dict(state["hooks"]["preparation"])
-        components.returns.load_state_dict(state["hooks"]["returns"])
-        logger.info("resumed from %s (%d env steps)", resumed_from, state["counters"]["env_steps"])
-    write_run_config(cfg)  # the run starts: its parts are built, the config matches its checkpoint
-    env_steps = state["counters"]["env_steps"] if state else 0
-    wall_before = state["counters"].get("wall_s", 0.0) if state else 0.0
+    return make_components(cfg, action_dim=probe_action_dim(cfg), scratch_dir=scratch)
 
-    def wall_s() -> float:
-        return wall_before + time.perf_counter() - started
 
-    if env_steps >= train_cfg.total_steps:
-        return RunResult(run_dir, resumed_from, logs, pictures, env_steps, stepper.updates, resumed_from)
-
-    collector = make_collector(
-        cfg,
-        policy,
-        total_frames=train_cfg.total_steps - env_steps,
-        init_random_frames=max(0, train_cfg.prefill_steps - env_steps),
-        env_transform=policy.make_tensordict_primer,
-        first_step=env_steps,
+def _decomposes(cfg: RunConfig) -> bool:
+    """Whether the evaluations score the decomposition: where the env renders the ground truth and the world model
+    is Iso-Dream's (any of its variants)."""
+    return (
+        cfg.algo.name not in TORCHRL_BASELINES
+        and not cfg.env.factory
+        and bool(ground_truth_mask_keys(cfg.env.name))
     )
-    log = make_logger(cfg, run_dir=run_dir)
+
+
+def _eval_env(cfg: RunConfig, policy, masks: bool = False) -> EnvBase:
+    """An evaluation env of the run (its ground-truth masks with ``masks``), primed for ``policy``."""
+    make = checked_env_factory(cfg, eval_mode=True, which=" (evaluation)")
+    env = (functools.partial(make, return_masks=True) if masks else make)()
+    env.append_transform(policy.make_tensordict_primer())
+    return env
+
+
+def _restore_components(
+    components: RunComponents, state: dict, *, checkpoints: CheckpointManager, checkpoint: Path, logs: Path
+) -> None:
+    """Continue from ``checkpoint`` (its ``state``): the replay buffer, the weights, the stepper, the CSV logs and
+    the replay and episode-return hooks."""
+    checkpoints.load_replay(checkpoint, components.replay_buffer)
+    restore_run_state(
+        state,
+        checkpoint=checkpoint,
+        load_models=functools.partial(components.load_models, checkpoint=checkpoint),
+        stepper=components.stepper,
+        logs=logs,
+    )
+    components.preparation.load_state_dict(state["hooks"]["preparation"])
+    components.returns.load_state_dict(state["hooks"]["returns"])
+    logger.info("resumed from %s (%d env steps)", checkpoint, state["counters"]["env_steps"])
+
+
+def _make_trainer(
+    cfg: RunConfig, components: RunComponents, collector, *, log, env_steps: int, state: dict | None
+) -> Trainer:
+    """TorchRL's ``Trainer`` of an RL run from ``env_steps`` on (a resumed run's counters restored), with the
+    replay, episode-return, throughput and (several envs or a remote collector) weight-update hooks."""
+    train_cfg, stepper = cfg.train, components.stepper
     trainer = Trainer(
         collector=collector,
         total_frames=train_cfg.total_steps,
@@ -171,38 +178,76 @@ def _train_rl(cfg: RunConfig) -> RunResult:
     Throughput(stepper).register(trainer)
     if cfg.env.num_envs > 1 or train_cfg.collector_backend != "sync":
         UpdateWeights(collector, update_weights_interval=1).register(trainer)
+    return trainer
 
-    # the decomposition scores of the evaluations, where the env renders the ground truth and the world model
-    # is Iso-Dream's (any of its variants)
-    decomposition = (
-        cfg.algo.name not in TORCHRL_BASELINES
-        and not cfg.env.factory
-        and bool(ground_truth_mask_keys(cfg.env.name))
+
+def _periodic_evaluation(
+    cfg: RunConfig, components: RunComponents, *, env_factory, pictures: Path, clock, log, decomposition: bool
+) -> Evaluation:
+    """The evaluation every ``logging.eval_every`` env steps: episodes of the policy, an open-loop prediction GIF
+    and, with ``decomposition``, the world model's mask scores."""
+    return Evaluation(
+        policy=components.behavior.policy,
+        env_factory=env_factory,
+        world_model=components.world_model,
+        replay_buffer=components.replay_buffer,
+        sequence_length=cfg.train.sequence_length,
+        pictures=pictures,
+        every=cfg.logging.eval_every,
+        episodes=cfg.logging.eval_episodes,
+        task=cfg.env.name,
+        clock=clock,
+        context=cfg.logging.video_context,
+        length=cfg.logging.video_length,
+        # The CSV logger can only write videos as MP4 through torchcodec (not a dependency); the GIF suffices.
+        logger=None if cfg.logging.backend == "csv" else log,
+        decomposition=decomposition,
     )
 
-    def eval_env(masks: bool = False):
-        make = checked_env_factory(cfg, eval_mode=True, which=" (evaluation)")
-        env = (functools.partial(make, return_masks=True) if masks else make)()
-        env.append_transform(policy.make_tensordict_primer())
-        return env
 
+def _train_rl(cfg: RunConfig) -> RunResult:
+    """:func:`train` in ``mode=rl``, in the run folder it holds."""
+    started, run_dir, pictures, logs = begin_run(cfg)
+    train_cfg = cfg.train
+    checkpoints = CheckpointManager(run_dir / "checkpoints", keep=cfg.checkpoint.keep)
+    resumed_from, state = None, None
+    if resuming(cfg):
+        state, resumed_from = resume_state(cfg, checkpoints, required_keys=STATE_KEYS)
+    components = _make_run_components(cfg, run_dir)
+    stepper, policy = components.stepper, components.behavior.policy
+    if state is not None:
+        _restore_components(components, state, checkpoints=checkpoints, checkpoint=resumed_from, logs=logs)
+    write_run_config(cfg)  # the run starts: its parts are built, the config matches its checkpoint
+    env_steps = state["counters"]["env_steps"] if state else 0
+    wall_before = state["counters"].get("wall_s", 0.0) if state else 0.0
+
+    def wall_s() -> float:
+        return wall_before + time.perf_counter() - started
+
+    if env_steps >= train_cfg.total_steps:
+        return RunResult(run_dir, resumed_from, logs, pictures, env_steps, stepper.updates, resumed_from)
+
+    collector = make_collector(
+        cfg,
+        policy,
+        total_frames=train_cfg.total_steps - env_steps,
+        init_random_frames=max(0, train_cfg.prefill_steps - env_steps),
+        env_transform=policy.make_tensordict_primer,
+        first_step=env_steps,
+    )
+    log = make_logger(cfg, run_dir=run_dir)
+    trainer = _make_trainer(cfg, components, collector, log=log, env_steps=env_steps, state=state)
+    decomposition = _decomposes(cfg)
+    eval_env = functools.partial(_eval_env, cfg, policy)
     evaluation = None
     if cfg.logging.eval_every > 0:
-        evaluation = Evaluation(
-            policy=policy,
+        evaluation = _periodic_evaluation(
+            cfg,
+            components,
             env_factory=functools.partial(eval_env, masks=decomposition),
-            world_model=components.world_model,
-            replay_buffer=components.replay_buffer,
-            sequence_length=train_cfg.sequence_length,
             pictures=pictures,
-            every=cfg.logging.eval_every,
-            episodes=cfg.logging.eval_episodes,
-            task=cfg.env.name,
             clock=wall_s,
-            context=cfg.logging.video_context,
-            length=cfg.logging.video_length,
-            # The CSV logger can only write videos as MP4 through torchcodec (not a dependency); the GIF suffices.
-            logger=None if cfg.logging.backend == "csv" else log,
+            log=log,
             decomposition=decomposition,
         )
         if state is not None and state["hooks"]["evaluation"] is not None:

@@ -1,4 +1,4 @@
-"""Who owns a run folder: a new run never writes into another run's files, a resumed run continues its own.
+"""``isodream-train``'s run folder: a new run never writes into another run's files, a resumed run continues its own.
 
 A run folder (``run_dir``) holds ``run_config.json``, ``checkpoints/``, ``logs/``, ``pictures/``,
 ``summary.json`` and ``replay_scratch/`` (:data:`RUN_FILES`). Starting a run where any of them exists is
@@ -8,26 +8,21 @@ refused unless ``resume=true`` (continue that run; its configuration must match,
 records (``.hydra/``, ``<job>.log``) are not a run's files; ``isodream-train`` checks the folder before Hydra
 writes them (:class:`RunDirGuard`).
 
-While a run uses its folder, :func:`hold_run_dir` keeps it to this process (``run.lock``, see
-:mod:`isodream_rl.run_lock`), removes what a start that failed before ``run_config.json`` made (so the corrected
-command is not refused), and turns a full disk, a read-only folder or an env's NaN/inf data met on the way into
-one line naming the checkpoint to continue from.
-:func:`hold_folder` does the same for another program's run folder (``isodream-video train --out-dir``), named
-by its own :class:`RunFlags`.
+While a run uses its folder, :func:`hold_run_dir` holds it as any program of the library holds its run folder
+(:func:`~isodream_rl.run_utils.run_folder.hold_folder`: ``run.lock``, one-line errors of a full disk or a read-only
+folder), removes what a start that failed before ``run_config.json`` made (so the corrected command is not
+refused), and turns an env's NaN/inf data met on the way into one line naming the checkpoint to continue from.
 """
 
 from __future__ import annotations
 
 import atexit
 import dataclasses
-import errno
 import json
-import os
 import shutil
 import traceback
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -35,11 +30,21 @@ from hydra.experimental.callback import Callback
 from omegaconf import OmegaConf
 
 from isodream_rl.envs.finite import NonFiniteEnvDataError
-from isodream_rl.modules.config import SIZE_PRESETS
-from isodream_rl.run_lock import RunDirBusyError, RunDirLock
-from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
-from isodream_rl.trainers.config import FORMER_DREAMER_V2_ALGOS, ConfigError, RunConfig, config_from_dict
-from isodream_rl.trainers.disk_space import DiskFullError
+from isodream_rl.modules.sizes import SIZE_PRESETS
+from isodream_rl.run_utils.checkpoint import CheckpointError
+from isodream_rl.run_utils.run_folder import (
+    RunFlags,
+    another_run,
+    claim_folder,
+    continue_after,
+    existing_run_files,
+    hold_folder,
+    run_dir_problem,
+)
+from isodream_rl.run_utils.run_lock import RunDirBusyError, RunDirLock
+from isodream_rl.trainers.config import ConfigError, RunConfig, config_from_dict
+from isodream_rl.trainers.learners import resolved
+from isodream_rl.trainers.renames import resumes_former_run
 from isodream_rl.user_errors import debugging, exit_user_error, log_to_stderr, one_line
 
 #: the files and folders of a run (a folder holding one of them holds a run)
@@ -68,66 +73,13 @@ RESUMABLE = (
 )
 
 
-@dataclass(frozen=True)
-class RunFlags:
-    """How a program names its run folder and the two settings that let a run use a folder holding another
-    run (in its one-line errors)."""
-
-    folder: str = "run_dir"
-    resume: str = "resume=true"
-    overwrite: str = "overwrite=true"
-
-
 #: ``isodream-train``'s names
-TRAIN_FLAGS = RunFlags()
+TRAIN_FLAGS = RunFlags(folder="run_dir", resume="resume=true", overwrite="overwrite=true")
 
 
 def resuming(cfg: RunConfig) -> bool:
     """``resume=true`` or ``checkpoint.resume=true``."""
     return bool(cfg.resume or cfg.checkpoint.resume)
-
-
-def existing_run_files(run_dir: str | Path, run_files: Sequence[str] = RUN_FILES) -> list[str]:
-    """The ``run_files`` (:data:`RUN_FILES`) present in ``run_dir``."""
-    run_dir = Path(run_dir)
-    return [name for name in run_files if (run_dir / name).exists()]
-
-
-def refuse_another_run(
-    run_dir: str | Path,
-    *,
-    resume: bool,
-    overwrite: bool,
-    run_files: Sequence[str] = RUN_FILES,
-    flags: RunFlags = TRAIN_FLAGS,
-) -> list[str]:
-    """The ``run_files`` present in ``run_dir``, once a run may use it; reads only.
-
-    Raises:
-        ConfigError: the folder holds another run and neither ``resume`` nor ``overwrite`` is set, or both are.
-    """
-    if resume and overwrite:
-        raise ConfigError(f"{flags.resume} and {flags.overwrite} contradict each other: set one of them")
-    found = existing_run_files(run_dir, run_files)
-    if found and not (resume or overwrite):
-        raise ConfigError(_another_run(Path(run_dir), found, flags))
-    return found
-
-
-def run_dir_problem(run_dir: str | Path, *, flags: RunFlags = TRAIN_FLAGS) -> str | None:
-    """Why ``run_dir`` cannot hold a run (a file, under a file, on a read-only disk or not writable), or
-    ``None``; reads only."""
-    run_dir, name = Path(run_dir), flags.folder
-    if run_dir.exists() and not run_dir.is_dir():
-        return f"{name} {run_dir} is a file, not a folder: give a folder (a new one, or one holding a run)"
-    existing = run_dir
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
-    if not existing.is_dir():
-        return f"{name} {run_dir} is under {existing}, which is a file: give a path under a folder"
-    if not os.access(existing, os.W_OK | os.X_OK):
-        return f"{name} {run_dir} cannot be written ({existing} is read-only or not yours): give another"
-    return None
 
 
 def claim_run_dir(cfg: RunConfig) -> Path:
@@ -145,35 +97,8 @@ def claim_run_dir(cfg: RunConfig) -> Path:
                 f"resume=true but there is no checkpoint in {run_dir / 'checkpoints'}; start without resume or "
                 "point run_dir at the run to continue"
             )
-    return claim_folder(run_dir, resume=resuming(cfg), overwrite=cfg.overwrite)
-
-
-def claim_folder(
-    run_dir: Path,
-    *,
-    resume: bool,
-    overwrite: bool,
-    run_files: Sequence[str] = RUN_FILES,
-    flags: RunFlags = TRAIN_FLAGS,
-) -> Path:
-    """:func:`refuse_another_run`, then, with ``overwrite``, delete the run files there; the folder, made.
-
-    Raises:
-        ConfigError: as :func:`refuse_another_run`; nothing is written or deleted then.
-    """
-    found = refuse_another_run(run_dir, resume=resume, overwrite=overwrite, run_files=run_files, flags=flags)
-    if not resume:
-        for name in found:
-            path = run_dir / name
-            shutil.rmtree(path) if path.is_dir() else path.unlink()
-    run_dir.mkdir(parents=True, exist_ok=True)
-    return run_dir
-
-
-def _another_run(run_dir: Path, found: list[str], flags: RunFlags = TRAIN_FLAGS) -> str:
-    return (
-        f"{run_dir} holds another run ({', '.join(found)}): continue it with {flags.resume}, replace it with "
-        f"{flags.overwrite}, or give another {flags.folder}"
+    return claim_folder(
+        run_dir, resume=resuming(cfg), overwrite=cfg.overwrite, run_files=RUN_FILES, flags=TRAIN_FLAGS
     )
 
 
@@ -182,7 +107,8 @@ def hold_run_dir(cfg: RunConfig) -> Iterator[Path]:
     """Hold ``cfg.run_dir`` for one run: ``with hold_run_dir(cfg) as run_dir: ...``.
 
     On entering: refuse a path that cannot be a writable folder, take the folder's lock
-    (:class:`~isodream_rl.run_lock.RunDirLock`), claim it (:func:`claim_run_dir`), and remove the half-written
+    (:class:`~isodream_rl.run_utils.run_lock.RunDirLock`), claim it (:func:`claim_run_dir`), and remove the
+    half-written
     checkpoints a killed or failed process left. If the block fails before ``run_config.json`` exists (a new run
     that did not start), the run files it made are removed. A full disk, a read-only folder and an env's NaN/inf
     data met in the block become one-line errors. The lock is released on leaving, however the block ends.
@@ -194,89 +120,26 @@ def hold_run_dir(cfg: RunConfig) -> Iterator[Path]:
         NonFiniteEnvDataError: the env returned NaN/inf; the message names it, the entry, the env step and the
             last verified checkpoint, and says to fix the env and resume.
     """
-    with hold_folder(Path(cfg.run_dir), claim=lambda: claim_run_dir(cfg)) as run_dir:
+    with hold_folder(Path(cfg.run_dir), flags=TRAIN_FLAGS, claim=lambda: claim_run_dir(cfg)) as run_dir:
         new = not resuming(cfg)
         try:
             yield run_dir
-        except BaseException:
+        except BaseException as err:
             if new and not (run_dir / "run_config.json").exists():
-                for name in existing_run_files(run_dir):
+                for name in existing_run_files(run_dir, RUN_FILES):
                     shutil.rmtree(run_dir / name, ignore_errors=True)
+            if isinstance(err, NonFiniteEnvDataError):
+                then = continue_after(run_dir, TRAIN_FLAGS, fix="fix the env")
+                raise NonFiniteEnvDataError(f"{err}; {then}") from err
             raise
 
 
-@contextmanager
-def hold_folder(
-    run_dir: Path,
-    *,
-    resume: bool = False,
-    overwrite: bool = False,
-    run_files: Sequence[str] = RUN_FILES,
-    flags: RunFlags = TRAIN_FLAGS,
-    claim=None,
-) -> Iterator[Path]:
-    """Hold the run folder ``run_dir``: refuse a path that cannot be a writable folder, take its lock
-    (:class:`~isodream_rl.run_lock.RunDirLock`), claim it (``claim()``, or :func:`claim_folder` with ``resume``,
-    ``overwrite``, ``run_files`` and ``flags``), and remove the half-written checkpoints of
-    ``<run_dir>/checkpoints`` a killed or failed process left; a full disk, a read-only folder and an env's
-    NaN/inf data met in the block become one-line errors; the lock is released on leaving.
-
-    Raises:
-        ConfigError: ``run_dir`` is a file, under a file or not writable; the refusals of :func:`claim_folder`.
-        RunDirBusyError: another live process holds the folder (the message names its pid).
-        DiskFullError: the disk filled up; the message names the last verified checkpoint and says to resume.
-        NonFiniteEnvDataError: as :func:`hold_run_dir`.
-    """
-    problem = run_dir_problem(run_dir, flags=flags)
-    if problem:
-        raise ConfigError(problem)
-    lock = RunDirLock(run_dir, setting=flags.folder)
-    try:
-        lock.acquire()
-    except OSError as err:
-        raise _os_error(err, run_dir, flags) from err
-    try:
-        if claim is None:
-            claim_folder(run_dir, resume=resume, overwrite=overwrite, run_files=run_files, flags=flags)
-        else:
-            claim()
-        CheckpointManager(run_dir / "checkpoints").remove_leftovers()
-        yield run_dir
-    except OSError as err:
-        raise _os_error(err, run_dir, flags) from err
-    except NonFiniteEnvDataError as err:
-        raise NonFiniteEnvDataError(f"{err}; {_continue_after(run_dir, flags, fix='fix the env')}") from err
-    finally:
-        lock.release()
-
-
-def _continue_after(run_dir: Path, flags: RunFlags, *, fix: str) -> str:
-    """How to go on after a fault the user can ``fix``: from the last checkpoint, or from the start."""
-    checkpoints = CheckpointManager(run_dir / "checkpoints").checkpoints()
-    if checkpoints:
-        return f"the last checkpoint, {checkpoints[-1]}, is intact: {fix}, then continue with {flags.resume}"
-    return f"no checkpoint was written yet: {fix}, then start again with {flags.overwrite}"
-
-
-def _os_error(err: OSError, run_dir: Path, flags: RunFlags = TRAIN_FLAGS) -> Exception:
-    """The one-line error of an ``OSError`` met while writing ``run_dir`` (``err`` itself when it is not the
-    user's to fix)."""
-    if err.errno in (errno.ENOSPC, errno.EDQUOT):
-        then = _continue_after(run_dir, flags, fix="free disk space")
-        return DiskFullError(f"the disk of {flags.folder} {run_dir} is full ({err.strerror or err}); {then}")
-    if err.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
-        return ConfigError(
-            f"{flags.folder} {run_dir} cannot be written ({err.strerror}: {err.filename}): give a writable "
-            f"{flags.folder}"
-        )
-    return err
-
-
 def write_run_config(cfg: RunConfig) -> Path:
-    """Write ``<run_dir>/run_config.json`` (the resolved configuration); the path."""
+    """Write ``<run_dir>/run_config.json`` (the configuration with the values its learner reads,
+    :func:`~isodream_rl.trainers.learners.resolved`); the path."""
     path = Path(cfg.run_dir) / "run_config.json"
     tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
+    tmp.write_text(json.dumps(dataclasses.asdict(resolved(cfg)), indent=2))
     tmp.replace(path)
     return path
 
@@ -292,10 +155,10 @@ def _flat(tree: dict, prefix: str = "") -> dict[str, Any]:
 
 
 def _compared(cfg: RunConfig) -> dict[str, Any]:
-    """The flat settings of ``cfg`` as a resume compares them: the size preset as the widths it stands for, so a
-    run whose widths were written as ``model.<field>`` on another preset (``size=bench`` before it was one) is
-    the same run."""
-    tree = dataclasses.asdict(cfg)
+    """The flat settings of ``cfg`` as a resume compares them: the values its learner reads
+    (:func:`~isodream_rl.trainers.learners.resolved`), the size preset as the widths it stands for, so a run whose
+    widths were written as ``model.<field>`` on another preset (``size=bench`` before it was one) is the same run."""
+    tree = dataclasses.asdict(resolved(cfg))
     model = tree["model"]
     if model["size"] in SIZE_PRESETS:
         for name, width in SIZE_PRESETS[model.pop("size")].items():
@@ -307,20 +170,15 @@ def differing_settings(saved: dict, cfg: RunConfig) -> dict[str, tuple[Any, Any]
     """``{field: (saved, now)}`` for the settings outside :data:`RESUMABLE` where ``cfg`` differs from the
     configuration ``saved`` in a checkpoint (``dataclasses.asdict`` of a :class:`RunConfig`).
 
-    ``algo=isodream_v2`` continues a ``mode=rl`` run saved under a name of
-    :data:`~isodream_rl.trainers.config.FORMER_DREAMER_V2_ALGOS`: such a run may be one of the DreamerV2-style
-    learner, trained before that name became Iso-Dream on DreamerV3's learner, which only its weights tell; they are
-    checked when they load (:func:`~isodream_rl.trainers.saved_models.check_saved_models`), and the ``algo`` fields
-    that set the variant are compared as any other.
+    ``algo=isodream_v2`` continues a run saved under a name that changed learner
+    (:func:`~isodream_rl.trainers.renames.resumes_former_run`; its weights are checked when they load), read under
+    that name, and the ``algo`` fields that set the variant are compared as any other.
     """
-    before = _compared(config_from_dict(saved))
+    saved_cfg = config_from_dict(saved)
+    if resumes_former_run(saved_cfg.algo.name, cfg.algo.name, mode=saved_cfg.mode):
+        saved_cfg = config_from_dict({**saved, "algo": {**saved["algo"], "name": cfg.algo.name}})
+    before = _compared(saved_cfg)
     now = _compared(cfg)
-    if (
-        before["mode"] == "rl"
-        and before["algo.name"] in FORMER_DREAMER_V2_ALGOS
-        and now["algo.name"] == "isodream_v2"
-    ):
-        before["algo.name"] = now["algo.name"]
     return {
         key: (before.get(key), now.get(key))
         for key in sorted(before.keys() | now.keys())
@@ -378,7 +236,7 @@ class RunDirGuard(Callback):
         def setting(key: str):
             return OmegaConf.select(config, key, default=None)
 
-        problem = run_dir_problem(run_dir)
+        problem = run_dir_problem(run_dir, flags=TRAIN_FLAGS)
         if problem:
             raise ConfigError(problem)
         # held from here to the end of the process: a second process started at the same time is refused
@@ -387,9 +245,9 @@ class RunDirGuard(Callback):
         if setting("overwrite"):
             return
         if not (setting("resume") or setting("checkpoint.resume")):
-            found = existing_run_files(run_dir)
+            found = existing_run_files(run_dir, RUN_FILES)
             if found:
-                raise ConfigError(_another_run(run_dir, found))
+                raise ConfigError(another_run(run_dir, found, TRAIN_FLAGS))
             return
         saved = run_dir / "run_config.json"
         if saved.exists():

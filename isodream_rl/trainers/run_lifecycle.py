@@ -22,12 +22,14 @@ import torch
 from torch import nn
 from torchrl.trainers import Trainer
 
-from isodream_rl.csv_logs import csv_log_sizes, cut_csv_logs
-from isodream_rl.modules.encoder import check_pixel_values, check_pixels
+from isodream_rl.modules.pixels import check_pixel_values, check_pixels
+from isodream_rl.run_utils.checkpoint import CheckpointManager, rng_state, set_rng_state
+from isodream_rl.run_utils.csv_logs import csv_log_sizes, cut_csv_logs
+from isodream_rl.run_utils.signals import StopOnSignal
 from isodream_rl.trainers.builders import env_factory
-from isodream_rl.trainers.checkpoint import CheckpointManager, rng_state, set_rng_state
 from isodream_rl.trainers.config import ConfigError, RunConfig
-from isodream_rl.trainers.hooks import PeriodicCheckpoint, StopOnSignal
+from isodream_rl.trainers.hooks import PeriodicCheckpoint
+from isodream_rl.trainers.learners import resolved
 from isodream_rl.trainers.run_dir import check_same_run
 from isodream_rl.trainers.saved_models import CheckpointMismatchError
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
@@ -142,14 +144,15 @@ def run_state(
     hooks: dict,
     logs: Path | None = None,
 ) -> dict:
-    """What ``state.pt`` of a checkpoint of either mode holds (:data:`STATE_KEYS`): the config, the state of
+    """What ``state.pt`` of a checkpoint of either mode holds (:data:`STATE_KEYS`): the config (with the values its
+    learner reads, :func:`~isodream_rl.trainers.learners.resolved`), the state of
     each of ``models``, the stepper's (optimisers and update counts), ``counters``, the state of the ``hooks``
     that have one, the RNG states and, with ``logs``, the size of each CSV log (what a resume cuts them back
     to, :func:`restore_run_state`)."""
     if logs is not None:
         counters = {**counters, "log_sizes": csv_log_sizes(logs)}
     return {
-        "config": dataclasses.asdict(cfg),
+        "config": dataclasses.asdict(resolved(cfg)),
         "models": {name: module.state_dict() for name, module in models.items()},
         "stepper": stepper.state_dict(),
         "counters": counters,
@@ -200,7 +203,7 @@ def train_with_checkpoints(
     """The training loop of both modes: ``trainer.train()`` with a checkpoint every ``every_updates`` updates
     (:class:`~isodream_rl.trainers.hooks.PeriodicCheckpoint`, registered after the run's other hooks) and a
     last one when it ends; SIGINT/SIGTERM save a checkpoint and stop at the end of the batch
-    (:class:`~isodream_rl.trainers.hooks.StopOnSignal`).
+    (:class:`~isodream_rl.run_utils.signals.StopOnSignal`).
 
     Returns:
         the signal that stopped the run, or ``None`` if it ran to its end (or a hook stopped it).

@@ -7,10 +7,11 @@ shapes differ, :func:`check_saved_models` raises :class:`CheckpointMismatchError
 ``torch.nn.Module.load_state_dict`` would print its missing and unexpected keys in a traceback.
 
 The saved configuration does not tell every learner apart: until ``algo=isodream`` became Iso-Dream on DreamerV3's
-learner, it and its ablations (:data:`~isodream_rl.trainers.config.FORMER_DREAMER_V2_ALGOS`) were the
-DreamerV2-style learner, now ``algo=isodream_v2``. Their weights tell them apart (:func:`saved_learner`): a resumed
-run is refused naming the settings that continue it, and what only reads a checkpoint (``isodream-eval``, the latent
-probe's :func:`~isodream_rl.trainers.world_model_run.load_world_model`) builds the learner the weights are of (:func:`saved_run_config`).
+learner, it and its ablations were the DreamerV2-style learner, now ``algo=isodream_v2``. Their weights tell them
+apart (:mod:`isodream_rl.trainers.renames`): a resumed run is refused naming the settings that continue it, and what
+only reads a checkpoint (``isodream-eval``, the latent probe's
+:func:`~isodream_rl.trainers.world_model_run.load_world_model`) builds the learner the weights are of
+(:func:`saved_run_config`).
 """
 
 from __future__ import annotations
@@ -20,19 +21,10 @@ from pathlib import Path
 
 from torch import nn
 
-from isodream_rl.trainers.checkpoint import CheckpointError
-from isodream_rl.trainers.config import FORMER_DREAMER_V2_ALGOS, RunConfig, config_from_dict
+from isodream_rl.run_utils.checkpoint import CheckpointError
+from isodream_rl.trainers.config import RunConfig, config_from_dict
+from isodream_rl.trainers.renames import former_learner_error, name_of_saved_learner
 
-#: ``learner -> (model names, world-model key prefix)``: what the weights of a checkpoint of Iso-Dream's two learners
-#: hold, and the other's do not. The names of the models (``state["models"]``): the DreamerV2-style learner's
-#: (:meth:`~isodream_rl.trainers.components.RunComponents.modules`) has ``actor_loss``, DreamerV3's
-#: (:func:`~isodream_rl.trainers.dreamer_v3.dreamer_v3_checkpoint_modules`) ``actor`` and ``return_norm``; the
-#: world model's controllable branch: ``IsoDreamWorldModel``'s RSSM ``control_rssm``, ``IsoDreamV3WorldModel``'s
-#: prior ``control_prior`` (neither is in the other, nor in a TorchRL baseline's world model).
-LEARNER_SIGNATURES: dict[str, tuple[frozenset[str], str]] = {
-    "isodream_v2": (frozenset({"world_model", "actor_loss", "value_loss"}), "control_rssm."),
-    "isodream": (frozenset({"world_model", "actor", "value_loss", "return_norm"}), "control_prior."),
-}
 #: how many keys of each kind a mismatch names
 _NAMED_KEYS = 3
 
@@ -42,26 +34,14 @@ class CheckpointMismatchError(CheckpointError):
     checkpoint, the models and what to change."""
 
 
-def saved_learner(models: Mapping[str, Mapping]) -> str | None:
-    """The Iso-Dream learner whose weights ``models`` (a checkpoint's ``state["models"]``) are, by
-    :data:`LEARNER_SIGNATURES`: ``"isodream_v2"`` (the DreamerV2-style learner), ``"isodream"`` (DreamerV3's), or
-    ``None`` (another algorithm's, or a ``mode=world_model`` checkpoint)."""
-    for learner, (names, prefix) in LEARNER_SIGNATURES.items():
-        if set(models) == names and any(str(key).startswith(prefix) for key in models["world_model"]):
-            return learner
-    return None
-
-
 def saved_run_config(state: Mapping) -> RunConfig:
     """The configuration that builds the models of a checkpoint's ``state``, to read its weights:
-    :func:`~isodream_rl.trainers.config.config_from_dict` of ``state["config"]``, where a name of
-    :data:`~isodream_rl.trainers.config.FORMER_DREAMER_V2_ALGOS` whose weights are the DreamerV2-style learner's
-    (:func:`saved_learner`; a run saved before that name became Iso-Dream on DreamerV3's learner) is read as
-    ``isodream_v2``. The ``algo`` fields saved with it (branch switches, policy input) set the variant, so the
-    models built are the ones it trained; nothing else changes."""
+    :func:`~isodream_rl.trainers.config.config_from_dict` of ``state["config"]`` under the name of the learner its
+    weights are of (:func:`~isodream_rl.trainers.renames.name_of_saved_learner`)."""
     cfg = config_from_dict(state["config"])
-    if cfg.algo.name in FORMER_DREAMER_V2_ALGOS and saved_learner(state["models"]) == "isodream_v2":
-        cfg.algo.name = "isodream_v2"
+    name = name_of_saved_learner(cfg.algo.name, state["models"])
+    if name != cfg.algo.name:
+        cfg = config_from_dict({**state["config"], "algo": {**state["config"]["algo"], "name": name}})
     return cfg
 
 
@@ -106,25 +86,6 @@ def weight_problems(modules: Mapping[str, nn.Module], saved: Mapping[str, Mappin
     return problems
 
 
-def _learner_error(state: Mapping, *, algo: str, checkpoint: str) -> str | None:
-    """The message of a checkpoint whose weights are the other Iso-Dream learner's than ``algo``'s, where a name
-    that changed learner explains it, with the settings that resume it; ``None`` otherwise."""
-    learner = saved_learner(state["models"])
-    if algo in FORMER_DREAMER_V2_ALGOS and learner == "isodream_v2":
-        settings = " ".join(("algo=isodream_v2", *FORMER_DREAMER_V2_ALGOS[algo]))
-        return (
-            f"{checkpoint} was saved by algo={algo} before it became Iso-Dream on DreamerV3's learner: its weights "
-            f"are the DreamerV2-style learner's, now algo=isodream_v2; resume it with {settings}"
-        )
-    saved_algo = config_from_dict(state["config"]).algo.name if "config" in state else None
-    if algo == "isodream_v2" and learner == "isodream" and saved_algo in FORMER_DREAMER_V2_ALGOS:
-        return (
-            f"{checkpoint} holds the weights of Iso-Dream on DreamerV3's learner (algo={saved_algo}), not the "
-            f"DreamerV2-style learner's of algo=isodream_v2: resume it with algo={saved_algo}"
-        )
-    return None
-
-
 def check_saved_models(
     modules: Mapping[str, nn.Module], state: Mapping, *, algo: str, checkpoint: str | Path
 ) -> None:
@@ -140,14 +101,17 @@ def check_saved_models(
     Raises:
         CheckpointMismatchError: some model is not in the checkpoint, or some of its keys are missing, unexpected or
             of another shape. Where the weights are the other Iso-Dream learner's and the name of the run's algo
-            explains it (:data:`~isodream_rl.trainers.config.FORMER_DREAMER_V2_ALGOS`), the message says so and
+            explains it (:data:`~isodream_rl.trainers.renames.FORMER_DREAMER_V2_ALGOS`), the message says so and
             names the settings that resume it; otherwise it names the models and a few keys, and says that the
             run's settings must be the ones it was saved with.
     """
     problems = weight_problems(modules, state["models"])
     if not problems:
         return
-    message = _learner_error(state, algo=algo, checkpoint=str(checkpoint))
+    saved_algo = config_from_dict(state["config"]).algo.name if "config" in state else None
+    message = former_learner_error(
+        state["models"], saved_algo=saved_algo, algo=algo, checkpoint=str(checkpoint)
+    )
     raise CheckpointMismatchError(
         message
         or (

@@ -51,12 +51,12 @@ class IsoDreamOptimizationStepper(OptimizationStepper):
     logged as ``nonfinite_skipped``); ``max_nonfinite`` of them in a row raise :class:`NonFiniteLossError`.
 
     Args:
-        model_loss: an :class:`~isodream_rl.objectives.IsoDreamModelLoss` (``td -> (losses, model_out)``).
+        model_loss: an :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2ModelLoss` (``td -> (losses, model_out)``).
         world_model_optimizer: optimiser of the world-model parameters.
         sequence_length: T, the replay window length.
-        actor_loss: :class:`~isodream_rl.objectives.IsoDreamActorLoss` (``model_out -> (losses, imagined)``),
+        actor_loss: :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2ActorLoss` (``model_out -> (losses, imagined)``),
             or ``None`` to train the world model only.
-        value_loss: :class:`~isodream_rl.objectives.IsoDreamValueLoss` (``imagined -> (losses, _)``).
+        value_loss: :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2ValueLoss` (``imagined -> (losses, _)``).
         actor_optimizer: optimiser of the actor.
         value_optimizer: optimiser of the value network and attention.
         target_updater: object with ``step()`` updating the slow value target, or ``None``.

@@ -3,7 +3,7 @@
 ``torchrl.trainers.Trainer`` keeps its update count, the frame at which each key was last logged, the values it
 logged and its progress bar in private attributes (``_optim_count``, ``_last_log``, ``_log_dict``, ``_pbar``), with
 no public accessor: its own checkpointing saves them through its save/load backends, which write the whole
-trainer, collector included. A run that keeps its own checkpoint format (``trainers/checkpoint.py``) and resumes
+trainer, collector included. A run that keeps its own checkpoint format (``run_utils/checkpoint.py``) and resumes
 into a new ``Trainer`` needs them one by one, so every such access goes through the functions below.
 ``tests/test_trainer_state.py`` builds a real ``Trainer`` and fails if a TorchRL release renames or drops one.
 """

@@ -11,26 +11,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from isodream_rl.modules.config import SIZE_PRESETS
-from isodream_rl.objectives.world_model import FREE_BRANCH_MODES
+from isodream_rl.modules.sizes import SIZE_PRESETS
+from isodream_rl.trainers.learners import ISODREAM_V2_ALGOS, OTHER_WORLD_MODELS
 
 #: What ``isodream-train`` trains: Algorithm 1 (world model, actor and value), or the world model alone.
 MODES = ("rl", "world_model")
-#: The algorithms built from TorchRL's own Dreamer pieces (``isodream_rl.baselines``): no Iso-Dream world model.
-TORCHRL_BASELINES = ("torchrl_dreamer", "torchrl_dreamer_v3")
-#: Iso-Dream on DreamerV3's learner (:class:`~isodream_rl.trainers.isodream_v3.IsoDreamV3Components`): the default
-#: and its ablations. Every other Iso-Dream name (``isodream_v2``, ``isodream_paper``, ``dreamerv2``, a name of your
-#: own) is the DreamerV2-style learner (:class:`~isodream_rl.trainers.components.RunComponents`).
-DREAMER_V3_ISODREAM = ("isodream", "isodream_no_inverse", "isodream_no_attention", "isodream_no_static")
-#: The algorithms trained by DreamerV3's update (:class:`~isodream_rl.trainers.dreamer_v3.DreamerV3OptimizationStepper`):
-#: Iso-Dream on DreamerV3's learner and TorchRL's DreamerV3 (``train.lr_warmup`` is theirs).
-DREAMER_V3_LEARNERS = (*DREAMER_V3_ISODREAM, "torchrl_dreamer_v3")
-#: The algorithms whose world model is not :class:`~isodream_rl.modules.IsoDreamWorldModel` (TorchRL's baselines and
-#: Iso-Dream on DreamerV3's learner): no ``mode=world_model`` nor its probes.
-OTHER_WORLD_MODELS = (*TORCHRL_BASELINES, *DREAMER_V3_ISODREAM)
-#: The algorithms whose world model ``mode=world_model`` trains (the DreamerV2-style one), named where another is
-#: refused.
-WORLD_MODEL_ALGOS = ("isodream_v2", "isodream_paper", "dreamerv2")
 
 
 @dataclass
@@ -64,14 +49,10 @@ def world_model_mode_errors(cfg: Any) -> list[str]:
     overrides = cfg.model.world_model_fields()
     if cfg.model.size not in SIZE_PRESETS:
         errors.append(f"model.size={cfg.model.size!r} is not one of {list(SIZE_PRESETS)}")
-    if algo.free_branch_loss not in FREE_BRANCH_MODES:
-        errors.append(
-            f"algo.free_branch_loss={algo.free_branch_loss!r} is not one of {list(FREE_BRANCH_MODES)}"
-        )
     if algo.name in OTHER_WORLD_MODELS:
         errors.append(
             f"mode=world_model trains the DreamerV2-style Iso-Dream world model, not algo={algo.name}'s: pick "
-            f"{', '.join(f'algo={name}' for name in WORLD_MODEL_ALGOS)} (exp=world_model and exp=decomposition "
+            f"{', '.join(f'algo={name}' for name in ISODREAM_V2_ALGOS)} (exp=world_model and exp=decomposition "
             "pick algo=isodream_v2)"
         )
     for name, value, minimum in (

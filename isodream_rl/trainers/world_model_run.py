@@ -2,7 +2,7 @@
 
 ``isodream-train exp=world_model`` (or its alias ``isodream-demo``) collects random-action episodes with held
 actions (the sprites scene by default; any env of the ``env`` group), trains
-:class:`~isodream_rl.modules.IsoDreamWorldModel` with :class:`~isodream_rl.objectives.IsoDreamModelLoss`
+:class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel` with :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2ModelLoss`
 through the trainer's :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` (no actor, no value),
 and every ``logging.eval_every`` updates scores it on held-out episodes
 (:func:`~isodream_rl.evaluation.branches.score_branches`: on every env with ground-truth masks (sprites,
@@ -14,7 +14,7 @@ passes ``world_model.max_minutes``. At the end, on sprites, it probes what each 
 writes ``summary.json``. The loop is the RL run's
 (:func:`~isodream_rl.trainers.run_lifecycle.train_with_checkpoints`: TorchRL's ``Trainer``, fed by
 :class:`FixedData`, no new env steps), and so is the run folder: ``logs/`` (the TorchRL logger),
-``checkpoints/step_<updates>/`` (:class:`~isodream_rl.trainers.checkpoint.CheckpointManager`, which
+``checkpoints/step_<updates>/`` (:class:`~isodream_rl.run_utils.checkpoint.CheckpointManager`, which
 ``resume=true`` continues from), ``pictures/``.
 
 The data are generated from the seed, so checkpoints hold no replay buffer; evaluations run on a forked
@@ -44,7 +44,8 @@ from isodream_rl.data.sprites_episodes import (
 from isodream_rl.envs.builder import ground_truth_mask_keys
 from isodream_rl.evaluation.branches import branch_grid, save_png, score_branches
 from isodream_rl.evaluation.decomposition import TRUTH_KEYS
-from isodream_rl.modules import IsoDreamWorldModel
+from isodream_rl.modules.isodream_v2 import IsoDreamV2WorldModel
+from isodream_rl.run_utils.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.builders import (
     REPLAY_KEYS,
     action_dim_of,
@@ -52,11 +53,10 @@ from isodream_rl.trainers.builders import (
     close_logger,
     make_adam,
     make_logger,
-    make_world_model_config,
-    make_world_model_loss,
 )
-from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.trainers.config import ConfigError, RunConfig
+from isodream_rl.trainers.isodream_v2 import make_world_model_config, make_world_model_loss
+from isodream_rl.trainers.learners import OTHER_WORLD_MODELS, resolved
 from isodream_rl.trainers.run_dir import resuming, write_run_config
 from isodream_rl.trainers.run_lifecycle import (
     RunResult,
@@ -70,7 +70,6 @@ from isodream_rl.trainers.run_lifecycle import (
 )
 from isodream_rl.trainers.saved_models import load_saved_models, saved_run_config
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
-from isodream_rl.trainers.world_model_config import OTHER_WORLD_MODELS
 
 logger = logging.getLogger(__name__)
 
@@ -81,7 +80,7 @@ class LatentProbe(Protocol):
     (:func:`isodream_rl.evaluation.latent_probe.probe` is one)."""
 
     def __call__(
-        self, world_model: IsoDreamWorldModel, *, episodes: int, seed: int, encoder: bool, **scene: Any
+        self, world_model: IsoDreamV2WorldModel, *, episodes: int, seed: int, encoder: bool, **scene: Any
     ) -> dict[str, float]: ...
 
 
@@ -165,7 +164,7 @@ def probe_scene(cfg: RunConfig, *, window: int | None = None) -> dict:
     }
 
 
-def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDreamWorldModel, RunConfig]:
+def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDreamV2WorldModel, RunConfig]:
     """The world model (in fp32) and configuration of a checkpoint of ``isodream-train``, either mode.
 
     Args:
@@ -174,7 +173,7 @@ def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDream
 
     Raises:
         CheckpointError: no readable checkpoint there, or one of another world model
-            (:data:`~isodream_rl.trainers.world_model_config.OTHER_WORLD_MODELS`: TorchRL's baselines, Iso-Dream on
+            (:data:`~isodream_rl.trainers.learners.OTHER_WORLD_MODELS`: TorchRL's baselines, Iso-Dream on
             DreamerV3's learner), or weights that do not fit the world model of its configuration
             (:class:`~isodream_rl.trainers.saved_models.CheckpointMismatchError`). An ``algo=isodream`` run saved
             when that name was the DreamerV2-style learner is read as ``algo=isodream_v2``
@@ -202,7 +201,9 @@ def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDream
             f"{path} holds the world model of algo={cfg.algo.name}, not the DreamerV2-style Iso-Dream's"
         )
     cfg.model.precision = "fp32"
-    model = IsoDreamWorldModel(make_world_model_config(cfg, action_dim=probe_action_dim(cfg)), device=device)
+    model = IsoDreamV2WorldModel(
+        make_world_model_config(cfg, action_dim=probe_action_dim(cfg)), device=device
+    )
     load_saved_models({"world_model": model}, state, algo=cfg.algo.name, checkpoint=path)
     return model, cfg
 
@@ -262,7 +263,7 @@ class BranchEvaluation:
     def __init__(
         self,
         *,
-        world_model: IsoDreamWorldModel,
+        world_model: IsoDreamV2WorldModel,
         held_out: TensorDict,
         seen: TensorDict,
         window: int,
@@ -376,6 +377,166 @@ class UpdateCadence(TrainerHookBase):
         trainer.register_op("post_steps", self)
 
 
+class _WorldModelRun:
+    """The parts of one ``mode=world_model`` run and what it does with them: the world model, its loss and stepper
+    (no actor, no value), the evaluation on held-out episodes, the logger, the checkpoints and the wall clock
+    (summed over resumes)."""
+
+    def __init__(
+        self,
+        cfg: RunConfig,
+        *,
+        run_dir: Path,
+        pictures: Path,
+        logs: Path,
+        checkpoints: CheckpointManager,
+        started: float,
+    ) -> None:
+        wm, train_cfg = cfg.world_model, cfg.train
+        self.cfg, self.logs, self.checkpoints, self.started = cfg, logs, checkpoints, started
+        logger.info("collecting %d random-action episodes of %d steps", wm.episodes, wm.episode_length)
+        data = collect_episodes(cfg, episodes=wm.episodes, seed=train_cfg.seed)
+        held_out = collect_episodes(cfg, episodes=wm.held_out_episodes, seed=train_cfg.seed + 1)
+        self.buffer = make_window_buffer(
+            data, batch_size=train_cfg.batch_size, window=train_cfg.sequence_length
+        )
+        self.loss = make_world_model_loss(cfg, action_dim=data["action"].shape[-1])
+        self.world_model = self.loss.world_model
+        self.stepper = IsoDreamOptimizationStepper(
+            model_loss=self.loss,
+            world_model_optimizer=make_adam(
+                self.loss.parameters(), lr=train_cfg.world_model_lr, eps=train_cfg.adam_eps
+            ),
+            sequence_length=train_cfg.sequence_length,
+            grad_clip=train_cfg.grad_clip,
+            max_nonfinite=train_cfg.max_nonfinite_updates,
+        )
+        self.log = make_logger(cfg, run_dir=run_dir)
+        self.evaluation = BranchEvaluation(
+            world_model=self.world_model,
+            held_out=held_out,
+            # as many training episodes, scored beside the held-out ones: a gap between the two is memorisation
+            seen=data[: held_out.shape[0]],
+            window=train_cfg.sequence_length,
+            device=train_cfg.device,
+            pictures=pictures,
+            logger=self.log,
+        )
+        self.env_steps = wm.episodes * wm.episode_length
+        self.wall_before = 0.0
+        self.last_checkpoint: Path | None = None
+
+    def restore(self, state: dict, checkpoint: Path) -> None:
+        """Continue from a checkpoint's ``state``: the weights, the stepper, the CSV logs, the evaluation's
+        history and the wall clock."""
+        models = {"world_model": self.world_model}
+        restore_run_state(
+            state,
+            checkpoint=checkpoint,
+            load_models=functools.partial(
+                load_saved_models, models, algo=self.cfg.algo.name, checkpoint=checkpoint
+            ),
+            stepper=self.stepper,
+            logs=self.logs,
+        )
+        if (state.get("hooks") or {}).get("evaluation") is not None:
+            self.evaluation.load_state_dict(state["hooks"]["evaluation"])
+        self.wall_before = state["counters"]["wall_s"]
+        self.last_checkpoint = checkpoint
+        logger.info("resumed from %s (%d updates)", checkpoint, self.stepper.updates)
+
+    def wall_s(self) -> float:
+        """The run's wall-clock so far, data collection included, summed over resumes."""
+        return self.wall_before + wall_clock() - self.started
+
+    def save(self) -> Path:
+        """Write a checkpoint at the current update; its folder."""
+        saved = run_state(
+            self.cfg,
+            models={"world_model": self.world_model},
+            stepper=self.stepper,
+            counters={"env_steps": self.env_steps, "updates": self.stepper.updates, "wall_s": self.wall_s()},
+            hooks={"evaluation": self.evaluation.state_dict()},
+            logs=self.logs,
+        )
+        self.last_checkpoint = self.checkpoints.save(self.stepper.updates, saved)
+        return self.last_checkpoint
+
+    def trainer(self, cadence: UpdateCadence) -> Trainer:
+        """TorchRL's ``Trainer`` over the updates still to run, sampling windows of the collected episodes, with
+        ``cadence`` registered."""
+        trainer = Trainer(
+            collector=FixedData(self.cfg.world_model.updates - self.stepper.updates),
+            # no batch brings env steps: the run ends with FixedData's batches, or a hook's stop
+            total_frames=self.env_steps + 1,
+            frame_skip=1,
+            optim_steps_per_batch=1,
+            loss_module=self.loss,
+            optimization_stepper=self.stepper,
+            logger=None,  # UpdateCadence logs the losses at the update count, the Trainer would at env steps
+            progress_bar=False,
+            save_trainer_file=None,
+        )
+        trainer.collected_frames = self.env_steps
+
+        def sample(batch: TensorDict) -> TensorDict:
+            """``process_optim_batch``: ``batch_size`` windows of the collected episodes, on the CPU (the stepper
+            moves them to the model's device)."""
+            return self.buffer.sample()
+
+        trainer.register_op("process_optim_batch", sample)
+        cadence.register(trainer)
+        return trainer
+
+    def cadence(self) -> UpdateCadence:
+        """The hook that logs, evaluates and stops at the wall-clock budget, from the current update on."""
+        cfg = self.cfg
+        return UpdateCadence(
+            first=self.stepper.updates,
+            updates=cfg.world_model.updates,
+            log_every=cfg.logging.log_every,
+            eval_every=cfg.logging.eval_every,
+            evaluation=self.evaluation,
+            logger=self.log,
+            wall_s=self.wall_s,
+            max_minutes=cfg.world_model.max_minutes,
+            progress_bar=cfg.logging.progress_bar,
+            desc=f"world model ({cfg.model.size}, {self.world_model.config.precision})",
+        )
+
+    def summary(self, *, out_of_time: bool, probe: LatentProbe | None) -> dict[str, Any]:
+        """The run's ``summary.json``: its last scores, with the latent probe's on sprites (what each branch's
+        state knows, on fresh episodes of the same scene, seeds never trained on)."""
+        cfg, wm = self.cfg, self.cfg.world_model
+        scores = dict(self.evaluation.last_scores)
+        if wm.probe_episodes and _is_sprites(cfg):
+            probed = probe(
+                self.world_model,
+                episodes=wm.probe_episodes,
+                seed=cfg.train.seed + 1000,
+                encoder=True,
+                **probe_scene(cfg),
+            )
+            scores.update({f"probe_{key}": value for key, value in probed.items()})
+            for key, value in probed.items():
+                self.log.log_scalar(f"probe_{key}", value, step=wm.updates)
+        return {
+            "mode": cfg.mode,
+            "algo": cfg.algo.name,
+            "env": cfg.env.name,
+            "updates": self.stepper.updates,
+            "stopped_by": "max_minutes" if out_of_time else "updates",
+            "seconds": round(self.wall_s(), 1),
+            "precision": self.world_model.config.precision,
+            "size": cfg.model.size,
+            "seed": cfg.train.seed,
+            **{key: round(value, 3) for key, value in scores.items()},
+            "png": str(self.evaluation.last_picture),
+            "checkpoint": str(self.last_checkpoint),
+            "logs": str(self.logs),
+        }
+
+
 def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
     """Train (or, with ``resume=true``, continue) the world model of ``cfg`` alone; see the module docstring.
 
@@ -394,8 +555,9 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
         NonFiniteLossError: too many NaN/inf updates in a row.
     """
     started = wall_clock()
+    cfg = resolved(cfg)
     _, run_dir, pictures, logs = begin_run(cfg)
-    wm, train_cfg = cfg.world_model, cfg.train
+    wm = cfg.world_model
     if probe is None and wm.probe_episodes and _is_sprites(cfg):
         raise ConfigError(
             f"world_model.probe_episodes={wm.probe_episodes} needs the latent probe: pass "
@@ -407,161 +569,42 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
     state, resumed_from = (
         resume_state(cfg, checkpoints, required_keys=STATE_KEYS) if resuming(cfg) else (None, None)
     )
-    window, batch_size = train_cfg.sequence_length, train_cfg.batch_size
-
-    logger.info("collecting %d random-action episodes of %d steps", wm.episodes, wm.episode_length)
-    data = collect_episodes(cfg, episodes=wm.episodes, seed=train_cfg.seed)
-    held_out = collect_episodes(cfg, episodes=wm.held_out_episodes, seed=train_cfg.seed + 1)
-    # as many training episodes, scored beside the held-out ones: a gap between the two is memorisation
-    seen = data[: held_out.shape[0]]
-    buffer = make_window_buffer(data, batch_size=batch_size, window=window)
-
-    loss = make_world_model_loss(cfg, action_dim=data["action"].shape[-1])
-    world_model = loss.world_model
-    stepper = IsoDreamOptimizationStepper(
-        model_loss=loss,
-        world_model_optimizer=make_adam(
-            loss.parameters(), lr=train_cfg.world_model_lr, eps=train_cfg.adam_eps
-        ),
-        sequence_length=window,
-        grad_clip=train_cfg.grad_clip,
-        max_nonfinite=train_cfg.max_nonfinite_updates,
+    run = _WorldModelRun(
+        cfg, run_dir=run_dir, pictures=pictures, logs=logs, checkpoints=checkpoints, started=started
     )
-    models = {"world_model": world_model}
-    log = make_logger(cfg, run_dir=run_dir)
-    evaluation = BranchEvaluation(
-        world_model=world_model,
-        held_out=held_out,
-        seen=seen,
-        window=window,
-        device=train_cfg.device,
-        pictures=pictures,
-        logger=log,
-    )
-    wall_before = 0.0
     if state is not None:
-        restore_run_state(
-            state,
-            checkpoint=resumed_from,
-            load_models=functools.partial(
-                load_saved_models, models, algo=cfg.algo.name, checkpoint=resumed_from
-            ),
-            stepper=stepper,
-            logs=logs,
-        )
-        if (state.get("hooks") or {}).get("evaluation") is not None:
-            evaluation.load_state_dict(state["hooks"]["evaluation"])
-        wall_before = state["counters"]["wall_s"]
-        logger.info("resumed from %s (%d updates)", resumed_from, stepper.updates)
+        run.restore(state, resumed_from)
     write_run_config(cfg)  # the run starts: its parts are built, the config matches its checkpoint
-    first = stepper.updates
-    env_steps = wm.episodes * wm.episode_length
+    first = run.stepper.updates
     if first >= wm.updates:
-        close_logger(log)
-        return RunResult(run_dir, resumed_from, logs, pictures, env_steps, first, resumed_from)
-    budget = wm.max_minutes * 60.0 if wm.max_minutes else math.inf
-
-    def wall_s() -> float:
-        """The run's wall-clock so far, data collection included, summed over resumes."""
-        return wall_before + wall_clock() - started
-
-    last_checkpoint: list[Path | None] = [resumed_from]
-
-    def save() -> Path:
-        saved = run_state(
-            cfg,
-            models=models,
-            stepper=stepper,
-            counters={"env_steps": env_steps, "updates": stepper.updates, "wall_s": wall_s()},
-            hooks={"evaluation": evaluation.state_dict()},
-            logs=logs,
-        )
-        last_checkpoint[0] = checkpoints.save(stepper.updates, saved)
-        return last_checkpoint[0]
-
-    trainer = Trainer(
-        collector=FixedData(wm.updates - first),
-        # no batch brings env steps: the run ends with FixedData's batches, or a hook's stop
-        total_frames=env_steps + 1,
-        frame_skip=1,
-        optim_steps_per_batch=1,
-        loss_module=loss,
-        optimization_stepper=stepper,
-        logger=None,  # UpdateCadence logs the losses at the update count, the Trainer would at env steps
-        progress_bar=False,
-        save_trainer_file=None,
-    )
-    trainer.collected_frames = env_steps
-
-    def sample(batch: TensorDict) -> TensorDict:
-        """``process_optim_batch``: ``batch_size`` windows of the collected episodes, on the CPU (the stepper
-        moves them to the model's device)."""
-        return buffer.sample()
-
-    trainer.register_op("process_optim_batch", sample)
-    cadence = UpdateCadence(
-        first=first,
-        updates=wm.updates,
-        log_every=cfg.logging.log_every,
-        eval_every=cfg.logging.eval_every,
-        evaluation=evaluation,
-        logger=log,
-        wall_s=wall_s,
-        max_minutes=wm.max_minutes,
-        progress_bar=cfg.logging.progress_bar,
-        desc=f"world model ({cfg.model.size}, {world_model.config.precision})",
-    )
-    cadence.register(trainer)
+        close_logger(run.log)
+        return RunResult(run_dir, resumed_from, logs, pictures, run.env_steps, first, resumed_from)
+    cadence = run.cadence()
+    trainer = run.trainer(cadence)
     # a resumed run whose budget was spent before its summary: scored and checkpointed as it is
-    out_of_time = wall_s() >= budget
+    out_of_time = run.wall_s() >= (wm.max_minutes * 60.0 if wm.max_minutes else math.inf)
     if out_of_time:
-        evaluation.evaluate(first)
-        save()
+        run.evaluation.evaluate(first)
+        run.save()
         stopped_by_signal = None
     else:
         stopped_by_signal = train_with_checkpoints(
-            trainer, save=save, stepper=stepper, every_updates=cfg.checkpoint.every_updates
+            trainer, save=run.save, stepper=run.stepper, every_updates=cfg.checkpoint.every_updates
         )
         out_of_time = cadence.out_of_time
     cadence.bar.close()
-    scores, summary = dict(evaluation.last_scores), None
+    summary = None
     if stopped_by_signal is None:
-        if wm.probe_episodes and _is_sprites(cfg):
-            # what each branch's state knows, on fresh episodes of the same scene (seeds never trained on)
-            probed = probe(
-                world_model,
-                episodes=wm.probe_episodes,
-                seed=train_cfg.seed + 1000,
-                encoder=True,
-                **probe_scene(cfg),
-            )
-            scores.update({f"probe_{key}": value for key, value in probed.items()})
-            for key, value in probed.items():
-                log.log_scalar(f"probe_{key}", value, step=wm.updates)
-        summary = {
-            "mode": cfg.mode,
-            "algo": cfg.algo.name,
-            "env": cfg.env.name,
-            "updates": stepper.updates,
-            "stopped_by": "max_minutes" if out_of_time else "updates",
-            "seconds": round(wall_s(), 1),
-            "precision": world_model.config.precision,
-            "size": cfg.model.size,
-            "seed": train_cfg.seed,
-            **{key: round(value, 3) for key, value in scores.items()},
-            "png": str(evaluation.last_picture),
-            "checkpoint": str(last_checkpoint[0]),
-            "logs": str(logs),
-        }
+        summary = run.summary(out_of_time=out_of_time, probe=probe)
         write_summary(run_dir, summary)
-    close_logger(log)
+    close_logger(run.log)
     return RunResult(
         run_dir=run_dir,
-        checkpoint=last_checkpoint[0],
+        checkpoint=run.last_checkpoint,
         logs=logs,
         pictures=pictures,
-        env_steps=env_steps,
-        updates=stepper.updates,
+        env_steps=run.env_steps,
+        updates=run.stepper.updates,
         resumed_from=resumed_from,
         metrics=cadence.metrics,
         summary=summary,

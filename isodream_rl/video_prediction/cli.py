@@ -23,8 +23,8 @@ from pathlib import Path
 import torch
 from torch.utils.data import DataLoader
 
-from isodream_rl.run_lock import RunDirBusyError
-from isodream_rl.trainers.disk_space import DiskFullError
+from isodream_rl.run_utils.disk_space import DiskFullError
+from isodream_rl.run_utils.run_lock import RunDirBusyError
 from isodream_rl.user_errors import exit_stopped, report_user_errors, take_debug_flag
 from isodream_rl.video_prediction.metrics import FrameMetrics
 from isodream_rl.video_prediction.trainer import (

@@ -2,8 +2,8 @@
 and the per-frame evaluation protocol (train 2 -> 10, test 2 -> 28 / 2 -> 18).
 
 The run folder (``--out-dir``) is held and claimed as ``isodream-train``'s is
-(:func:`~isodream_rl.trainers.run_dir.hold_folder`), and its checkpoints are ``isodream-train``'s
-(:class:`~isodream_rl.trainers.checkpoint.CheckpointManager`: ``<out_dir>/checkpoints/step_<iteration>/``,
+(:func:`~isodream_rl.run_utils.run_folder.hold_folder`), and its checkpoints are ``isodream-train``'s
+(:class:`~isodream_rl.run_utils.checkpoint.CheckpointManager`: ``<out_dir>/checkpoints/step_<iteration>/``,
 written atomically with a verified manifest; an unreadable newest one falls back to the one before)."""
 
 from __future__ import annotations
@@ -19,7 +19,6 @@ from tensordict import TensorDict
 from torch.utils.data import DataLoader, default_collate
 from tqdm.auto import tqdm
 
-from isodream_rl.csv_logs import csv_log_sizes, cut_csv_logs
 from isodream_rl.data import (
     ArraySequences,
     BAIRDataset,
@@ -28,10 +27,11 @@ from isodream_rl.data import (
     VideoClips,
     load_pusher_dataset,
 )
-from isodream_rl.trainers.checkpoint import CheckpointError, CheckpointManager
-from isodream_rl.trainers.config import device_error
-from isodream_rl.trainers.hooks import StopOnSignal
-from isodream_rl.trainers.run_dir import RunFlags, hold_folder, refuse_another_run
+from isodream_rl.run_utils.checkpoint import CheckpointError, CheckpointManager
+from isodream_rl.run_utils.csv_logs import csv_log_sizes, cut_csv_logs
+from isodream_rl.run_utils.device import device_error
+from isodream_rl.run_utils.run_folder import RunFlags, hold_folder, refuse_another_run
+from isodream_rl.run_utils.signals import StopOnSignal
 from isodream_rl.video_prediction.config import PredictorConfig, variant_config
 from isodream_rl.video_prediction.metrics import FrameMetrics
 from isodream_rl.video_prediction.objective import VideoPredictionLoss
@@ -415,20 +415,20 @@ def train(
     Every ``val_every`` iterations the model is scored on the first ``val_batches`` batches of the test split
     (the validation curve: MSE, PSNR and SSIM over the predicted frames, logged as ``val/*`` and kept in the
     result's ``history``); every ``checkpoint_every`` iterations a checkpoint ``<out_dir>/checkpoints/step_*/``
-    is written (:class:`~isodream_rl.trainers.checkpoint.CheckpointManager`, the last two kept) with everything
+    is written (:class:`~isodream_rl.run_utils.checkpoint.CheckpointManager`, the last two kept) with everything
     a resumed run needs (model, optimizer, the sampler's position, the random
     states of the balls, the history); every ``eval_every`` iterations and at the end the whole test split is
     evaluated. A resumed run (``resume=True`` with a checkpoint in ``out_dir``) continues to ``iterations``
     and gives the same weights as an uninterrupted run; Adam's learning rate is constant, so ``iterations``
     may be raised on resume to train longer. The first SIGINT or SIGTERM ends the iteration under way, writes a
     checkpoint and returns without the final evaluation (a second one stops at once, as isodream-train's
-    :class:`~isodream_rl.trainers.hooks.StopOnSignal`).
+    :class:`~isodream_rl.run_utils.signals.StopOnSignal`).
 
     Writes ``<out_dir>/checkpoints/`` and TorchRL logger files under ``<out_dir>/logs``. An ``out_dir``
     holding another run is refused unless ``resume`` (continue it) or ``overwrite`` (delete it first), and it
     is held by this process while the run writes to it, as ``isodream-train`` does
-    (:func:`~isodream_rl.trainers.run_dir.hold_folder`); a resumed run cuts its CSV logs back to what they held
-    at the checkpoint (:mod:`isodream_rl.csv_logs`).
+    (:func:`~isodream_rl.run_utils.run_folder.hold_folder`); a resumed run cuts its CSV logs back to what they held
+    at the checkpoint (:mod:`isodream_rl.run_utils.csv_logs`).
 
     Returns:
         ``{"iterations", "train_seconds", "metrics": {"psnr_10": .., ...}, "curves": {"psnr": [...], ..},
@@ -449,46 +449,118 @@ def train(
     torch.manual_seed(config.seed)
     train_set, test_set = build_split(config, "train"), build_split(config, "test")
     # held once the data are found
-    with hold_folder(out_dir, resume=resume, overwrite=overwrite, run_files=RUN_FILES, flags=FLAGS):
+    with hold_folder(out_dir, flags=FLAGS, resume=resume, overwrite=overwrite, run_files=RUN_FILES):
         return _train(config, train_set, test_set, progress=progress, resume=resume)
 
 
-def _train(config: VideoTrainConfig, train_set, test_set, *, progress: bool, resume: bool) -> dict:
-    """:func:`train` in the ``out_dir`` it holds."""
-    out_dir = Path(config.out_dir)
-    action_dim = train_set[0]["actions"].shape[-1]
-    model = build_predictor(config, action_dim)
-    loss_fn = VideoPredictionLoss(
-        model,
-        lambda_action=config.lambda_action,
-        lambda_decouple=config.lambda_decouple,
-        context=config.context,
-    )
-    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
-    sampler = _EpochSampler(len(train_set), config.batch_size, seed=config.seed)
-    balls = train_set.distractor
-    test_loader = DataLoader(test_set, batch_size=config.batch_size)
+class _Scores:
+    """The per-frame scores of a training run on the test clips, logged under ``val/`` or ``eval/``; the
+    validations appended to ``history``."""
+
+    def __init__(self, config: VideoTrainConfig, model, test_loader, *, logger, history: list) -> None:
+        self.config, self.model, self.test_loader = config, model, test_loader
+        self.logger, self.history = logger, history
+
+    def curves(self, step: int, *, max_batches: int | None, prefix: str) -> dict[str, torch.Tensor]:
+        """PSNR/SSIM per frame on at most ``max_batches`` test batches, their summary logged under ``prefix``."""
+        config = self.config
+        curves = evaluate(
+            self.model,
+            self.test_loader,
+            context=config.context,
+            device=config.device,
+            max_batches=max_batches,
+        )
+        if self.logger is not None:
+            for key, value in FrameMetrics.summarize(curves, config.horizons).items():
+                self.logger.log_scalar(f"{prefix}/{key}", value, step=step)
+        return curves
+
+    def validate(self, step: int) -> None:
+        """The validation batches' summary, appended to the history."""
+        curves = self.curves(step, max_batches=self.config.val_batches, prefix="val")
+        summary = FrameMetrics.summarize(curves, self.config.horizons)
+        self.history.append({"iteration": step, **{k: round(v, 5) for k, v in summary.items()}})
+
+
+def _checkpoints(out_dir: Path, *, resume: bool) -> CheckpointManager:
+    """The checkpoints of ``out_dir`` (the last two kept).
+
+    Raises:
+        ValueError: ``resume`` of a folder that holds only the single ``checkpoint.pt`` of an earlier version.
+    """
     checkpoints = CheckpointManager(out_dir / "checkpoints", keep=2)
     if resume and (out_dir / "checkpoint.pt").exists() and not checkpoints.checkpoints():
         raise ValueError(
             f"cannot resume {out_dir}: its checkpoint.pt is of an earlier version (isodream-video eval still "
             "reads it); start a new --out-dir"
         )
+    return checkpoints
+
+
+def _restore(
+    config: VideoTrainConfig, checkpoints: CheckpointManager, *, model, optimizer, sampler, balls
+) -> tuple[dict, Path]:
+    """Load the newest readable checkpoint of ``checkpoints`` into the model, the optimiser, the sampler, the
+    distractors' random state and torch's; its state and folder.
+
+    Raises:
+        ValueError: no readable checkpoint, or one saved with settings that change the training.
+    """
+    try:
+        state, checkpoint = checkpoints.load_latest(required_keys=STATE_KEYS)
+    except CheckpointError as err:
+        raise ValueError(f"cannot resume {config.out_dir}: {err}") from err
+    _check_resumable(state["train_config"], config, checkpoint)
+    model.load_state_dict(state["model"])
+    optimizer.load_state_dict(state["optimizer"])
+    sampler.load_state_dict(state["sampler"])
+    if balls is not None and state.get("balls_rng") is not None:
+        balls.load_state_dict(state["balls_rng"])
+    torch.set_rng_state(state["torch_rng"].cpu())  # map_location may have moved it
+    return state, checkpoint
+
+
+def _update(
+    config: VideoTrainConfig, loss_fn: VideoPredictionLoss, optimizer, train_set, indices
+) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor]:
+    """One training iteration on the clips ``indices`` of ``train_set``: ``(losses, their sum, gradient norm)``."""
+    batch = default_collate([train_set[i] for i in indices])
+    td = TensorDict(
+        {"frames": batch["frames"].to(config.device), "actions": batch["actions"].to(config.device)},
+        batch_size=[config.batch_size],
+    )
+    losses = loss_fn(td)
+    total = sum(losses.values())
+    optimizer.zero_grad(set_to_none=True)
+    total.backward()
+    grad_norm = torch.nn.utils.clip_grad_norm_(loss_fn.predictor.parameters(), config.grad_clip)
+    optimizer.step()
+    return losses, total, grad_norm
+
+
+def _train(config: VideoTrainConfig, train_set, test_set, *, progress: bool, resume: bool) -> dict:
+    """:func:`train` in the ``out_dir`` it holds."""
+    out_dir = Path(config.out_dir)
+    loss_fn = VideoPredictionLoss(
+        build_predictor(config, train_set[0]["actions"].shape[-1]),
+        lambda_action=config.lambda_action,
+        lambda_decouple=config.lambda_decouple,
+        context=config.context,
+    )
+    model = loss_fn.predictor
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
+    sampler = _EpochSampler(len(train_set), config.batch_size, seed=config.seed)
+    balls = train_set.distractor
+    test_loader = DataLoader(test_set, batch_size=config.batch_size)
+    checkpoints = _checkpoints(out_dir, resume=resume)
     checkpoint: Path | None = None
     step, previous_seconds, history = 0, 0.0, []
     log_sizes: dict[str, int] | None = {}  # a run resumed without a checkpoint starts its logs again
     if resume and checkpoints.checkpoints():
-        try:
-            state, checkpoint = checkpoints.load_latest(required_keys=STATE_KEYS)
-        except CheckpointError as err:
-            raise ValueError(f"cannot resume {out_dir}: {err}") from err
-        _check_resumable(state["train_config"], config, checkpoint)
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        sampler.load_state_dict(state["sampler"])
-        if balls is not None and state.get("balls_rng") is not None:
-            balls.load_state_dict(state["balls_rng"])
-        torch.set_rng_state(state["torch_rng"].cpu())  # map_location may have moved it
+        state, checkpoint = _restore(
+            config, checkpoints, model=model, optimizer=optimizer, sampler=sampler, balls=balls
+        )
         step, previous_seconds, history = state["iteration"], state["train_seconds"], state["history"]
         log_sizes = state.get("log_sizes")
     if resume and log_sizes is not None:  # rows written after the checkpoint are of a timeline that ended
@@ -516,56 +588,34 @@ def _train(config: VideoTrainConfig, train_set, test_set, *, progress: bool, res
             },
         )
 
-    def run_eval(step: int, *, max_batches: int | None, prefix: str) -> dict[str, torch.Tensor]:
-        curves = evaluate(
-            model, test_loader, context=config.context, device=config.device, max_batches=max_batches
-        )
-        summary = FrameMetrics.summarize(curves, config.horizons)
-        if logger is not None:
-            for key, value in summary.items():
-                logger.log_scalar(f"{prefix}/{key}", value, step=step)
-        return curves
-
-    def validate(step: int) -> None:
-        summary = FrameMetrics.summarize(
-            run_eval(step, max_batches=config.val_batches, prefix="val"), config.horizons
-        )
-        history.append({"iteration": step, **{k: round(v, 5) for k, v in summary.items()}})
+    scores = _Scores(config, model, test_loader, logger=logger, history=history)
 
     start = time.monotonic()
     deadline = math.inf if config.max_minutes is None else start + 60 * config.max_minutes
     if step == 0 and config.val_every:
-        validate(0)
+        scores.validate(0)
     bar = tqdm(total=config.iterations, initial=step, disable=not progress, desc=config.variant)
     model.train()
     with StopOnSignal() as signals:
         while step < config.iterations and time.monotonic() < deadline and signals.received is None:
-            batch = default_collate([train_set[i] for i in sampler.next_batch()])
-            td = TensorDict(
-                {"frames": batch["frames"].to(config.device), "actions": batch["actions"].to(config.device)},
-                batch_size=[config.batch_size],
-            )
-            losses = loss_fn(td)
-            total = sum(losses.values())
-            optimizer.zero_grad(set_to_none=True)
-            total.backward()
-            grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
-            optimizer.step()
+            losses, total, grad_norm = _update(config, loss_fn, optimizer, train_set, sampler.next_batch())
             step += 1
             bar.update(1)
             if step % config.log_every == 0 or step == 1:
                 bar.set_postfix(loss=f"{float(total.detach()):.4f}")
                 if logger is not None:
-                    for key, value in losses.items():
-                        logger.log_scalar(f"train/{key}", float(value.detach()), step=step)
-                    logger.log_scalar("train/grad_norm", float(grad_norm), step=step)
-                    seconds = previous_seconds + time.monotonic() - start
-                    logger.log_scalar("train/seconds", seconds, step=step)
+                    scalars = {
+                        **losses,
+                        "grad_norm": grad_norm,
+                        "seconds": previous_seconds + time.monotonic() - start,
+                    }
+                    for key, value in scalars.items():
+                        logger.log_scalar(f"train/{key}", float(value), step=step)
             if config.val_every and step % config.val_every == 0:
-                validate(step)
+                scores.validate(step)
             if step % config.eval_every == 0 and step < config.iterations:
                 metrics = FrameMetrics.summarize(
-                    run_eval(step, max_batches=config.eval_batches, prefix="eval"), config.horizons
+                    scores.curves(step, max_batches=config.eval_batches, prefix="eval"), config.horizons
                 )
             if step % config.checkpoint_every == 0:
                 save(step)
@@ -575,8 +625,8 @@ def _train(config: VideoTrainConfig, train_set, test_set, *, progress: bool, res
         return {"iterations": step, "stopped_by_signal": signals.received, "checkpoint": str(checkpoint)}
     train_seconds = previous_seconds + time.monotonic() - start
     if config.val_every and (not history or history[-1]["iteration"] != step):
-        validate(step)
-    curves = run_eval(step, max_batches=config.eval_batches, prefix="eval")
+        scores.validate(step)
+    curves = scores.curves(step, max_batches=config.eval_batches, prefix="eval")
     metrics = FrameMetrics.summarize(curves, config.horizons)
     save(step)
     return {
