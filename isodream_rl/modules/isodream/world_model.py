@@ -407,9 +407,11 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         s, h = control.get(_next("state")), control.get(_next("belief"))
         states, beliefs = [s], [h]
         prior, posterior = [control.get(_next("prior_logits"))], [control.get(_next("posterior_logits"))]
-        is_init = tensordict.get("is_init")
+        # steps without a previous posterior in the window: its first step and episode starts
+        starts = tensordict.get("is_init").reshape(*s.shape[:2], 1).clone()
+        starts[:, 0] = True
         outputs = {
-            "control": self.control_decoder(self._drawn(s, prior[0], is_init, cfg.control_decoder_input), h)
+            "control": self.control_decoder(self._drawn(s, prior[0], starts, cfg.control_decoder_input), h)
         }
         if cfg.free_branch:
             zero = action.new_zeros(*action.shape[:-1], FREE_ACTION_DIM)
@@ -419,9 +421,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             beliefs.append(hz)
             prior.append(free.get(_next("prior_logits")))
             posterior.append(free.get(_next("posterior_logits")))
-            outputs["free"] = self.free_decoder(
-                self._drawn(z, prior[-1], is_init, cfg.free_decoder_input), hz
-            )
+            outputs["free"] = self.free_decoder(self._drawn(z, prior[-1], starts, cfg.free_decoder_input), hz)
             tensordict.set(_next("free_window"), self.free_window(z, hz))
         if cfg.static_branch:
             batch, time = embed.shape[:2]
@@ -453,7 +453,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             new["mask_static"] = masks["static"]
             tensordict.set("background", colors["static"].expand_as(composite))
         if cfg.inverse_dynamics:
-            new.update(self._inverse(s, tensordict.get("is_init")))
+            new.update(self._inverse(s, starts))
         for key, value in new.items():
             tensordict.set(_next(key), value)
         return tensordict
@@ -518,7 +518,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         return out
 
     def _drawn(
-        self, posterior: torch.Tensor, prior_logits: torch.Tensor, is_init: torch.Tensor, source: str
+        self, posterior: torch.Tensor, prior_logits: torch.Tensor, starts: torch.Tensor, source: str
     ) -> torch.Tensor:
         """The state a branch's decoder draws at each step (:attr:`IsoDreamConfig.control_decoder_input`,
         :attr:`IsoDreamConfig.free_decoder_input`).
@@ -526,7 +526,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         Args:
             posterior: the branch's posterior ``[B, T, S]``.
             prior_logits: its prior's logits ``[B, T, K, C]`` (from the belief that the previous posterior made).
-            is_init: ``[B, T, 1]`` episode starts.
+            starts: ``[B, T, 1]`` steps without a previous posterior (the window's first step, episode starts).
             source: ``"prior"`` or ``"posterior"``.
 
         Returns:
@@ -537,16 +537,12 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         if source == "posterior":
             return posterior
         prior = _straight_through_categorical(prior_logits, self.config.settings.unimix).flatten(-2)
-        blind = is_init.reshape(*posterior.shape[:2], 1).clone()
-        blind[:, 0] = True
-        return torch.where(blind, posterior, prior)
+        return torch.where(starts, posterior, prior)
 
-    def _inverse(self, s: torch.Tensor, is_init: torch.Tensor) -> dict[str, torch.Tensor]:
+    def _inverse(self, s: torch.Tensor, starts: torch.Tensor) -> dict[str, torch.Tensor]:
         """``action_pred[t]`` from ``[s_t, s_{t+1}]`` (the posteriors before and after ``action[t]``, i.e. ``("next",
         "state")`` at ``t - 1`` and ``t``); valid where both lie in one episode of the window (``t >= 1``, no
         reset at ``t``: the rollout zeroes a reset step's action)."""
         previous = torch.cat([torch.zeros_like(s[:, :1]), s[:, :-1]], dim=1)
         predicted = self.inverse_cell(previous, s)
-        valid = ~is_init.reshape(*s.shape[:2], 1)
-        valid[:, 0] = False
-        return {"action_pred": predicted, "action_pred_valid": valid}
+        return {"action_pred": predicted, "action_pred_valid": ~starts}
