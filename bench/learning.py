@@ -82,7 +82,16 @@ CURVE_DECOMPOSITION = (
     "iou_free_vs_agent",
     "iou_static_vs_agent",
     "iou_free_vs_distractors",
+    "target_share_static",
 )
+#: The table's column of each score of :data:`CURVE_DECOMPOSITION`.
+DECOMPOSITION_COLUMNS = {
+    "iou_control_vs_agent": "IoU controllable vs agent",
+    "iou_free_vs_agent": "IoU action-free vs agent",
+    "iou_static_vs_agent": "IoU static vs agent",
+    "iou_free_vs_distractors": "IoU action-free vs distractors",
+    "target_share_static": "target's share in static",
+}
 
 
 def run_command(algo: str, seed: int, run_dir: Path, args: argparse.Namespace) -> list[str]:
@@ -314,11 +323,11 @@ def table(results: dict) -> str:
     """Markdown table over the finished seeds, with the count of unfinished ones (logs, no summary.json): returns,
     success and contact counts, wall-clock, and the world models' final mask IoUs (:data:`CURVE_DECOMPOSITION`)."""
     success = SUCCESS_KEY.get(results["env"], "successes")
+    columns = [DECOMPOSITION_COLUMNS[score] for score in CURVE_DECOMPOSITION]
     lines = [
         f"| algo | seeds | unfinished | final return | normalised score | {success} per episode "
-        "| contacts per episode | wall-clock per run (min) | IoU controllable vs agent | IoU action-free vs agent "
-        "| IoU static vs agent | IoU action-free vs distractors |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        f"| contacts per episode | wall-clock per run (min) | {' | '.join(columns)} |",
+        "|---" * (8 + len(columns)) + "|",
     ]
     for algo, entry in results["algos"].items():
         unfinished = sum(not c.get("finished", True) for c in entry["curves"].values())
@@ -336,7 +345,8 @@ def table(results: dict) -> str:
             normalised = {"constant": "0", "scripted": "1"}.get(name, "-")
             lines.append(
                 f"| {name} policy | - | - | {ref['return']:.1f} | {normalised} "
-                f"| {ref.get(success, float('nan')):.1f} | {ref.get('contacts', float('nan')):.1f} | - | - | - | - | - |"
+                f"| {ref.get(success, float('nan')):.1f} | {ref.get('contacts', float('nan')):.1f} | - |"
+                + " - |" * len(columns)
             )
     return "\n".join(lines)
 

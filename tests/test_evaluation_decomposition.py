@@ -71,6 +71,28 @@ def test_a_perfect_decomposition_scores_one_on_the_diagonal_and_zero_elsewhere()
     assert scores["reco_mse"] == scores["mse_agent"] == scores["mse_background"] == 0.0
 
 
+def test_the_target_is_scored_where_the_windows_hold_its_mask():
+    windows = make_windows()
+    target = torch.zeros(4, 4, dtype=torch.bool)
+    target[2, :2] = True  # two background pixels
+    free = DISTRACTORS.clone()
+    free[2, 0] = True  # the action-free branch takes one target pixel, the static one the other
+    model = FixedMasks(windows, one_hot(AGENT, free))
+    assert not any("target" in key for key in decomposition_scores(model, windows))
+    windows["next", "mask_target"] = target.expand(2, 3, 4, 4).clone()
+    scores = decomposition_scores(model, windows)
+    assert (scores["target_share_control"], scores["target_share_free"], scores["target_share_static"]) == (
+        0.0,
+        0.5,
+        0.5,
+    )
+    assert scores["iou_free_vs_target"] == pytest.approx(1 / 4)  # 1 shared pixel, 4 in the union
+    assert scores["iou_static_vs_target"] == pytest.approx(1 / 12)  # static: 11 pixels + 1 of the target's
+    windows["next", "mask_target"] = target.float().expand(2, 3, 4, 4).clone()
+    with pytest.raises(ValueError, match="mask_target.*bool"):
+        decomposition_scores(model, windows)
+
+
 def test_a_branch_twice_the_size_of_its_class_scores_one_half():
     windows = make_windows()
     control = AGENT.clone()

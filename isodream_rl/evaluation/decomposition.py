@@ -11,7 +11,9 @@ vocabulary:
 * ``background``: every other pixel (the sprites background and target, the DMC floor, the road).
 
 A perfect Iso-Dream model gives ``control`` the agent, ``free`` the distractors and ``static`` the
-background.
+background. Where the windows also hold a task object's mask (:data:`PART_KEYS`: the sprites target, part of
+the background above), the scores say which branch draws it: the target is still between respawns, so the
+static branch can draw it, and then neither state the actor reads needs to know where it is.
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ BRANCHES = ("control", "free", "static")
 CLASSES = ("agent", "distractors", "background")
 #: Where the windows hold the ground truth of the classes with a mask of their own.
 TRUTH_KEYS = {"agent": ("next", "mask_agent"), "distractors": ("next", "mask_distractors")}
+#: Optional ground truth of objects inside the classes above, scored when the windows hold it.
+PART_KEYS = {"target": ("next", "mask_target")}
 _MODEL_KEYS = ("action", "is_init", ("next", "pixels"))
 
 
@@ -69,6 +73,14 @@ def check_windows(windows: TensorDictBase) -> None:
             )
         if mask.dtype != torch.bool:
             raise ValueError(f"{key} must be a bool mask, got {mask.dtype}")
+    for key in PART_KEYS.values():
+        if key in keys:
+            mask = windows.get(key)
+            if tuple(mask.shape) != expected or mask.dtype != torch.bool:
+                raise ValueError(
+                    f"{key} must be a bool [N, T, H, W] = {list(expected)} mask like the pixels, got "
+                    f"{mask.dtype} {list(mask.shape)}"
+                )
 
 
 def branch_assignment(output: TensorDictBase, *, threshold: float | None = None) -> dict[str, torch.Tensor]:
@@ -139,6 +151,15 @@ def score_decomposition(
     for branch in BRANCHES:
         background = truth["background"]
         scores[f"background_share_{branch}"] = _ratio((held[branch] & background).sum(), background.sum())
+    present = set(windows.keys(include_nested=True))
+    for part, key in PART_KEYS.items():
+        if key not in present:
+            continue
+        mask = windows.get(key).cpu()
+        for branch in BRANCHES:
+            union = (held[branch] | mask).sum()
+            scores[f"iou_{branch}_vs_{part}"] = _ratio((held[branch] & mask).sum(), union)
+            scores[f"{part}_share_{branch}"] = _ratio((held[branch] & mask).sum(), mask.sum())
     return scores
 
 
@@ -178,7 +199,10 @@ def decomposition_scores(
           (the diagonal: ``iou_control_vs_agent``, ``iou_free_vs_distractors``, ``iou_static_vs_background``);
         * ``background_share_<branch>``: the fraction of the background's pixels that branch holds;
         * ``mse_<class>``: the composite's squared error per pixel and channel on that class's pixels
-          (``[-0.5, 0.5]`` pixel range), and ``reco_mse`` on all of them.
+          (``[-0.5, 0.5]`` pixel range), and ``reco_mse`` on all of them;
+        * where the windows hold a part of :data:`PART_KEYS` (``("next", "mask_target")``, bool
+          ``[N, T, H, W]``): ``iou_<branch>_vs_<part>`` and ``<part>_share_<branch>``, the fraction of its
+          pixels each branch holds.
 
     Raises:
         ValueError: windows without the ground truth or of the wrong shapes (:func:`check_windows`).

@@ -17,7 +17,7 @@ from torchrl.trainers import TrainerHookBase
 
 from isodream_rl.envs.task_metrics import TASK_METRICS
 from isodream_rl.evaluation import decomposition_scores, isolation_verdict
-from isodream_rl.evaluation.decomposition import TRUTH_KEYS
+from isodream_rl.evaluation.decomposition import PART_KEYS, TRUTH_KEYS
 from isodream_rl.trainers.openloop import open_loop_prediction, prediction_frames, prediction_video, save_gif
 
 #: Upper bound on evaluation episode length; every env here truncates well before (sprites 200, highway 250,
@@ -117,6 +117,8 @@ def rollout_decomposition(
     window = min(window, steps)
     count = min(max_windows, steps // window)
     keys = ["action", "is_init", ("next", "pixels"), *TRUTH_KEYS.values()]
+    present = set(rollout.keys(include_nested=True))
+    keys += [key for key in PART_KEYS.values() if key in present]
     windows = rollout[: count * window].select(*keys).reshape(count, window).clone()
     windows["is_init"][:, 0] = True  # each window is filtered from zero states
     return decomposition_scores(world_model, windows, device=next(world_model.parameters()).device)
