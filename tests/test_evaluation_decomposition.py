@@ -1,5 +1,6 @@
 """``isodream_rl.evaluation.decomposition_scores`` on hand-made masks whose scores are known."""
 
+import json
 import math
 
 import pytest
@@ -210,3 +211,29 @@ def test_the_rl_run_logs_the_decomposition_of_its_evaluations(tmp_path):
     train(cfg)
     logged = {p.stem for p in (tmp_path / "logs").rglob("*.csv") if p.parent.name == "decomposition"}
     assert {"iou_control_vs_agent", "iou_free_vs_distractors", "background_share_static"} <= logged
+
+
+def test_a_finished_run_is_scored_again_from_its_checkpoint_with_the_target(tmp_path):
+    from isodream_rl.trainers import train
+    from isodream_rl.trainers.run import checkpoint_decomposition
+    from tests.conftest import tiny_run_config
+
+    cfg = tiny_run_config(
+        tmp_path,
+        train__buffer_size=200,
+        train__total_steps=30,
+        logging__progress_bar=False,
+        logging__log_every=10,
+        logging__eval_every=0,
+        logging__final_eval_episodes=1,
+        env__kwargs={"max_steps": 20},
+    )
+    train(cfg)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    again = checkpoint_decomposition(tmp_path)
+    assert again == checkpoint_decomposition(tmp_path)  # the final evaluation's episode, seeded
+    scores = again["decomposition"]
+    assert set(summary["decomposition"]) == set(scores)  # the same scores as the summary, the target's among them
+    assert sum(scores[f"target_share_{b}"] for b in BRANCHES) == pytest.approx(1.0)
+    assert again["episode_steps"] == 20 and again["isolation"]["agent_branch"] in BRANCHES
+    assert again["checkpoint"].startswith(str(tmp_path / "checkpoints"))

@@ -351,6 +351,34 @@ def _is_scalar(value) -> bool:
     return isinstance(value, (int, float)) or (isinstance(value, torch.Tensor) and value.numel() == 1)
 
 
+def _checkpoint_components(
+    run_dir: str | Path, *, seed: int, device: str
+) -> tuple[RunConfig, RunComponents, Path]:
+    """The configuration of ``run_dir``'s newest readable checkpoint, its models (loaded and built on ``device``,
+    :func:`evaluate_checkpoint`) and the checkpoint's path; seeds everything with ``seed`` and sets the run's
+    torch threads."""
+    unusable = device_error(device, setting="--device")
+    if unusable:
+        raise ConfigError(unusable)
+    checkpoints = CheckpointManager(Path(run_dir) / "checkpoints", keep=2)
+    if not checkpoints.checkpoints():
+        raise CheckpointError(
+            f"no checkpoint in {checkpoints.directory}: give the run_dir that isodream-train wrote"
+        )
+    state, path = checkpoints.load_latest(required_keys=("config", "models"))
+    cfg = saved_run_config(state)
+    if cfg.mode == "world_model":
+        raise CheckpointError(f"{path} is of a mode=world_model run: it has no policy to evaluate")
+    torch.set_num_threads(cfg.train.threads)
+    seed_everything(seed)
+    cfg.train.device = device
+    components = make_components(
+        cfg, action_dim=probe_action_dim(cfg), scratch_dir=Path(run_dir) / "eval_scratch"
+    )
+    components.load_models(state, checkpoint=path)
+    return cfg, components, path
+
+
 def evaluate_checkpoint(
     run_dir: str | Path,
     *,
@@ -381,25 +409,7 @@ def evaluate_checkpoint(
         CheckpointError: no readable checkpoint, or one of a ``mode=world_model`` run, or one whose weights do not
             fit the models of its configuration (:class:`~isodream_rl.trainers.saved_models.CheckpointMismatchError`).
     """
-    unusable = device_error(device, setting="--device")
-    if unusable:
-        raise ConfigError(unusable)
-    checkpoints = CheckpointManager(Path(run_dir) / "checkpoints", keep=2)
-    if not checkpoints.checkpoints():
-        raise CheckpointError(
-            f"no checkpoint in {checkpoints.directory}: give the run_dir that isodream-train wrote"
-        )
-    state, path = checkpoints.load_latest(required_keys=("config", "models"))
-    cfg = saved_run_config(state)
-    if cfg.mode == "world_model":
-        raise CheckpointError(f"{path} is of a mode=world_model run: it has no policy to evaluate")
-    torch.set_num_threads(cfg.train.threads)
-    seed_everything(seed)
-    cfg.train.device = device
-    components = make_components(
-        cfg, action_dim=probe_action_dim(cfg), scratch_dir=Path(run_dir) / "eval_scratch"
-    )
-    components.load_models(state, checkpoint=path)
+    cfg, components, _ = _checkpoint_components(run_dir, seed=seed, device=device)
     policy = components.behavior.policy
     env = checked_env_factory(cfg, eval_mode=True)()
     env.append_transform(policy.make_tensordict_primer())
@@ -411,3 +421,47 @@ def evaluate_checkpoint(
     if video is not None:
         save_episode_gif(results.frames, video)
     return results.mean, results.std, results.returns
+
+
+def checkpoint_decomposition(run_dir: str | Path, *, seed: int | None = None, device: str = "cpu") -> dict:
+    """Score the decomposition of ``run_dir``'s newest checkpoint again, as its final evaluation did.
+
+    Plays one mode-action episode on the run's evaluation env with the ground-truth masks, seeded as the final
+    evaluation's first episode (``train.seed + 1``) unless ``seed`` is given, and scores the world model's
+    branches over up to 8 windows of ``train.sequence_length`` (:func:`final_decomposition`). On the final
+    checkpoint this is the run's ``summary.json`` decomposition again, with every score the library has now
+    (e.g. which branch draws the sprites target, ``target_share_<branch>``).
+
+    Args:
+        run_dir: the run folder given to ``isodream-train`` (``mode=rl``).
+        seed: the episode's env and policy seed (``None``: the final evaluation's).
+        device: where the models run.
+
+    Returns:
+        ``{"decomposition": {score: value}, "isolation": {...}, "episode_steps": int, "checkpoint": str}``
+        (the checkpoint read).
+
+    Raises:
+        ConfigError: ``device`` is not usable, or the run's world model is not Iso-Dream's or its env renders no
+            ground truth (nothing to score).
+        CheckpointError: as :func:`evaluate_checkpoint`.
+    """
+    cfg, components, path = _checkpoint_components(run_dir, seed=0 if seed is None else seed, device=device)
+    if not _decomposes(cfg) or components.world_model is None:
+        raise ConfigError(
+            f"{run_dir} has nothing to score: algo={cfg.algo.name} on env={cfg.env.name} has no Iso-Dream world "
+            "model or no ground-truth masks"
+        )
+    seed = cfg.train.seed + 1 if seed is None else seed
+    seed_everything(seed)
+    policy = components.behavior.policy
+    env = _eval_env(cfg, policy, masks=True)
+    env.set_seed(seed)
+    try:
+        results = run_episodes(policy, env, episodes=1, task=cfg.env.name, keep_rollout=True)
+    finally:
+        env.close()
+    scores = final_decomposition(
+        components.world_model, results.first_rollout, window=cfg.train.sequence_length
+    )
+    return {**scores, "episode_steps": int(results.first_rollout.shape[0]), "checkpoint": str(path)}
