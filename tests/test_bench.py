@@ -113,3 +113,19 @@ def test_update_speed_times_one_full_update_of_each_algorithm_on_one_sample(tmp_
             assert entry[f"ratio_to_{reference}"] == pytest.approx(expected)
         assert set(entry["parameters"]) == {"world_model", "actor", "value"}
     assert out["algos"]["isodream"]["ratio_to_isodream"] == 1.0
+
+
+def test_openloop_png_stacks_the_chosen_frames_of_a_gif_downwards(tmp_path):
+    from PIL import Image
+
+    openloop_png = load_bench("openloop_png")
+
+    colours = [(255, 0, 0), (0, 255, 0), (0, 0, 255)]
+    frames = [Image.new("RGB", (6, 4), c) for c in colours]
+    frames[0].save(tmp_path / "a.gif", save_all=True, append_images=frames[1:], duration=100)
+    png = openloop_png.main([str(tmp_path / "a.gif"), str(tmp_path / "a.png"), "--steps", "0,-1"])
+    picture = Image.open(png).convert("RGB")
+    assert picture.size == (6, 8)
+    assert picture.getpixel((0, 0)) == colours[0] and picture.getpixel((0, 7)) == colours[2]
+    with pytest.raises(ValueError, match="outside the GIF's 3 frames"):
+        openloop_png.stack_frames(openloop_png.gif_frames(tmp_path / "a.gif"), [3])

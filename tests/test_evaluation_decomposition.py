@@ -226,7 +226,7 @@ def test_a_finished_run_is_scored_again_from_its_checkpoint_with_the_target(tmp_
         logging__log_every=10,
         logging__eval_every=0,
         logging__final_eval_episodes=1,
-        env__kwargs={"max_steps": 20},
+        env__kwargs={"max_steps": 20, "task": "reach"},
     )
     train(cfg)
     summary = json.loads((tmp_path / "summary.json").read_text())
