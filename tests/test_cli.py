@@ -458,13 +458,17 @@ def test_env_groups_set_env_fields_only_and_pick_a_domain(env):
 
     written = yaml.safe_load((CONFIGS / "env" / f"{env}.yaml").read_text())
     assert set(written) == {"defaults", "env"}  # the algorithm's per-domain choices live in configs/domain/
-    while not any(isinstance(entry, dict) for entry in written["defaults"]):
-        # builds on another env group (env=sprites_reach on env=sprites), which picks the domain
-        (base,) = [entry for entry in written["defaults"] if entry != "_self_"]
+    picks = [entry for entry in written["defaults"] if isinstance(entry, dict)]
+    while not any("/domain" in entry for entry in picks):
+        # builds on another env group (env=sprites_reach on env=sprites), which picks the domain; the group may
+        # pick its own over the base's ("override /domain")
+        (base,) = [entry for entry in written["defaults"] if isinstance(entry, str) and entry != "_self_"]
         written = yaml.safe_load((CONFIGS / "env" / f"{base}.yaml").read_text())
         assert set(written) == {"defaults", "env"}
-    domain = next(entry["/domain"] for entry in written["defaults"] if isinstance(entry, dict))
-    assert (CONFIGS / "domain" / f"{domain}.yaml").exists()
+        picks += [entry for entry in written["defaults"] if isinstance(entry, dict)]
+    for entry in picks:
+        (domain,) = entry.values()
+        assert (CONFIGS / "domain" / f"{domain}.yaml").exists()
     stored = composed("env=dmc_cartpole_swingup")  # a DMC task without a YAML file picks domain=dmc too
     assert (stored.env.domain, stored.algo.policy_input, stored.algo.reward_uses_free) == (
         "dmc",
