@@ -97,27 +97,6 @@ def test_update_rate_reads_the_runs_own_rate_and_plans_10k_updates(tmp_path):
     assert saved["rates"] == result["rates"] and saved["cpu"] and saved["overrides"] == module.RUNG1
 
 
-def test_update_speed_times_one_full_update_of_each_algorithm_on_one_sample(tmp_path):
-    module = load_bench("update_speed")
-    path = tmp_path / "speed.json"
-    args = ["--size", "tiny", "--rounds", "2", "--warmup", "1", "--json", str(path)]
-    out = module.main(args)
-    assert json.loads(path.read_text()) == out
-    assert set(out["algos"]) == {"isodream", "isodream_v2", "dreamerv2", "torchrl_dreamer_v3"}
-    assert out["cpu"] and out["torch_threads"] == 1 and out["size"] == "tiny"
-    for algo, entry in out["algos"].items():
-        assert len(entry["wall_s"]) == len(entry["cpu_s"]) == 2, algo
-        assert entry["updates_per_s"] == pytest.approx(1 / entry["median_wall_s"])
-        for reference in ("isodream", "dreamerv2"):
-            expected = entry["median_wall_s"] / out["algos"][reference]["median_wall_s"]
-            assert entry[f"ratio_to_{reference}"] == pytest.approx(expected)
-        assert set(entry["parameters"]) == {"world_model", "actor", "value"}
-        assert entry["algo"] == algo  # fast paths on where the learner has them (the default)
-        assert entry["fast_paths"] is (None if algo == "torchrl_dreamer_v3" else True), algo
-    assert out["algos"]["isodream"]["ratio_to_isodream"] == 1.0
-    assert out["fast_paths"] == "on"
-
-
 def test_update_speed_builds_each_learner_with_fast_paths_once_per_value_asked():
     """``--fast-paths``: the learners that read ``model.fast_paths`` under their name when on and as
     ``<algo>[fast_paths=false]`` when off; TorchRL's DreamerV3, which has none, once as it is."""
@@ -160,3 +139,23 @@ def test_update_speed_times_the_default_with_and_without_its_fast_paths(tmp_path
     assert reference["parameters"]["world_model"] > 0 and out["cpu"]
     expected = reference["median_wall_s"] / entries["isodream"]["median_wall_s"]
     assert reference["ratio_to_isodream"] == pytest.approx(expected)
+
+
+def test_update_speed_times_one_full_update_of_each_algorithm_on_one_sample(tmp_path):
+    module = load_bench("update_speed")
+    path = tmp_path / "speed.json"
+    args = ["--size", "tiny", "--rounds", "2", "--warmup", "1", "--json", str(path)]
+    out = module.main(args)
+    assert json.loads(path.read_text()) == out
+    assert set(out["algos"]) == {"isodream", "isodream_v2", "dreamerv2", "torchrl_dreamer_v3"}
+    assert out["cpu"] and out["torch_threads"] == 1 and out["size"] == "tiny" and out["fast_paths"] == "on"
+    for algo, entry in out["algos"].items():
+        assert len(entry["wall_s"]) == len(entry["cpu_s"]) == 2, algo
+        assert entry["updates_per_s"] == pytest.approx(1 / entry["median_wall_s"])
+        for reference in ("isodream", "dreamerv2"):
+            expected = entry["median_wall_s"] / out["algos"][reference]["median_wall_s"]
+            assert entry[f"ratio_to_{reference}"] == pytest.approx(expected)
+        assert set(entry["parameters"]) == {"world_model", "actor", "value"}
+        assert entry["algo"] == algo  # fast paths on where the learner has them (the default)
+        assert entry["fast_paths"] is (None if algo == "torchrl_dreamer_v3" else True), algo
+    assert out["algos"]["isodream"]["ratio_to_isodream"] == 1.0
