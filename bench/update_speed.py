@@ -11,12 +11,24 @@ beyond what was held before it is recorded (``update_memory_gb``). The algorithm
 round, so that load from other processes hits all of them alike; ``--warmup`` rounds are not timed, then the
 median over ``--rounds`` rounds is reported: wall seconds per update, process CPU seconds per update, updates per
 second, and the ratio of each algorithm's wall time to Iso-Dream's (``algo=isodream``) and to DreamerV2's. The JSON also records each
-algorithm's trained parameters per group, the CPU (and the GPU), the commit, the torch threads and the load average
-before and after. ``bench/gpu_check.py`` times its updates with :func:`measure`.
+algorithm's trained parameters per group (``parameters.world_model``: the world model's count), the CPU's model name
+(``/proc/cpuinfo``'s, as ``lscpu`` prints it) and the GPU, the commit, the torch threads and the load average before
+and after. ``bench/gpu_check.py`` times its updates with :func:`measure`.
+
+``--fast-paths`` picks how the learners with CPU fast paths (those that read ``model.fast_paths``: the default
+``algo=isodream`` and its ablations, the DreamerV2-style learner) are built: ``on`` (their default, timed under
+their own name), ``off`` (``model.fast_paths=false``, the reference forms, timed as ``<algo>[fast_paths=false]``)
+or ``both``, one entry each, taking turns with the others; each entry records its ``algo`` and ``fast_paths``
+(``null`` for a learner without the switch). ``ratio_to_isodream`` of ``isodream[fast_paths=false]`` is then the
+fast paths' gain.
 
 The rate inside a real run (collection included) is ``bench/update_rate.py``'s.
 
     python bench/update_speed.py --json docs/results/update_speed.json      # size=bench, 1 thread
+    python bench/update_speed.py --algos isodream,torchrl_dreamer_v3 --fast-paths both \
+        --json docs/results/update_speed.json                                # the default both ways, size=bench
+    python bench/update_speed.py --size quickstart --algos isodream,torchrl_dreamer_v3 --fast-paths both \
+        --json docs/results/update_speed_quickstart.json
     python bench/update_speed.py --size tiny --rounds 2 --warmup 1 --json /tmp/speed.json   # quick check
     python bench/update_speed.py --device cuda --size paper --json /tmp/speed_gpu.json       # on a GPU
 """
@@ -42,20 +54,52 @@ from common import device_provenance, provenance  # noqa: E402
 
 import isodream_rl.cli  # noqa: E402, F401  (registers the config schema and the TorchRL baselines)
 from isodream_rl.trainers.config import device_error  # noqa: E402
+from isodream_rl.trainers.learners import learner_of  # noqa: E402
 from isodream_rl.trainers.registry import make_components  # noqa: E402
 from isodream_rl.trainers.run_lifecycle import probe_action_dim  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "isodream_rl" / "configs"
 ALGOS = ("isodream", "isodream_v2", "dreamerv2", "torchrl_dreamer_v3")
+#: ``--fast-paths`` choices: the ``model.fast_paths`` values timed for a learner that reads it.
+FAST_PATHS = {"on": (True,), "off": (False,), "both": (True, False)}
 
 
-def run_config(algo: str, size: str, *, device: str = "cpu"):
-    """The ``RunConfig`` that ``isodream-train env=sprites size=<size> algo=<algo> train.device=<device>`` trains."""
-    overrides = ["env=sprites", f"size={size}", f"algo={algo}", f"train.device={device}"]
+def run_config(algo: str, size: str, *, device: str = "cpu", overrides: tuple[str, ...] = ()):
+    """The ``RunConfig`` that ``isodream-train env=sprites size=<size> algo=<algo> train.device=<device>
+    <overrides>`` trains."""
+    overrides = ["env=sprites", f"size={size}", f"algo={algo}", f"train.device={device}", *overrides]
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         cfg = compose(config_name="config", overrides=overrides)
     return OmegaConf.to_object(cfg)
+
+
+def has_fast_paths(algo: str) -> bool:
+    """Whether the learner of ``algo=<algo>`` reads ``model.fast_paths`` (has CPU fast paths to switch off)."""
+    return "model.fast_paths" in learner_of(algo).values
+
+
+def variants(algos: list[str], fast_paths: str) -> list[tuple[str, str, bool | None]]:
+    """``(label, algo, fast_paths)`` of each build to time, in ``algos``' order: a learner with fast paths once per
+    value of ``FAST_PATHS[fast_paths]`` (labelled ``<algo>`` when on, ``<algo>[fast_paths=false]`` when off), any
+    other once as it is (``fast_paths`` ``None``).
+
+    Raises:
+        ValueError: ``fast_paths`` is not a key of :data:`FAST_PATHS`, or an algorithm is listed twice.
+    """
+    if fast_paths not in FAST_PATHS:
+        raise ValueError(f"fast_paths must be one of {sorted(FAST_PATHS)}, got {fast_paths!r}")
+    repeated = sorted({algo for algo in algos if algos.count(algo) > 1})
+    if repeated:
+        raise ValueError(f"algorithms listed more than once: {repeated}")
+    out = []
+    for algo in algos:
+        if not has_fast_paths(algo):
+            out.append((algo, algo, None))
+            continue
+        for value in FAST_PATHS[fast_paths]:
+            out.append((algo if value else f"{algo}[fast_paths=false]", algo, value))
+    return out
 
 
 def replay_sample(batch_size: int, length: int, action_dim: int) -> TensorDict:
@@ -96,7 +140,14 @@ def synchronize(device: torch.device) -> None:
 
 
 def measure(
-    algos: list[str], *, size: str, device: str, rounds: int, warmup: int, scratch: Path
+    algos: list[str],
+    *,
+    size: str,
+    device: str,
+    rounds: int,
+    warmup: int,
+    scratch: Path,
+    fast_paths: str = "on",
 ) -> dict[str, dict]:
     """Time one update of each of ``algos``, built at ``size`` on ``device``, the algorithms taking turns.
 
@@ -107,9 +158,12 @@ def measure(
         rounds: timed updates per algorithm (median reported).
         warmup: untimed updates per algorithm first.
         scratch: folder of the replay buffers' memmap files (the buffers stay empty).
+        fast_paths: ``"on"``, ``"off"`` or ``"both"``: the ``model.fast_paths`` values of the learners that read
+            it (:func:`variants`).
 
     Returns:
-        per algorithm: ``batch_size``, ``sequence_length``, ``horizon``, ``parameters`` (per group), ``wall_s`` and
+        per label (:func:`variants`: the algorithm's name, or ``<algo>[fast_paths=false]``): ``algo``,
+        ``fast_paths``, ``batch_size``, ``sequence_length``, ``horizon``, ``parameters`` (per group), ``wall_s`` and
         ``cpu_s`` per timed update, their medians, ``updates_per_s``, ``ratio_to_isodream`` /
         ``ratio_to_dreamerv2`` (where timed) and, on a GPU, ``update_memory_gb`` per timed update and its maximum.
 
@@ -118,14 +172,17 @@ def measure(
     """
     device = torch.device(device)
     entries, steppers, samples = {}, {}, {}
-    for algo in algos:
-        cfg = run_config(algo, size, device=str(device))
+    for label, algo, fast in variants(list(algos), fast_paths):
+        overrides = () if fast is None else (f"model.fast_paths={str(fast).lower()}",)
+        cfg = run_config(algo, size, device=str(device), overrides=overrides)
         action_dim = probe_action_dim(cfg)
-        components = make_components(cfg, action_dim=action_dim, scratch_dir=Path(scratch) / algo)
-        steppers[algo] = components.stepper
+        components = make_components(cfg, action_dim=action_dim, scratch_dir=Path(scratch) / label)
+        steppers[label] = components.stepper
         # on the device already: the timing is the update's, not the host-to-device copy's
-        samples[algo] = replay_sample(cfg.train.batch_size, cfg.train.sequence_length, action_dim).to(device)
-        entries[algo] = {
+        samples[label] = replay_sample(cfg.train.batch_size, cfg.train.sequence_length, action_dim).to(device)
+        entries[label] = {
+            "algo": algo,
+            "fast_paths": fast,
             "batch_size": cfg.train.batch_size,
             "sequence_length": cfg.train.sequence_length,
             "horizon": cfg.algo.horizon,
@@ -135,23 +192,23 @@ def measure(
             **({"update_memory_gb": []} if device.type == "cuda" else {}),
         }
     for round_index in range(warmup + rounds):
-        for algo in algos:
+        for label in entries:
             synchronize(device)
             if device.type == "cuda":
                 torch.cuda.reset_peak_memory_stats(device)
                 held = torch.cuda.memory_allocated(device)
             wall, cpu = time.perf_counter(), time.process_time()
-            metrics = steppers[algo].step(None, samples[algo])
+            metrics = steppers[label].step(None, samples[label])
             synchronize(device)
             wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
             if float(metrics["nonfinite_skipped"]):
-                raise RuntimeError(f"{algo}: a non-finite update; the timing would not be an update's")
+                raise RuntimeError(f"{label}: a non-finite update; the timing would not be an update's")
             if round_index >= warmup:
-                entries[algo]["wall_s"].append(wall)
-                entries[algo]["cpu_s"].append(cpu)
+                entries[label]["wall_s"].append(wall)
+                entries[label]["cpu_s"].append(cpu)
                 if device.type == "cuda":
                     peak = torch.cuda.max_memory_allocated(device) - held
-                    entries[algo]["update_memory_gb"].append(peak / 2**30)
+                    entries[label]["update_memory_gb"].append(peak / 2**30)
     for entry in entries.values():
         entry["median_wall_s"] = statistics.median(entry["wall_s"])
         entry["median_cpu_s"] = statistics.median(entry["cpu_s"])
@@ -169,6 +226,13 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--algos", type=lambda s: s.split(","), default=list(ALGOS))
     parser.add_argument("--size", default="bench", help="the size group of isodream-train")
+    parser.add_argument(
+        "--fast-paths",
+        choices=sorted(FAST_PATHS),
+        default="on",
+        help="model.fast_paths of the learners that read it: on (their default), off (the reference forms) or "
+        "both (an entry each)",
+    )
     parser.add_argument(
         "--rounds", type=int, default=10, help="timed updates per algorithm (median reported)"
     )
@@ -193,9 +257,11 @@ def main(argv: list[str] | None = None) -> dict:
             rounds=args.rounds,
             warmup=args.warmup,
             scratch=Path(scratch),
+            fast_paths=args.fast_paths,
         )
     result = {
         "size": args.size,
+        "fast_paths": args.fast_paths,
         "env": "sprites",
         "rounds": args.rounds,
         "warmup": args.warmup,
@@ -208,9 +274,12 @@ def main(argv: list[str] | None = None) -> dict:
         **provenance("update_speed.py", argv, parallel=1),
         **device_provenance(args.device),
     }
-    for algo, entry in entries.items():
+    for label, entry in entries.items():
         ratios = ", ".join(f"{k} {v:.2f}" for k, v in entry.items() if k.startswith("ratio_to_"))
-        print(f"{algo}: {entry['median_wall_s']:.3f} s per update ({entry['updates_per_s']:.2f}/s); {ratios}")
+        print(
+            f"{label}: {entry['median_wall_s']:.3f} s per update ({entry['updates_per_s']:.2f}/s); {ratios}; "
+            f"world model {entry['parameters']['world_model'] / 1e6:.2f} M parameters"
+        )
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(result, indent=2) + "\n")

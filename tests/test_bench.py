@@ -97,6 +97,50 @@ def test_update_rate_reads_the_runs_own_rate_and_plans_10k_updates(tmp_path):
     assert saved["rates"] == result["rates"] and saved["cpu"] and saved["overrides"] == module.RUNG1
 
 
+def test_update_speed_builds_each_learner_with_fast_paths_once_per_value_asked():
+    """``--fast-paths``: the learners that read ``model.fast_paths`` under their name when on and as
+    ``<algo>[fast_paths=false]`` when off; TorchRL's DreamerV3, which has none, once as it is."""
+    variants = load_bench("update_speed").variants
+    algos = ["isodream", "torchrl_dreamer_v3", "isodream_v2"]
+    assert variants(algos, "on") == [
+        ("isodream", "isodream", True),
+        ("torchrl_dreamer_v3", "torchrl_dreamer_v3", None),
+        ("isodream_v2", "isodream_v2", True),
+    ]
+    assert variants(algos[:2], "off") == [
+        ("isodream[fast_paths=false]", "isodream", False),
+        ("torchrl_dreamer_v3", "torchrl_dreamer_v3", None),
+    ]
+    assert [label for label, _, _ in variants(algos[:2], "both")] == [
+        "isodream",
+        "isodream[fast_paths=false]",
+        "torchrl_dreamer_v3",
+    ]
+    with pytest.raises(ValueError, match="fast_paths must be one of"):
+        variants(algos, "true")
+    with pytest.raises(ValueError, match=r"listed more than once: \['isodream'\]"):
+        variants(["isodream", "isodream"], "on")
+
+
+def test_update_speed_times_the_default_with_and_without_its_fast_paths(tmp_path):
+    path = tmp_path / "speed.json"
+    args = ["--size", "tiny", "--algos", "isodream,torchrl_dreamer_v3", "--fast-paths", "both"]
+    out = load_bench("update_speed").main([*args, "--rounds", "1", "--warmup", "0", "--json", str(path)])
+    assert json.loads(path.read_text()) == out and out["fast_paths"] == "both"
+    entries = out["algos"]
+    assert list(entries) == ["isodream", "isodream[fast_paths=false]", "torchrl_dreamer_v3"]
+    assert [(e["algo"], e["fast_paths"]) for e in entries.values()] == [
+        ("isodream", True),
+        ("isodream", False),
+        ("torchrl_dreamer_v3", None),
+    ]
+    reference = entries["isodream[fast_paths=false]"]
+    assert reference["parameters"] == entries["isodream"]["parameters"]  # the same learner
+    assert reference["parameters"]["world_model"] > 0 and out["cpu"]
+    expected = reference["median_wall_s"] / entries["isodream"]["median_wall_s"]
+    assert reference["ratio_to_isodream"] == pytest.approx(expected)
+
+
 def test_update_speed_times_one_full_update_of_each_algorithm_on_one_sample(tmp_path):
     module = load_bench("update_speed")
     path = tmp_path / "speed.json"
@@ -104,7 +148,7 @@ def test_update_speed_times_one_full_update_of_each_algorithm_on_one_sample(tmp_
     out = module.main(args)
     assert json.loads(path.read_text()) == out
     assert set(out["algos"]) == {"isodream", "isodream_v2", "dreamerv2", "torchrl_dreamer_v3"}
-    assert out["cpu"] and out["torch_threads"] == 1 and out["size"] == "tiny"
+    assert out["cpu"] and out["torch_threads"] == 1 and out["size"] == "tiny" and out["fast_paths"] == "on"
     for algo, entry in out["algos"].items():
         assert len(entry["wall_s"]) == len(entry["cpu_s"]) == 2, algo
         assert entry["updates_per_s"] == pytest.approx(1 / entry["median_wall_s"])
@@ -112,6 +156,8 @@ def test_update_speed_times_one_full_update_of_each_algorithm_on_one_sample(tmp_
             expected = entry["median_wall_s"] / out["algos"][reference]["median_wall_s"]
             assert entry[f"ratio_to_{reference}"] == pytest.approx(expected)
         assert set(entry["parameters"]) == {"world_model", "actor", "value"}
+        assert entry["algo"] == algo  # fast paths on where the learner has them (the default)
+        assert entry["fast_paths"] is (None if algo == "torchrl_dreamer_v3" else True), algo
     assert out["algos"]["isodream"]["ratio_to_isodream"] == 1.0
 
 

@@ -12,22 +12,28 @@ import pytest
 import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration_type
+from torchrl.modules.models.model_based import _DreamerV3ChannelRMSNorm, _DreamerV3RMSNorm
 from torchrl.objectives import DreamerV3ActorLoss, DreamerV3Loss, DreamerV3ModelLoss, DreamerV3ValueLoss
 from torchrl.trainers.algorithms import DreamerV3Optimizer
 
 from isodream_rl.data.sprites_episodes import collect_sprites_episodes, episode_windows
 from isodream_rl.envs import make_env
 from isodream_rl.evaluation import decomposition_scores
+from isodream_rl.modules.composition import MaskComposition
+from isodream_rl.modules.fast_paths import FastRMSNorm, FusedMaskComposition
 from isodream_rl.modules.isodream.behavior import PolicyFeatures
 from isodream_rl.modules.isodream.world_model import IsoDreamConfig, IsoDreamWorldModel
 from isodream_rl.trainers import ConfigError, train, validate_config
 from isodream_rl.trainers.isodream import IsoDreamComponents, isodream_config
 from isodream_rl.trainers.openloop import open_loop_prediction
 from isodream_rl.trainers.registry import components_builder, make_components
+from isodream_rl.trainers.stepper import loss_sum
 from tests.test_torchrl_dreamer import A, B, T, env_batch, replay_batch, tiny_config
 from tests.test_torchrl_dreamer_v3 import assert_resume_is_exact, composed
 
 ALGO = "isodream"
+#: TorchRL's DreamerV3 RMS norms, the reference forms of the fused ones (``modules/fast_paths.py``)
+TORCHRL_NORMS = (_DreamerV3RMSNorm, _DreamerV3ChannelRMSNorm)
 
 
 def isodream_run_config(tmp_path, **train_changes):
@@ -274,6 +280,109 @@ class TestComposition:
         cfg.mode = "world_model"
         with pytest.raises(ConfigError, match="not algo=isodream's: pick algo=isodream_v2"):
             validate_config(cfg)
+
+
+class TestFastPaths:
+    """``model.fast_paths`` (``IsoDreamConfig.fast_paths``): the CPU fast paths of ``modules/fast_paths.py`` (fused RMS
+    norms, eq. 4 as one autograd node) or the reference forms (TorchRL's RMS norms, ``MaskComposition``); the same
+    learner either way. tests/test_fast_layers.py compares each piece; this compares a whole update."""
+
+    @staticmethod
+    def build(tmp_path, fast_paths: bool | None) -> IsoDreamComponents:
+        cfg = isodream_run_config(tmp_path / f"run_{fast_paths}")
+        cfg.model.fast_paths = fast_paths
+        validate_config(cfg)  # accepted for algo=isodream
+        torch.manual_seed(0)
+        return IsoDreamComponents(cfg, action_dim=A, scratch_dir=tmp_path / f"scratch_{fast_paths}")
+
+    @staticmethod
+    def update(parts: IsoDreamComponents, sample: TensorDict, *, seed: int):
+        """The stepper's full update up to its optimisers (world model, imagination from every posterior, actor,
+        critic, replay critic; one backward of the sum of the ``loss_*`` terms) under ``seed``: the loss terms and
+        each trained parameter's gradient, by ``"<checkpoint module>.<parameter>"``."""
+        stepper = parts.stepper
+        batch = stepper.prepare(sample.clone()).reshape(B, T)
+        params = {
+            f"{group}.{name}": p
+            for group, module in parts.modules().items()
+            for name, p in module.named_parameters()
+        }
+        for p in params.values():
+            p.grad = None
+        torch.manual_seed(seed)
+        losses = stepper._losses(batch, world_model_only=False)
+        loss_sum(losses).backward()
+        grads = {name: p.grad for name, p in params.items()}
+        for p in params.values():
+            p.grad = None
+        return {key: value.detach() for key, value in losses.items()}, grads
+
+    def test_a_whole_update_gives_the_same_losses_and_gradients_with_and_without_fast_paths(self, tmp_path):
+        """Two default learners with the same weights, ``model.fast_paths`` unset (on) and ``false``: the fast and
+        the reference modules under the same names and state-dict keys, and on one replayed batch (an episode start
+        inside a window) under one seed, the same loss terms and the same gradient of every trained parameter."""
+        fast, reference = self.build(tmp_path, None), self.build(tmp_path, False)
+        assert fast.world_model.config.fast_paths and not reference.world_model.config.fast_paths
+        assert type(fast.world_model.composition) is FusedMaskComposition
+        assert type(reference.world_model.composition) is MaskComposition
+        # each trained network (the critic's parameters live in its loss, ``value_model_params``) and the names of
+        # its RMS norms' weights among the gradients below: fused ones in one, TorchRL's in the other, same places
+        norm_weights = {}
+        for group, network, prefix in (
+            ("world_model", "world_model", "world_model."),
+            ("actor", "actor", "actor."),
+            ("value_loss", "value", "value_loss.value_model_params."),
+        ):
+            fast_net, plain_net = getattr(fast.learner, network), getattr(reference.learner, network)
+            fast_norms = [n for n, m in fast_net.named_modules() if isinstance(m, FastRMSNorm)]
+            plain_norms = [n for n, m in plain_net.named_modules() if isinstance(m, TORCHRL_NORMS)]
+            assert fast_norms and fast_norms == plain_norms, group
+            assert not any(isinstance(m, FastRMSNorm) for m in plain_net.modules()), group
+            norm_weights[group] = [f"{prefix}{norm}.weight" for norm in fast_norms]
+        # DreamerV3 starts the reward and critic heads' output layers at zero, which would leave no gradient through
+        # the norms before them: small random weights there, so that every fast path is on the compared path
+        generator = torch.Generator().manual_seed(3)
+        with torch.no_grad():
+            for module in fast.modules().values():
+                for weight in module.parameters():
+                    if weight.dim() > 1 and not weight.any():
+                        weight.copy_(torch.randn(weight.shape, generator=generator) * 0.1)
+        for name, module in fast.modules().items():  # world_model, actor, value_loss (critic), return_norm
+            other = reference.modules()[name]
+            assert module.state_dict().keys() == other.state_dict().keys(), name
+            other.load_state_dict(module.state_dict())
+        torch.manual_seed(1)
+        sample = replay_batch(init_at=5)
+
+        fast_losses, fast_grads = self.update(fast, sample, seed=2)
+        ref_losses, ref_grads = self.update(reference, sample, seed=2)
+
+        terms = {"loss_model_reco", "loss_model_dynamic", "loss_model_inverse", "loss_actor", "loss_value"}
+        assert fast_losses.keys() == ref_losses.keys() and terms <= set(ref_losses.keys())
+        # the forward passes: measured equal, or within 1.5e-7 relative (float32 rounding): 60x inside rtol
+        for key, want in ref_losses.items():
+            torch.testing.assert_close(fast_losses[key], want, rtol=1e-5, atol=1e-6, msg=key)
+        assert fast_grads.keys() == ref_grads.keys() and len(ref_grads) > 100
+        assert not any(grad is None for grads in (fast_grads, ref_grads) for grad in grads.values())
+        # The comparison reaches every fast path: a gradient flows through each fused RMS norm (its weight's; but
+        # the action-free prior's action projection, which sees eq. 3's constant zero action and a zero bias: an
+        # input of zeros), and the decoders' outputs (the fused composition's inputs) get one.
+        constant = "world_model.free_prior.rnn.action_projection.1.weight"
+        for group, names in norm_weights.items():
+            assert all(bool(ref_grads[name].any()) == (name != constant) for name in names), group
+        for decoder in ("control_decoder", "free_decoder", "static_decoder"):
+            layers = [name for name in ref_grads if name.startswith(f"world_model.{decoder}.layers.")]
+            assert ref_grads[layers[-1]].abs().max() > 0, decoder
+        # The backward passes differ by float32 rounding only (fused vs decomposed RMS norms, one node vs separate
+        # operations for eq. 4), and the differences travel back through the RSSMs, the imagination and the
+        # encoder: measured at most 2.2e-6 of a parameter's largest gradient over six batches and seeds (on this
+        # one 6.6e-7 on two threads, 8.9e-7 on one), so an absolute tolerance of 2e-5 of that largest gradient
+        # leaves a 9x margin. It still fails a fast path off by 1e-5 in the RMS norm's input gradient (67 of the
+        # 162 parameters), by 1e-4 in its weight gradient (37) or by 1e-3 in eq. 4's gradients (92); an eps 10x
+        # off fails the losses.
+        for name, want in ref_grads.items():
+            scale = float(want.abs().max())
+            torch.testing.assert_close(fast_grads[name], want, rtol=1e-5, atol=2e-5 * scale, msg=name)
 
 
 @pytest.mark.parametrize(

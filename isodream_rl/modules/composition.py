@@ -20,8 +20,9 @@ training diverge on the sprites scene (docs/results/world_model_demo.md).
 
 :meth:`MaskComposition.compose_decoded` composes straight from the decoders' ``RGB + logit`` outputs, the
 operations one by one (:meth:`MaskComposition.bound`, then :meth:`MaskComposition.forward`): the reference
-form. The world model builds :class:`~isodream_rl.modules.fast_paths.FusedMaskComposition` instead when
-``IsoDreamV2Config.fast_paths`` is set (the same function, one autograd node in softmax mode).
+form. The world models build :class:`~isodream_rl.modules.fast_paths.FusedMaskComposition` instead when
+``IsoDreamConfig.fast_paths`` / ``IsoDreamV2Config.fast_paths`` is set (the same function, one autograd node in
+softmax mode).
 """
 
 from __future__ import annotations

@@ -11,9 +11,11 @@ tolerance and the same gradients (tests/test_fast_layers.py compares each pair):
   hand-written backward (:class:`_FusedRMSNorm`).
 
 The default learner (:mod:`~isodream_rl.modules.isodream.world_model`, :mod:`~isodream_rl.modules.isodream.behavior`)
-always builds them (``bench/update_speed.py``); the DreamerV2-style world model builds :class:`FusedMaskComposition`
-with its own fast paths (:mod:`isodream_rl.modules.isodream_v2.fast_paths`) when ``IsoDreamV2Config.fast_paths`` is
-true. Measured gains: docs/architecture.md, "Speed".
+builds them when ``IsoDreamConfig.fast_paths`` is true (tests/test_isodream.py compares a whole update of it both
+ways); the DreamerV2-style world model builds :class:`FusedMaskComposition` with its own fast paths
+(:mod:`isodream_rl.modules.isodream_v2.fast_paths`) when ``IsoDreamV2Config.fast_paths`` is true. Both are on by
+default and set by a run's ``model.fast_paths``; ``bench/update_speed.py --fast-paths both`` times each learner
+both ways. Measured gains: docs/architecture.md, "Speed".
 """
 
 from __future__ import annotations

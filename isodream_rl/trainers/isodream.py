@@ -16,10 +16,11 @@ depth 8, a 1.58 M-parameter world model, where ``algo=torchrl_dreamer_v3`` has o
 depth 8 and 1.84 M (``bench/update_speed.py`` writes both counts).
 
 What it reads of the run configuration: ``model.size`` (``hidden_dim``), ``model.actor_units`` /
-``value_units`` / ``attention_dim``; ``algo.free_branch`` / ``static_branch`` / ``inverse_dynamics`` (the branch
-switches), ``algo.reward_uses_free``, ``algo.policy_input``, ``algo.attention_window`` (tau), ``algo.horizon``
-(L), ``algo.lambda_inverse``; ``train.world_model_lr`` / ``actor_lr`` / ``value_lr``, ``world_model_warmup``,
-``lr_warmup``, ``max_nonfinite_updates``, ``sequence_length``, ``device``. The DreamerV2-style learner's settings
+``value_units`` / ``attention_dim``, ``model.fast_paths`` (``IsoDreamConfig.fast_paths``; ``None``: on);
+``algo.free_branch`` / ``static_branch`` / ``inverse_dynamics`` (the branch switches), ``algo.reward_uses_free``,
+``algo.policy_input``, ``algo.attention_window`` (tau), ``algo.horizon`` (L), ``algo.lambda_inverse``;
+``train.world_model_lr`` / ``actor_lr`` / ``value_lr``, ``world_model_warmup``, ``lr_warmup``,
+``max_nonfinite_updates``, ``sequence_length``, ``device``. The DreamerV2-style learner's settings
 (``algo.gamma``: the continuation head's ``1 - 1/333`` discounts here; ``algo.lmbda``, ``actor_entropy``,
 ``free_nats``, ``kl_balance``, ``slow_target_every``, ``lambda_reward``, ``train.grad_clip``, ``adam_eps``...) are
 refused (:func:`~isodream_rl.trainers.learners.unread_setting_errors`).
@@ -60,6 +61,7 @@ def isodream_config(
     hidden = 8 * max(1, round(settings.hidden_per_hidden_dim * hidden_dim / 8))
     free_hidden = 8 * max(1, round(settings.free_hidden_fraction * hidden / 8))
     algo = cfg.algo
+    fast_paths = True if cfg.model.fast_paths is None else cfg.model.fast_paths
     return IsoDreamConfig(
         action_dim=action_dim,
         hidden=hidden,
@@ -72,6 +74,7 @@ def isodream_config(
         inverse_dynamics=bool(algo.inverse_dynamics),
         reward_uses_free=bool(algo.reward_uses_free and algo.free_branch),
         settings=settings,
+        fast_paths=fast_paths,
     )
 
 

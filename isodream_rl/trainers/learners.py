@@ -122,6 +122,7 @@ LEARNERS: dict[str, Learner] = {
             "train.lr_warmup": ISODREAM_SETTINGS.lr_warmup,
             "model.hidden_dim": None,
             "model.precision": None,
+            "model.fast_paths": None,  # IsoDreamConfig.fast_paths: None is on
         },
     ),
     "isodream_v2": Learner(

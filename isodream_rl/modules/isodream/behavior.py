@@ -6,7 +6,8 @@ of ``z`` rolled ``tau - 1`` steps ahead: ``e = Attention([s, h], window)`` (eq. 
 :class:`~isodream_rl.modules.FutureStateAttention`). On ``e`` sit DreamerV3's heads: the bounded-normal actor
 (:class:`~isodream_rl.modules.dreamer_v3.DreamerV3ContinuousActor`) and a two-hot critic (``DreamerV3MLP`` +
 ``SymExpTwoHot``), each with an attention of its own. Their RMS norms run as
-:class:`~isodream_rl.modules.fast_paths.FastRMSNorm` (the same function, fewer passes).
+:class:`~isodream_rl.modules.fast_paths.FastRMSNorm` (the same function, fewer passes) when the world model's
+``IsoDreamConfig.fast_paths`` is true (the default), as TorchRL's otherwise.
 """
 
 from __future__ import annotations
@@ -102,6 +103,14 @@ class _OnFeatures(nn.Module):
         return self.head(self.features(*inputs))
 
 
+def _on_features(features: PolicyFeatures, head: nn.Module, *, fast_paths: bool) -> _OnFeatures:
+    """``_OnFeatures(features, head)``, its RMS norms the fused ones
+    (:func:`~isodream_rl.modules.fast_paths.use_fast_rms_norms`) when ``fast_paths`` is true and TorchRL's
+    otherwise: the same parameters and state-dict keys either way."""
+    module = _OnFeatures(features, head)
+    return use_fast_rms_norms(module) if fast_paths else module
+
+
 def make_actor(
     config: IsoDreamConfig, *, mode: str, attention_dim: int, units: int, device=None
 ) -> ProbabilisticTensorDictSequential:
@@ -118,7 +127,9 @@ def make_actor(
         device=device,
     )
     net = TensorDictModule(
-        use_fast_rms_norms(_OnFeatures(features, head)), in_keys=features.in_keys, out_keys=["loc", "scale"]
+        _on_features(features, head, fast_paths=config.fast_paths),
+        in_keys=features.in_keys,
+        out_keys=["loc", "scale"],
     )
     return bounded_normal_actor(net)
 
@@ -132,7 +143,7 @@ def make_value(
     features = PolicyFeatures(config, mode=mode, attention_dim=attention_dim, device=device)
     head = DreamerV3MLP(features.feature_dim, bins, depth=3, num_cells=units, outscale=0.0, device=device)
     return two_hot_value(
-        use_fast_rms_norms(_OnFeatures(features, head)), in_keys=features.in_keys, num_bins=bins
+        _on_features(features, head, fast_paths=config.fast_paths), in_keys=features.in_keys, num_bins=bins
     )
 
 

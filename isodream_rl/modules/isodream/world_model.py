@@ -41,6 +41,7 @@ from torchrl.modules import (
 from torchrl.modules.models.model_based import _straight_through_categorical
 
 from isodream_rl.modules.composition import DECODER_STATES as DECODER_INPUTS
+from isodream_rl.modules.composition import MaskComposition
 from isodream_rl.modules.dreamer_v3 import DreamerV3Settings, WindowInputCheck
 from isodream_rl.modules.fast_paths import FusedMaskComposition, use_fast_rms_norms
 from isodream_rl.modules.inverse_dynamics import InverseDynamicsCell
@@ -132,6 +133,13 @@ class IsoDreamConfig:
     an episode's start)."""
     settings: DreamerV3Settings = ISODREAM_SETTINGS
     """DreamerV3's settings (unimix, categoricals, bins, blocks): the default learner's."""
+    fast_paths: bool = True
+    """The CPU fast paths of :mod:`~isodream_rl.modules.fast_paths`: eq. 4 as one autograd node
+    (:class:`~isodream_rl.modules.fast_paths.FusedMaskComposition`) and the fused RMS norms
+    (:func:`~isodream_rl.modules.fast_paths.use_fast_rms_norms`) of the world model, the actor and the critic. The
+    same values as the reference forms within float tolerance, and the same parameters and state-dict keys, so a
+    checkpoint loads either way; ``False`` builds the reference forms
+    (:class:`~isodream_rl.modules.composition.MaskComposition`, TorchRL's RMS norms)."""
 
     def __post_init__(self) -> None:
         for name in ("control_decoder_input", "free_decoder_input"):
@@ -285,10 +293,11 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         if self.static_decoder is not None:
             with torch.no_grad():
                 self.static_decoder.layers[-1].bias[3] += cfg.static_mask_bias
-        # Composed in the decoders' units (pixels / 255, see MaskComposition's pixel_range), as one autograd node
-        # (FusedMaskComposition): the same eq. 4 without shifting three [B, T, 4, 64, 64] outputs into [-0.5, 0.5]
-        # and four results back, and without a clamp node and a slice gradient per branch.
-        self.composition = FusedMaskComposition(mask_mode="softmax", pixel_range=(0.0, 1.0))
+        # Composed in the decoders' units (pixels / 255, see MaskComposition's pixel_range): the same eq. 4 without
+        # shifting three [B, T, 4, 64, 64] outputs into [-0.5, 0.5] and four results back; with the fast paths as
+        # one autograd node (FusedMaskComposition), without a clamp node and a slice gradient per branch.
+        composition = FusedMaskComposition if cfg.fast_paths else MaskComposition
+        self.composition = composition(mask_mode="softmax", pixel_range=(0.0, 1.0))
         self.reward_head = DreamerV3MLP(
             cfg.head_feature_dim, settings.num_bins, depth=1, num_cells=cfg.units, outscale=0.0, device=device
         )
@@ -324,9 +333,10 @@ class IsoDreamWorldModel(TensorDictModuleBase):
         if cfg.inverse_dynamics:
             out += ["action_pred", "action_pred_valid"]
         self.out_keys = [_next(k) for k in out] + (["background"] if cfg.static_branch else [])
-        # TorchRL's RMS norms (encoder, decoders, RSSM heads, reward / continuation heads) as one fused forward
-        # kernel and a hand-written backward (fast_paths.FastRMSNorm): the same function, parameters and keys
-        use_fast_rms_norms(self)
+        if cfg.fast_paths:
+            # TorchRL's RMS norms (encoder, decoders, RSSM heads, reward / continuation heads) as one fused forward
+            # kernel and a hand-written backward (fast_paths.FastRMSNorm): the same function, parameters and keys
+            use_fast_rms_norms(self)
 
     # ------------------------------------------------------------------ packing
     def split_state(self, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
