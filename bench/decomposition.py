@@ -10,6 +10,11 @@ included). The scenes differ only by the env:
 * ``dmc_walker_walk``, ``dmc_cheetah_run``: the robot before a ``video_easy`` background video;
 * ``highway``: the top-down view, the ego among the other vehicles.
 
+The algorithms (``--algos``): ``isodream``, the default (Iso-Dream on DreamerV3's learner), and ``isodream_v2``, the
+same decomposition on the DreamerV2-style learner, by default; ``dreamerv2``, the single-branch baseline, on
+request. ``mode=world_model`` trains each one's own world model with its own loss and optimiser
+(:mod:`isodream_rl.trainers.world_model_run`).
+
 Finished runs (a ``summary.json``) are read back, not retrained; an interrupted one resumes from its newest
 checkpoint (``resume=true``). ``--parallel`` runs share the machine at one torch thread each.
 
@@ -25,12 +30,16 @@ JSON (the final ground truth, composite, each branch and its mask over a held-ou
 Iso-Dream seed), and a table (the JSON's path with ``.md``).
 
     python bench/decomposition.py                                  # 4 scenes x 2 algos x 2 seeds x 30 min
-    python bench/decomposition.py --scenes sprites --algos isodream_v2 --seeds 0 --minutes 5 --runs /tmp/dec \\
-        --json /tmp/dec/decomposition.json
+    python bench/decomposition.py --scenes sprites --algos isodream,isodream_v2,dreamerv2 --seeds 0 --minutes 5 \\
+        --runs /tmp/dec --json /tmp/dec/decomposition.json
 
-The Iso-Dream world model is the DreamerV2-style learner's (``algo=isodream_v2``; ``mode=world_model`` trains no
-other): the committed results and the run folders made before ``algo=isodream`` became DreamerV3's learner name it
-``isodream`` (``<scene>-isodream-s<seed>``).
+Former names. The committed results (``docs/results/decomposition.json``) and the run folders made before
+``algo=isodream`` became DreamerV3's learner name the DreamerV2-style learner ``isodream``
+(``<scene>-isodream-s<seed>``). Which learner a run folder holds is its ``summary.json``'s ``learner``; one without
+it was written when ``mode=world_model`` trained the DreamerV2-style world model only (:func:`run_learner`). Such a
+former run is read back as ``isodream_v2``'s where ``<scene>-isodream_v2-s<seed>`` has none (so ``--collect-only``
+reads those folders under today's name), never as the default's, and the bench does not train the default into
+its folder (it says so, and leaves the folder as it is: move it elsewhere to train the default there).
 """
 
 from __future__ import annotations
@@ -49,6 +58,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import provenance  # noqa: E402
 
+from isodream_rl.trainers.learners import LEARNERS, learner_name  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 #: The scenes and the ``isodream-train`` overrides that make each (the rest is ``exp=decomposition``).
 SCENES = {
@@ -57,7 +68,15 @@ SCENES = {
     "dmc_cheetah_run": ["env=dmc_cheetah_run"],
     "highway": ["env=highway", "++env.kwargs.view=top_down"],
 }
-ALGOS = ("isodream_v2", "dreamerv2")
+#: The algorithms the bench runs: the default and the DreamerV2-style learner (:data:`DEFAULT_ALGOS`), and the
+#: single-branch baseline.
+ALGOS = ("isodream", "isodream_v2", "dreamerv2")
+#: ``--algos``' default: the default's world model, and the DreamerV2-style learner's beside it.
+DEFAULT_ALGOS = ("isodream", "isodream_v2")
+#: ``algo -> former folder name``: the run folders of ``algo``'s learner made under another name,
+#: ``<scene>-<former>-s<seed>`` (the DreamerV2-style learner was ``algo=isodream``), read back where ``algo``'s own
+#: folder has no finished run.
+FORMER_FOLDER_NAMES = {"isodream_v2": "isodream"}
 #: the recipe at a tiny size, a check in seconds (each an ``--override``): 2 updates of 2 windows x 8 steps on two
 #: 16-step training episodes and one held-out
 TINY = [
@@ -70,7 +89,18 @@ TINY = [
     "train.batch_size=2",
 ]
 #: The summary's entries that are not scores.
-_NOT_SCORES = ("mode", "algo", "env", "updates", "stopped_by", "seconds", "precision", "size", "seed")
+_NOT_SCORES = (
+    "mode",
+    "algo",
+    "learner",
+    "env",
+    "updates",
+    "stopped_by",
+    "seconds",
+    "precision",
+    "size",
+    "seed",
+)
 #: The table's columns: (heading, score).
 _COLUMNS = (
     ("control vs agent", "iou_control_vs_agent"),
@@ -81,7 +111,50 @@ _COLUMNS = (
 
 
 def run_dir(args: argparse.Namespace, scene: str, algo: str, seed: int) -> Path:
+    """The folder of the run of ``algo`` on ``scene`` with ``seed``: ``<runs>/<scene>-<algo>-s<seed>``."""
     return args.runs / f"{scene}-{algo}-s{seed}"
+
+
+def read_summary(folder: Path) -> dict | None:
+    """The ``summary.json`` of the run in ``folder``, ``None`` without one (a run not finished, or not started)."""
+    path = folder / "summary.json"
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def run_learner(summary: dict) -> str:
+    """The learner whose world model a run's ``summary.json`` scores: its ``learner``; a summary without one was
+    written when ``mode=world_model`` trained the DreamerV2-style world model only, ``isodream_v2``'s whatever its
+    ``algo``."""
+    return summary.get("learner", "isodream_v2")
+
+
+def finished_run(args: argparse.Namespace, scene: str, algo: str, seed: int) -> Path | None:
+    """The folder holding the finished run of ``algo`` on ``scene`` with ``seed``: its own (:func:`run_dir`) where
+    its summary is of ``algo``'s learner, else its former folder's (:data:`FORMER_FOLDER_NAMES`) where that holds
+    a finished run of ``algo``'s learner; ``None`` without one."""
+    folders = [run_dir(args, scene, algo, seed)]
+    if algo in FORMER_FOLDER_NAMES:
+        folders.append(run_dir(args, scene, FORMER_FOLDER_NAMES[algo], seed))
+    for folder in folders:
+        summary = read_summary(folder)
+        if summary is not None and run_learner(summary) == learner_name(algo):
+            return folder
+    return None
+
+
+def former_run_in_the_way(args: argparse.Namespace, scene: str, algo: str, seed: int) -> str | None:
+    """Why the run of ``algo`` cannot be trained in its folder, which holds a finished run of another learner (a
+    run of the DreamerV2-style learner made when it was ``algo=isodream``): one line; ``None`` where it can."""
+    folder = run_dir(args, scene, algo, seed)
+    summary = read_summary(folder)
+    if summary is None or run_learner(summary) == learner_name(algo):
+        return None
+    learner = LEARNERS[run_learner(summary)].title
+    return (
+        f"{folder} holds a finished run of {learner} (saved as algo={summary.get('algo')}, that learner's name "
+        f"then; read back as isodream_v2's), not of algo={algo}'s: left as it is and not trained; move it elsewhere "
+        f"to train algo={algo} there"
+    )
 
 
 def run_command(args: argparse.Namespace, scene: str, algo: str, seed: int) -> list[str]:
@@ -108,13 +181,17 @@ def run_command(args: argparse.Namespace, scene: str, algo: str, seed: int) -> l
 def train_all(args: argparse.Namespace) -> None:
     """Run every (scene, algo, seed) without a ``summary.json``, ``--parallel`` at a time, seed by seed (a
     bench stopped early has every scene and algorithm on its first seeds)."""
-    pending = [
-        (scene, algo, seed)
-        for seed in args.seeds
-        for scene in args.scenes
-        for algo in args.algos
-        if not (run_dir(args, scene, algo, seed) / "summary.json").exists()
-    ]
+    pending = []
+    for seed in args.seeds:
+        for scene in args.scenes:
+            for algo in args.algos:
+                if finished_run(args, scene, algo, seed) is not None:
+                    continue
+                in_the_way = former_run_in_the_way(args, scene, algo, seed)
+                if in_the_way:
+                    print(f"[bench] {scene} {algo} seed {seed}: {in_the_way}", flush=True)
+                    continue
+                pending.append((scene, algo, seed))
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     running: list[tuple[tuple[str, str, int], subprocess.Popen]] = []
     while pending or running:
@@ -143,11 +220,11 @@ def collect(args: argparse.Namespace) -> dict:
         for algo in args.algos:
             runs = []
             for seed in args.seeds:
-                path = run_dir(args, scene, algo, seed) / "summary.json"
-                if not path.exists():
+                folder = finished_run(args, scene, algo, seed)
+                if folder is None:
                     print(f"[bench] {scene} {algo} seed {seed}: no summary.json, left out", flush=True)
                     continue
-                summary = json.loads(path.read_text())
+                summary = read_summary(folder)
                 runs.append(
                     {
                         "seed": seed,
@@ -169,10 +246,11 @@ def _is_number(value) -> bool:
 
 def copy_pictures(scenes: dict, folder: Path) -> dict[str, str]:
     """``decomposition_<scene>.png`` in ``folder``: the final branch picture of the first Iso-Dream run of
-    each scene (of the first algorithm with a run if Iso-Dream has none)."""
+    each scene, the default's (``isodream``), else the DreamerV2-style learner's (``isodream_v2``), else the first
+    algorithm's with a run."""
     written = {}
     for scene, algos in scenes.items():
-        runs = algos.get("isodream_v2") or next((r for r in algos.values() if r), [])
+        runs = algos.get("isodream") or algos.get("isodream_v2") or next((r for r in algos.values() if r), [])
         if runs and Path(runs[0]["picture"]).exists():
             target = folder / f"decomposition_{scene}.png"
             target.parent.mkdir(parents=True, exist_ok=True)
@@ -210,7 +288,12 @@ def table(results: dict) -> str:
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenes", type=lambda s: s.split(","), default=list(SCENES))
-    parser.add_argument("--algos", type=lambda s: s.split(","), default=list(ALGOS))
+    parser.add_argument(
+        "--algos",
+        type=lambda s: s.split(","),
+        default=list(DEFAULT_ALGOS),
+        help=f"comma-separated, of {','.join(ALGOS)} (default: {','.join(DEFAULT_ALGOS)})",
+    )
     parser.add_argument("--seeds", type=lambda s: [int(x) for x in s.split(",")], default=[0, 1])
     parser.add_argument("--minutes", type=float, default=30.0, help="wall-clock budget per run")
     parser.add_argument("--size", default="", help="the size group of isodream-train (default: the recipe's)")

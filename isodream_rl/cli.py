@@ -35,7 +35,7 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 import isodream_rl.baselines  # noqa: E402, F401  (registers algo=torchrl_dreamer and torchrl_dreamer_v3)
 from isodream_rl.cli_overrides import check_overrides, free_form_overrides  # noqa: E402
-from isodream_rl.configs import register_dmc_envs  # noqa: E402
+from isodream_rl.configs import register_dmc_envs, register_resolvers  # noqa: E402
 from isodream_rl.envs.finite import NonFiniteEnvDataError  # noqa: E402
 from isodream_rl.evaluation.latent_probe import probe  # noqa: E402
 from isodream_rl.run_utils.checkpoint import CheckpointError  # noqa: E402
@@ -50,6 +50,7 @@ from isodream_rl.user_errors import exit_stopped, log_to_stderr, report_user_err
 
 ConfigStore.instance().store(name="run_schema", node=RunConfig)
 register_dmc_envs()  # env=dmc_<domain>_<task> for every dm_control suite task
+register_resolvers()  # ${learner_value:...} of the exp files
 
 
 def _summary(result: RunResult) -> str:

@@ -70,7 +70,9 @@ RESULTS = CONFIGS.parents[1] / "docs" / "results"
 def test_every_exp_composes_to_a_valid_config_and_its_results_page_names_the_recorded_runs(exp):
     cfg = composed(f"exp={exp}")
     validate_config(cfg)
-    assert cfg.algo.name in ISODREAM_V2_ALGOS  # the exp names its algo: the default's world model is another
+    assert (
+        cfg.algo.name in ISODREAM_V2_ALGOS
+    )  # the exp names its algo, the recorded one (algo=isodream: the default's)
     header = (CONFIGS / "exp" / f"{exp}.yaml").read_text()
     # settings only: no run names or scores in the file, at most a pointer to the results page
     assert not re.search(r"\bruns? [A-Z]+[0-9]+\b|Recorded|R²", header), header
@@ -222,11 +224,16 @@ def test_a_config_saved_before_the_default_became_dreamer_v3s_learner_reads_back
     saved = dataclasses.asdict(composed("algo=isodream"))
     saved["algo"]["name"] = "isodream_v3"  # Iso-Dream on DreamerV3's learner, as it was named
     assert config_from_dict(saved).algo.name == "isodream"
+    # mode=world_model trained the DreamerV2-style model under that name; it now trains the default's too, so the
+    # configuration reads as saved and the weights tell (tests/test_world_model_mode.py reads such a run back)
+    from isodream_rl.trainers.saved_models import saved_run_config
+
     world_model = dataclasses.asdict(composed("exp=world_model"))
-    world_model["algo"]["name"] = (
-        "isodream"  # mode=world_model trained the DreamerV2-style model under that name
-    )
-    assert config_from_dict(world_model).algo.name == "isodream_v2"
+    world_model["algo"]["name"] = "isodream"
+    assert config_from_dict(world_model).algo.name == "isodream"
+    for prefix, learner in (("control_rssm.", "isodream_v2"), ("control_prior.", "isodream")):
+        state = {"config": world_model, "models": {"world_model": {f"{prefix}weight": None}}}
+        assert saved_run_config(state).algo.name == learner
     assert (
         config_from_dict(dataclasses.asdict(composed("exp=world_model_dreamerv2"))).algo.name == "dreamerv2"
     )

@@ -160,7 +160,7 @@ def test_the_world_model_mode_trains_probes_and_resumes_on_the_gpu(algo, tmp_pat
 
 @cuda
 def test_the_decomposition_bench_runs_on_the_gpu(tmp_path):
-    assert set(GPU_CHECK.check_decomposition(tmp_path, device="cuda")) == {"isodream_v2", "dreamerv2"}
+    assert set(GPU_CHECK.check_decomposition(tmp_path, device="cuda")) == {"isodream", "isodream_v2"}
 
 
 @cuda

@@ -348,6 +348,7 @@ def test_world_model_mode_is_refused(tmp_path):
     cfg = tiny_config(tmp_path, ALGO)
     cfg.mode = "world_model"
     with pytest.raises(
-        ConfigError, match="mode=world_model trains the DreamerV2-style Iso-Dream world model"
+        ConfigError,
+        match="mode=world_model trains the world model of Iso-Dream's learners.*pick one of algo=isodream,",
     ):
         validate_config(cfg)

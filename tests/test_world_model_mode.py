@@ -1,5 +1,6 @@
 """``mode=world_model`` (``isodream-train exp=world_model``, alias ``isodream-demo``) at a tiny size: it
-trains the world model alone, scores the masks, writes its run folder and resumes."""
+trains the world model alone, of either Iso-Dream learner (the recipes' ``algo=isodream_v2``, the default's
+``algo=isodream``), scores the masks, writes its run folder, resumes and reads it back."""
 
 import json
 import os
@@ -15,10 +16,13 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 import isodream_rl.cli
-from isodream_rl.data.sprites_episodes import collect_sprites_episodes, episode_windows
+from isodream_rl.data.sprites_episodes import collect_sprites_episodes, episode_windows, model_input
 from isodream_rl.envs.sprites import DISTRACTOR_COLOURS
+from isodream_rl.evaluation import decomposition_scores
 from isodream_rl.evaluation.branches import score_branches
 from isodream_rl.evaluation.latent_probe import probe
+from isodream_rl.modules.isodream.world_model import IsoDreamConfig, IsoDreamWorldModel
+from isodream_rl.modules.isodream_v2 import IsoDreamV2WorldModel
 from isodream_rl.trainers import (
     CheckpointError,
     CheckpointManager,
@@ -28,8 +32,8 @@ from isodream_rl.trainers import (
     world_model_run,
 )
 from isodream_rl.trainers import run as run_module
-from isodream_rl.trainers.learners import resolved
-from isodream_rl.trainers.world_model_run import collect_episodes
+from isodream_rl.trainers.learners import WORLD_MODEL_LEARNERS, resolved
+from isodream_rl.trainers.world_model_run import collect_episodes, load_world_model
 from tests.conftest import cli_process
 
 CONFIGS = Path(isodream_rl.cli.__file__).parent / "configs"
@@ -122,15 +126,126 @@ def test_the_world_model_exp_holds_the_demos_defaults():
     assert (algo.reward_uses_free, algo.lambda_reward, algo.lambda_inverse) == (False, 1.0, 30.0)
 
 
-def test_without_an_exp_mode_world_model_needs_an_algo_whose_world_model_it_trains():
-    """The default algo is Iso-Dream on DreamerV3's learner, whose world model this mode does not train: the
-    error names the algos to give (the exp files give one)."""
+def test_trains_the_world_model_of_either_iso_dream_learner_and_refuses_the_others_naming_those_it_trains():
+    """Without an exp, the default algo (Iso-Dream on DreamerV3's learner) is taken; TorchRL's baselines, whose world
+    models have no branches, are refused in one line naming the algos it trains."""
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        cfg = OmegaConf.to_object(compose(config_name="config", overrides=["mode=world_model"]))
-    with pytest.raises(
-        ConfigError, match="not algo=isodream's: pick algo=isodream_v2, algo=isodream_paper, algo=dreamerv2"
+        cfg = OmegaConf.to_object(
+            compose(config_name="config", overrides=["mode=world_model", "train.sequence_length=16"])
+        )
+    assert cfg.algo.name == "isodream"
+    validate_config(cfg)
+    assert (
+        set(world_model_run.WORLD_MODEL_BUILDERS) == set(WORLD_MODEL_LEARNERS) == {"isodream", "isodream_v2"}
+    )
+    valid = (
+        "algo=isodream, algo=isodream_no_inverse, algo=isodream_no_attention, algo=isodream_no_static, "
+        "algo=isodream_v2, algo=isodream_paper, algo=dreamerv2"
+    )
+    for algo, learner in (
+        ("torchrl_dreamer_v3", "TorchRL's DreamerV3"),
+        ("torchrl_dreamer", "TorchRL's Dreamer"),
     ):
-        validate_config(cfg)
+        cfg.algo.name = algo
+        with pytest.raises(ConfigError) as err:
+            validate_config(cfg)
+        (line,) = [line for line in str(err.value).splitlines() if "mode=world_model" in line]
+        assert f"not algo={algo}'s ({learner}: no branches): pick one of {valid}" in line, line
+
+
+def test_the_recipes_take_the_defaults_world_model_without_the_dreamerv2_style_learners_settings():
+    """``exp=world_model`` and ``exp=decomposition`` pick ``algo=isodream_v2`` and set two of its own settings;
+    ``algo=isodream`` takes the rest of the recipe without them (the default does not read them)."""
+    for exp in ("world_model", "decomposition"):
+        v2, default = composed(f"exp={exp}"), composed(f"exp={exp}", "algo=isodream")
+        validate_config(default)
+        assert (v2.algo.name, v2.algo.lambda_reward, default.algo.lambda_reward) == ("isodream_v2", 1.0, None)
+        assert (v2.algo.reward_uses_free, default.algo.reward_uses_free) == (False, False)
+        assert (default.train.world_model_lr, default.train.batch_size) == (v2.train.world_model_lr, 2)
+    decomposition = composed("exp=decomposition", "algo=isodream")
+    assert decomposition.algo.free_branch_loss is None and decomposition.run_dir.endswith("-isodream")
+    assert composed("exp=decomposition").algo.free_branch_loss == "kl"
+
+
+def test_the_defaults_world_model_trains_alone_is_scored_resumes_and_reads_back(tmp_path):
+    """``algo=isodream``: its world model with its own loss and ``DreamerV3Optimizer`` (no actor, no critic), scored
+    on held-out episodes as the DreamerV2-style one is, probed, checkpointed, resumed, and read back as an
+    ``IsoDreamWorldModel``."""
+    result = train(tmp_path, "algo=isodream", "world_model.probe_episodes=4")
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary == result.summary and result.updates == 2 and summary["stopped_by"] == "updates"
+    assert (summary["algo"], summary["learner"], summary["precision"]) == ("isodream", "isodream", "fp32")
+    for name in (
+        "iou_control_vs_agent",
+        "iou_free_vs_distractors",
+        "iou_static_vs_background",
+        "background_share_free",
+        "free_covers_distractor_2",
+        "reco_error_agent",
+    ):
+        assert 0.0 <= summary[name] <= 3.0 and 0.0 <= summary[f"train_{name}"] <= 3.0, name
+    # its images are scored in the pixel range of the scores ([-0.5, 0.5]), not in its loss's ([0, 1])
+    assert summary["reco_mse"] < 0.15
+    # the latent probe reads both branches' halves of its packed latent and its encoder's one embedding
+    sprites = ("agent", "distractor_0", "distractor_1", "distractor_2")
+    assert {k for k in summary if k.startswith("probe_")} == {
+        f"probe_r2_{b}_{n}" for b in ("control", "free", "trunk") for n in sprites
+    }
+    assert summary["png"] == str(tmp_path / "pictures" / "branches_00000002.png")
+    assert (tmp_path / "pictures" / "branches_00000002.png").stat().st_size > 0
+    state = latest_state(tmp_path)
+    assert set(state["models"]) == {"world_model"} and set(state["stepper"]["optimizers"]) == {"world_model"}
+    # the world model's optimiser of an algo=isodream run: DreamerV3's (adaptive gradient clipping, lr warm-up)
+    group = state["stepper"]["optimizers"]["world_model"]["param_groups"][0]
+    assert (group["agc"], group["warmup_steps"]) == (0.3, 1000)
+    assert any(key.startswith("control_prior.") for key in state["models"]["world_model"])
+    assert state["config"]["algo"]["name"] == "isodream" and state["config"]["algo"]["lambda_reward"] is None
+    model, cfg = load_world_model(tmp_path)
+    assert isinstance(model, IsoDreamWorldModel) and cfg.algo.name == "isodream"
+    assert all(torch.equal(v, state["models"]["world_model"][k]) for k, v in model.state_dict().items())
+    resumed = train(
+        tmp_path, "algo=isodream", "world_model.probe_episodes=4", "world_model.updates=3", "resume=true"
+    )
+    assert resumed.resumed_from == tmp_path / "checkpoints" / "step_00000002" and resumed.updates == 3
+    assert latest_state(tmp_path)["stepper"]["updates"] == 3 and resumed.summary["learner"] == "isodream"
+
+
+def test_a_run_saved_when_isodream_named_the_dreamerv2_style_learner_reads_back_and_resumes_as_isodream_v2(
+    tmp_path,
+):
+    """A ``mode=world_model`` run saved as ``algo=isodream`` before that name became the default (its weights the
+    DreamerV2-style learner's) loads as ``IsoDreamV2WorldModel`` and resumes as ``algo=isodream_v2``; resumed as
+    ``algo=isodream`` it is refused in one line that says so."""
+    train(tmp_path)  # exp=world_model: algo=isodream_v2
+    checkpoints = CheckpointManager(tmp_path / "checkpoints")
+    state, _ = checkpoints.load_latest()
+    state["config"]["algo"]["name"] = "isodream"  # as such a run saved it
+    checkpoints.save(2, state)
+    model, cfg = load_world_model(tmp_path)
+    assert isinstance(model, IsoDreamV2WorldModel) and cfg.algo.name == "isodream_v2"
+    with pytest.raises(
+        CheckpointError, match="its weights are the DreamerV2-style learner's.*algo=isodream_v2"
+    ):
+        train(tmp_path, "algo=isodream", "world_model.updates=3", "resume=true")
+    assert train(tmp_path, "world_model.updates=3", "resume=true").updates == 3
+
+
+def test_the_defaults_images_are_scored_and_drawn_in_the_pixel_range_of_the_scores():
+    """``IsoDreamWorldModel`` draws in its loss's units (pixels / 255); the scores and the branch pictures read
+    ``[-0.5, 0.5]``: ``score_branches`` shifts every image it returns, as ``decomposition_scores`` does."""
+    model = IsoDreamWorldModel(IsoDreamConfig(action_dim=2, hidden=16, image_depth=2, units=16))
+    data = collect_sprites_episodes(episodes=1, steps=8, seed=0)
+    torch.manual_seed(0)
+    scores, out = score_branches(model, data, window=8)
+    torch.manual_seed(0)
+    with torch.no_grad():
+        raw = model(model_input(episode_windows(data, window=8)))
+    for key in (("next", "reco_pixels"), ("next", "reco_control"), ("next", "reco_free"), "background"):
+        torch.testing.assert_close(out[key], raw[key] - 0.5)
+    torch.manual_seed(0)
+    assert decomposition_scores(model, episode_windows(data, window=8))["reco_mse"] == pytest.approx(
+        scores["reco_mse"]
+    )
 
 
 def test_held_random_actions_make_the_agent_travel():

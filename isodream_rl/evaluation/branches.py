@@ -11,7 +11,7 @@ from tensordict import TensorDictBase
 from torch import nn
 
 from isodream_rl.data.sprites_episodes import episode_windows, model_input
-from isodream_rl.evaluation.decomposition import branch_assignment, score_decomposition
+from isodream_rl.evaluation.decomposition import branch_assignment, centred_images, score_decomposition
 from isodream_rl.modules.pixels import preprocess_pixels
 
 #: Rows of :func:`branch_grid`: (label, key under "next" or root, kind).
@@ -50,7 +50,10 @@ def branch_grid(output: TensorDictBase, *, sample: int = 0, steps: int = 10, sca
     output.
 
     Args:
-        output: the ``[B, T]`` output tensordict of :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel`.
+        output: the ``[B, T]`` output tensordict of a world model, its images in ``[-0.5, 0.5]``
+            (:class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel`'s, or
+            :class:`~isodream_rl.modules.isodream.world_model.IsoDreamWorldModel`'s through
+            :func:`~isodream_rl.evaluation.decomposition.centred_images`, as :func:`score_branches` returns them).
         sample: which window of the batch.
         steps: how many time steps (columns), evenly spread over the window.
         scale: pixel upscaling factor.
@@ -102,17 +105,20 @@ def score_branches(
       against the background, ~0.3-0.5); ``reco_error_agent`` the same on the agent's pixels.
 
     Args:
-        world_model: an :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel` (or a module with its output keys).
+        world_model: an :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel` or an
+            :class:`~isodream_rl.modules.isodream.world_model.IsoDreamWorldModel` (or a module with their output
+            keys).
         data: flat ``[episodes * steps]`` episodes, ``steps`` a multiple of ``window``.
         window: steps per window; each is filtered from zero states.
         device: where the world model runs.
 
     Returns:
-        ``(scores, output)``: the scores, and the world model's ``[N, window]`` output on CPU (with the
-        ground-truth masks, where the data hold them, beside its input frames).
+        ``(scores, output)``: the scores, and the world model's ``[N, window]`` output on CPU, its images in
+        ``[-0.5, 0.5]`` (:func:`~isodream_rl.evaluation.decomposition.centred_images`; with the ground-truth
+        masks, where the data hold them, beside its input frames).
     """
     windows = episode_windows(data, window=window)
-    out = world_model(model_input(windows).to(device)).cpu()
+    out = centred_images(world_model, world_model(model_input(windows).to(device))).cpu()
     truth = windows["next"]
     if not all(key in truth.keys() for key in ("mask_agent", "mask_distractors")):
         error = (out["next", "reco_pixels"].float() - preprocess_pixels(truth["pixels"])).pow(2)

@@ -35,6 +35,30 @@ TRUTH_KEYS = {"agent": ("next", "mask_agent"), "distractors": ("next", "mask_dis
 #: Optional ground truth of objects inside the classes above, scored when the windows hold it.
 PART_KEYS = {"target": ("next", "mask_target")}
 _MODEL_KEYS = ("action", "is_init", ("next", "pixels"))
+#: The images of a world model's output (each branch's drawn where it has one): the composite, the controllable and
+#: noncontrollable components and the background.
+IMAGE_KEYS = (("next", "reco_pixels"), ("next", "reco_control"), ("next", "reco_free"), "background")
+
+
+def centred_images(world_model: nn.Module, output: TensorDictBase) -> TensorDictBase:
+    """``output``, the output of ``world_model``, with its images (:data:`IMAGE_KEYS`) in the pixel range the scores
+    and pictures read, ``[-0.5, 0.5]`` (``preprocess_pixels``'): an
+    :class:`~isodream_rl.modules.isodream.world_model.IsoDreamWorldModel` draws in its loss's units, ``pixels / 255``
+    in ``[0, 1]``, shifted here (in place); any other world model draws in ``[-0.5, 0.5]`` and is returned as it is.
+
+    Args:
+        world_model: the world model that wrote ``output``.
+        output: its ``[N, T]`` output.
+
+    Returns:
+        ``output``.
+    """
+    if isinstance(world_model, IsoDreamWorldModel):
+        keys = output.keys(include_nested=True)
+        for key in IMAGE_KEYS:
+            if key in keys:
+                output.set(key, output.get(key) - 0.5)
+    return output
 
 
 def check_windows(windows: TensorDictBase) -> None:
@@ -218,9 +242,7 @@ def decomposition_scores(
     """
     check_windows(windows)
     inputs = windows.select(*_MODEL_KEYS).to(device)
-    output = world_model(inputs)
-    if isinstance(world_model, IsoDreamWorldModel):  # its composite is in pixels / 255 units
-        output.set(("next", "reco_pixels"), output.get(("next", "reco_pixels")) - 0.5)
+    output = centred_images(world_model, world_model(inputs))
     return score_decomposition(output, windows, threshold=threshold)
 
 

@@ -2,12 +2,14 @@
 
 A missing object in a branch's mask has two possible causes: the branch's state does not carry the
 object (a representation problem), or it does and the mask never lets the branch draw it (a composition
-problem: a softmax mask shut at ~0 passes no gradient). This probe tells them apart. It runs a trained
-:class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel` over random-action sprites windows, fits a ridge
-regression from each branch's posterior features (``[state, belief]``, ``[free_state, free_belief]``) to
-each sprite's centre (the centroid of its ground-truth pixels), and reports the held-out R^2 per sprite
-and branch: near 1, the branch knows where the sprite is; at or below 0 (worse than the mean
-position), it does not.
+problem: a softmax mask shut at ~0 passes no gradient). This probe tells them apart. It runs a trained world
+model of either Iso-Dream learner (the DreamerV2-style
+:class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel`, the default's
+:class:`~isodream_rl.modules.isodream.world_model.IsoDreamWorldModel`) over random-action sprites windows, fits a
+ridge regression from each branch's posterior features (``[s, h]`` and ``[z, h']``: ``[state, belief]`` and
+``[free_state, free_belief]``, or the halves of the default's packed latent) to each sprite's centre (the centroid
+of its ground-truth pixels), and reports the held-out R^2 per sprite and branch: near 1, the branch knows where the
+sprite is; at or below 0 (worse than the mean position), it does not.
 
     python -m isodream_rl.cli probe runs/world_model
 
@@ -16,7 +18,9 @@ encoder: ``trunk`` (the shared trunk ``Enc_theta``'s feature map, 2x2 average-po
 ``embed_control`` and ``embed_free`` (the branch heads' embeddings ``e^s_t``, ``e^z_t``). These are wide
 (hundreds to thousands of features) and sparse (ReLU maps), so they are scaled by one common deviation
 rather than each by its own, and their ridge penalty is chosen by cross-validation on the fitting half. A
-sprite the trunk carries but ``embed_free`` does not is dropped by the noncontrollable head, before its RSSM.
+sprite the trunk carries but ``embed_free`` does not is dropped by the noncontrollable head, before its RSSM. The
+default's encoder has no branch heads (both branches' posteriors read one embedding): its ``trunk`` is that
+embedding, the flattened final feature map, and there is no ``embed_*``.
 
 The episodes are made like the run's (its scene, ``env.kwargs``, action hold and window, read from the
 checkpoint's configuration by :func:`isodream_rl.trainers.world_model_run.probe_scene`), from seeds it never
@@ -31,7 +35,11 @@ from typing import Any
 import torch
 
 from isodream_rl.data.sprites_episodes import collect_sprites_episodes, episode_windows, model_input
+from isodream_rl.modules.isodream.world_model import IsoDreamWorldModel
 from isodream_rl.modules.isodream_v2 import IsoDreamV2WorldModel
+
+#: The world models the probe reads: Iso-Dream's, of either learner.
+ProbedModel = IsoDreamV2WorldModel | IsoDreamWorldModel
 
 
 def sprite_centres(truth, num_distractors: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -79,15 +87,21 @@ def ridge_r2(
 
 
 @torch.no_grad()
-def branch_features(model: IsoDreamV2WorldModel, data, *, window: int) -> dict[str, torch.Tensor]:
-    """Posterior features ``[N, D]`` of each dynamic branch over flat episode data cut into windows.
+def branch_features(model: ProbedModel, data, *, window: int) -> dict[str, torch.Tensor]:
+    """Posterior features ``[N, D]`` of each dynamic branch over flat episode data cut into windows: ``control``,
+    ``[s, h]``, and, with the noncontrollable branch, ``free``, ``[z, h']``.
 
     The first ``window // 4`` steps of each window are dropped (the filter is still settling there)."""
     out = model(model_input(episode_windows(data, window=window)))["next"]
     keep = slice(window // 4, None)
-    feats = {"control": torch.cat([out["state"], out["belief"]], dim=-1)[:, keep]}
-    if "free_state" in out.keys():
-        feats["free"] = torch.cat([out["free_state"], out["free_belief"]], dim=-1)[:, keep]
+    if isinstance(model, IsoDreamWorldModel):  # one packed latent, [s, z] and [h, h']
+        (s, z), (h, h_free) = model.split_state(out["state"]), model.split_belief(out["belief"])
+    else:
+        s, h = out["state"], out["belief"]
+        z, h_free = (out["free_state"], out["free_belief"]) if "free_state" in out.keys() else (None, None)
+    feats = {"control": torch.cat([s, h], dim=-1)[:, keep]}
+    if z is not None:
+        feats["free"] = torch.cat([z, h_free], dim=-1)[:, keep]
     return {name: f.reshape(-1, f.shape[-1]).float() for name, f in feats.items()}
 
 
@@ -116,13 +130,16 @@ def ridge_cv(
 
 
 @torch.no_grad()
-def encoder_features(model: IsoDreamV2WorldModel, data, *, window: int) -> dict[str, torch.Tensor]:
+def encoder_features(model: ProbedModel, data, *, window: int) -> dict[str, torch.Tensor]:
     """Encoder features ``[N, D]`` of the same frames as :func:`branch_features` (the same steps dropped):
     ``trunk`` (2x2-pooled shared trunk map), ``embed_control`` and, with the noncontrollable branch,
-    ``embed_free``."""
+    ``embed_free``; of the default's world model, whose encoder has no branch heads, ``trunk`` only (its
+    embedding, the flattened final feature map that both branches' posteriors read)."""
     pixels = episode_windows(data, window=window).get(("next", "pixels"))[:, window // 4 :]
     device = next(model.parameters()).device
     pixels = pixels.reshape(-1, *pixels.shape[-3:]).to(device)
+    if isinstance(model, IsoDreamWorldModel):
+        return {"trunk": model.encoder(pixels).float()}
     trunk = model.encoder.trunk_features(pixels)
     feats = {"trunk": torch.nn.functional.avg_pool2d(trunk, 2).flatten(1)}
     feats["embed_control"] = model.encoder.head("control", trunk)
@@ -132,7 +149,7 @@ def encoder_features(model: IsoDreamV2WorldModel, data, *, window: int) -> dict[
 
 
 def probe(
-    model: IsoDreamV2WorldModel,
+    model: ProbedModel,
     *,
     window: int = 16,
     episodes: int = 32,

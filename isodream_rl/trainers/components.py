@@ -1,13 +1,17 @@
 """The interface of a run's parts, :class:`RunComponents` (models, losses, optimisers, stepper, replay buffer and the
-hooks whose state a checkpoint holds), and the replay side every algorithm's run shares (:func:`make_replay_parts`).
+hooks whose state a checkpoint holds), the replay side every algorithm's run shares (:func:`make_replay_parts`), and
+what ``mode=world_model`` trains of a learner, :class:`WorldModelAlone`.
 
 Each learner gives its parts this interface: the default's :class:`~isodream_rl.trainers.isodream.IsoDreamComponents`,
 the DreamerV2-style learner's :class:`~isodream_rl.trainers.isodream_v2.IsoDreamV2Components`, the TorchRL baselines'
-(:mod:`isodream_rl.baselines`); :mod:`isodream_rl.trainers.registry` builds the one ``algo.name`` names.
+(:mod:`isodream_rl.baselines`); :mod:`isodream_rl.trainers.registry` builds the one ``algo.name`` names. Iso-Dream's
+two learners give their world model alone too (``make_world_model_alone`` in :mod:`~isodream_rl.trainers.isodream`
+and :mod:`~isodream_rl.trainers.isodream_v2`), which :mod:`isodream_rl.trainers.world_model_run` trains.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -20,6 +24,27 @@ from isodream_rl.trainers.config import RunConfig
 from isodream_rl.trainers.hooks import EpisodeReturns, ReplayPreparation
 from isodream_rl.trainers.run_lifecycle import run_state
 from isodream_rl.trainers.saved_models import load_saved_models
+from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
+
+
+@dataclass
+class WorldModelAlone:
+    """What ``mode=world_model`` trains of a learner (:mod:`isodream_rl.trainers.world_model_run`): its world model,
+    the loss of the world model alone and the stepper of that loss (no actor, no value).
+
+    Attributes:
+        world_model: the world model (``[B, T]`` window -> its output, the branches' images and masks under
+            ``"next"``).
+        model_loss: its loss, ``td -> (losses, model_out)``, with ``loss_model_reco`` among the losses.
+        stepper: the update of the world model alone (its learner's optimiser), an
+            :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` with the one optimiser ``"world_model"``.
+        precision: the world model's compute precision, as ``summary.json`` names it (``"fp32"``, ``"bf16"``).
+    """
+
+    world_model: torch.nn.Module
+    model_loss: torch.nn.Module
+    stepper: IsoDreamOptimizationStepper
+    precision: str
 
 
 def make_replay_parts(

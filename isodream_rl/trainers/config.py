@@ -570,7 +570,7 @@ def config_from_dict(data: dict) -> RunConfig:
     if isinstance(model, dict) and "overrides" in model:  # before model.<field>
         data["model"] = {**model["overrides"], **{key: v for key, v in model.items() if key != "overrides"}}
     if isinstance(data.get("algo"), dict) and "name" in data["algo"]:
-        name = saved_algo_name(data["algo"]["name"], mode=data.get("mode", "rl"))
+        name = saved_algo_name(data["algo"]["name"])
         data = drop_unread_settings({**data, "algo": {**data["algo"], "name": name}})
     kwargs = {}
     for name, value in data.items():

@@ -4,6 +4,8 @@
   ``DreamerV3Loss``'s ``loss_*`` terms, each group's ``DreamerV3Optimizer``, the slow critic's ``SoftUpdate``)
   with what the run's hooks and checkpoints read, which TorchRL's lacks: skipping of non-finite updates, an update
   counter and fixed metric keys (those of :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper`).
+- :class:`DreamerV3WorldModelStepper`: the same update of the world model alone (``mode=world_model`` of the
+  default, :func:`make_dreamer_v3_world_model_stepper`): its loss, its ``DreamerV3Optimizer``, no actor, no critic.
 - :func:`make_dreamer_v3_optimizers`: a ``DreamerV3Optimizer`` (adaptive gradient clipping, RMS-scaled momentum,
   linear warm-up) per parameter group. TorchRL's optimiser keeps one update counter per group and is otherwise
   per parameter, so these are the update of one optimiser with three groups, and they let the world model train
@@ -23,7 +25,7 @@ from typing import Protocol
 import torch
 from tensordict import TensorDictBase
 from torch import nn
-from torchrl.objectives import DreamerV3ActorLoss, DreamerV3Loss, DreamerV3ValueLoss
+from torchrl.objectives import DreamerV3ActorLoss, DreamerV3Loss, DreamerV3ModelLoss, DreamerV3ValueLoss
 from torchrl.objectives.utils import SoftUpdate
 from torchrl.trainers.algorithms import DreamerV3Optimizer
 
@@ -33,6 +35,10 @@ from isodream_rl.trainers.stepper import ZeroStateStepper, loss_sum
 
 #: The parameter groups, each with its own optimiser and learning rate.
 GROUPS = ("world_model", "actor", "value")
+#: What ``DreamerV3ModelLoss`` (and so ``DreamerV3Loss``) reads of a replay sample, besides the zero root
+#: ``"state"`` / ``"belief"`` the steppers add: ``"action"``, ``"is_init"``, ``("next", "pixels")`` (as stored,
+#: uint8), ``("next", "reward")``, ``("next", "done")``, ``("next", "terminated")``.
+LOSS_INPUTS = ("action", "is_init", PIXELS, ("next", "reward"), ("next", "done"), ("next", "terminated"))
 
 
 def make_dreamer_v3_optimizers(
@@ -126,18 +132,9 @@ class DreamerV3OptimizationStepper(ZeroStateStepper):
         self.loss_module = loss_module
 
     def loss_inputs(self, sub_batch: TensorDictBase) -> TensorDictBase:
-        """What ``DreamerV3Loss`` reads of a flat ``[N]`` replay sample: ``"action"``, ``"is_init"``, ``("next",
-        "pixels")`` (as stored, uint8), ``("next", "reward")``, ``("next", "done")``, ``("next", "terminated")``
-        (:meth:`prepare` adds zero ``"state"`` / ``"belief"``: the rollout reads each window's first step)."""
-        return sub_batch.select(
-            "action",
-            "is_init",
-            PIXELS,
-            ("next", "reward"),
-            ("next", "done"),
-            ("next", "terminated"),
-            strict=False,
-        )
+        """What ``DreamerV3Loss`` reads of a flat ``[N]`` replay sample, :data:`LOSS_INPUTS` (:meth:`prepare` adds
+        zero ``"state"`` / ``"belief"``: the rollout reads each window's first step)."""
+        return sub_batch.select(*LOSS_INPUTS, strict=False)
 
     def _losses(self, batch: TensorDictBase, *, world_model_only: bool) -> TensorDictBase:
         if world_model_only:
@@ -167,6 +164,53 @@ class DreamerV3OptimizationStepper(ZeroStateStepper):
         return self._backward(loss_sum(losses), list(GROUPS)) and self._clip_and_step(stepped, metrics)
 
 
+class DreamerV3WorldModelStepper(ZeroStateStepper):
+    """DreamerV3's update of the world model alone, as the stepper of ``mode=world_model``: what
+    :class:`DreamerV3OptimizationStepper` does during ``train.world_model_warmup``, without an actor or a critic.
+
+    Per :meth:`step` on a flat ``[B * T]`` replay sample, moved to the model's device: :meth:`prepare`
+    (:data:`LOSS_INPUTS` with zero root ``"state"`` ``[N, S]`` / ``"belief"`` ``[N, D]``), windows ``[B, T]``, the
+    world model's ``DreamerV3ModelLoss`` (with its terms ``[1]`` each), one backward of the sum of its ``loss_*``
+    terms and one step of the world model's ``DreamerV3Optimizer`` (its adaptive gradient clipping is the only
+    clipping: ``grad_norm_world_model`` is logged before it). Skipping of non-finite updates, counters, metric keys
+    and checkpoint state are those of :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` with one
+    optimiser, ``"world_model"``.
+
+    Args:
+        model_loss: the world model's ``DreamerV3ModelLoss`` (``td -> (losses, model_out)``), e.g.
+            :class:`~isodream_rl.objectives.isodream.IsoDreamModelLoss`.
+        optimizer: the world model's ``DreamerV3Optimizer`` (:func:`make_dreamer_v3_optimizers`' ``"world_model"``).
+        sequence_length: T, the replay window length.
+        state_dim: width of ``"state"``.
+        belief_dim: width of ``"belief"``.
+        max_nonfinite: non-finite updates in a row that stop the run.
+    """
+
+    def __init__(
+        self,
+        *,
+        model_loss: DreamerV3ModelLoss,
+        optimizer: torch.optim.Optimizer,
+        sequence_length: int,
+        state_dim: int,
+        belief_dim: int,
+        max_nonfinite: int = 5,
+    ) -> None:
+        super().__init__(
+            model_loss=model_loss,
+            world_model_optimizer=optimizer,
+            sequence_length=sequence_length,
+            grad_clip=math.inf,
+            max_nonfinite=max_nonfinite,
+            state_dim=state_dim,
+            belief_dim=belief_dim,
+        )
+
+    def loss_inputs(self, sub_batch: TensorDictBase) -> TensorDictBase:
+        """What ``DreamerV3ModelLoss`` reads of a flat ``[N]`` replay sample, :data:`LOSS_INPUTS`."""
+        return sub_batch.select(*LOSS_INPUTS, strict=False)
+
+
 class DreamerV3Learner(Protocol):
     """What a DreamerV3 learner gives its run: the modules and losses its stepper and checkpoints read."""
 
@@ -178,6 +222,19 @@ class DreamerV3Learner(Protocol):
     target_updater: SoftUpdate
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]: ...
+
+
+def run_optimizers(
+    cfg: RunConfig, parameter_groups: dict[str, list[nn.Parameter]], *, settings: DreamerV3Settings
+) -> dict[str, DreamerV3Optimizer]:
+    """The run's :func:`make_dreamer_v3_optimizers`: each group of ``parameter_groups`` (:data:`GROUPS`, or some of
+    them) at its rate, ``train.world_model_lr`` / ``actor_lr`` / ``value_lr``, with ``train.lr_warmup`` in place of
+    ``settings.lr_warmup`` where set."""
+    train = cfg.train
+    if train.lr_warmup is not None:
+        settings = dataclasses.replace(settings, lr_warmup=train.lr_warmup)
+    rates = {"world_model": train.world_model_lr, "actor": train.actor_lr, "value": train.value_lr}
+    return make_dreamer_v3_optimizers(parameter_groups, rates=rates, settings=settings)
 
 
 def make_dreamer_v3_stepper(
@@ -194,18 +251,39 @@ def make_dreamer_v3_stepper(
     ``belief_dim`` are the widths of the latent the losses read
     (:class:`~isodream_rl.trainers.stepper.ZeroStateStepper` zeroes them at each window's start)."""
     train = cfg.train
-    if train.lr_warmup is not None:
-        settings = dataclasses.replace(settings, lr_warmup=train.lr_warmup)
-    rates = {"world_model": train.world_model_lr, "actor": train.actor_lr, "value": train.value_lr}
     return DreamerV3OptimizationStepper(
         loss_module=learner.loss_module,
-        optimizers=make_dreamer_v3_optimizers(learner.parameter_groups(), rates=rates, settings=settings),
+        optimizers=run_optimizers(cfg, learner.parameter_groups(), settings=settings),
         target_updater=learner.target_updater,
         sequence_length=train.sequence_length,
         state_dim=state_dim,
         belief_dim=belief_dim,
         max_nonfinite=train.max_nonfinite_updates,
         world_model_warmup=train.world_model_warmup,
+    )
+
+
+def make_dreamer_v3_world_model_stepper(
+    cfg: RunConfig,
+    model_loss: DreamerV3ModelLoss,
+    world_model: nn.Module,
+    *,
+    state_dim: int,
+    belief_dim: int,
+    settings: DreamerV3Settings,
+) -> DreamerV3WorldModelStepper:
+    """DreamerV3's update of ``world_model`` alone (``mode=world_model``): the ``"world_model"`` optimiser of
+    :func:`run_optimizers` (``train.world_model_lr``, ``lr_warmup``: the one a run of the learner gives its world
+    model) over ``world_model``'s parameters, ``model_loss`` on windows of ``train.sequence_length``,
+    ``max_nonfinite_updates``; ``state_dim`` / ``belief_dim`` as :func:`make_dreamer_v3_stepper`'s."""
+    optimizers = run_optimizers(cfg, {"world_model": list(world_model.parameters())}, settings=settings)
+    return DreamerV3WorldModelStepper(
+        model_loss=model_loss,
+        optimizer=optimizers["world_model"],
+        sequence_length=cfg.train.sequence_length,
+        state_dim=state_dim,
+        belief_dim=belief_dim,
+        max_nonfinite=cfg.train.max_nonfinite_updates,
     )
 
 

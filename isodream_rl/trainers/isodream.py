@@ -15,6 +15,11 @@ categoricals (the same classes, so that both branches' logits stack for the KL t
 depth 8, a 1.58 M-parameter world model, where ``algo=torchrl_dreamer_v3`` has one branch of ``hidden`` 120, image
 depth 8 and 1.84 M (``bench/update_speed.py`` writes both counts).
 
+``mode=world_model`` trains the world model alone (:func:`make_world_model_alone`): its loss,
+:class:`~isodream_rl.objectives.isodream.IsoDreamModelLoss`, and the world model's ``DreamerV3Optimizer`` of a run
+(:func:`~isodream_rl.trainers.dreamer_v3.make_dreamer_v3_world_model_stepper`), no actor, no critic;
+:func:`make_world_model` builds it to read a checkpoint.
+
 What it reads of the run configuration: ``model.size`` (``hidden_dim``), ``model.actor_units`` /
 ``value_units`` / ``attention_dim``, ``model.fast_paths`` (``IsoDreamConfig.fast_paths``; ``None``: on);
 ``algo.free_branch`` / ``static_branch`` / ``inverse_dynamics`` (the branch switches), ``algo.reward_uses_free``,
@@ -30,15 +35,20 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import torch
 from torch import nn
 
 from isodream_rl.modules.isodream.settings import ISODREAM_SETTINGS, IsoDreamSettings
-from isodream_rl.modules.isodream.world_model import IsoDreamConfig
+from isodream_rl.modules.isodream.world_model import IsoDreamConfig, IsoDreamWorldModel
 from isodream_rl.modules.sizes import SIZE_PRESETS
-from isodream_rl.objectives.isodream import IsoDreamLearner, make_isodream
-from isodream_rl.trainers.components import RunComponents, make_replay_parts
+from isodream_rl.objectives.isodream import IsoDreamLearner, IsoDreamModelLoss, make_isodream
+from isodream_rl.trainers.components import RunComponents, WorldModelAlone, make_replay_parts
 from isodream_rl.trainers.config import ConfigError, RunConfig
-from isodream_rl.trainers.dreamer_v3 import dreamer_v3_checkpoint_modules, make_dreamer_v3_stepper
+from isodream_rl.trainers.dreamer_v3 import (
+    dreamer_v3_checkpoint_modules,
+    make_dreamer_v3_stepper,
+    make_dreamer_v3_world_model_stepper,
+)
 
 
 def isodream_config(
@@ -78,6 +88,55 @@ def isodream_config(
     )
 
 
+def lambda_inverse_of(cfg: RunConfig, settings: IsoDreamSettings = ISODREAM_SETTINGS) -> float:
+    """The inverse-dynamics term's weight: ``algo.lambda_inverse``, or the learner's where it is ``None``."""
+    return settings.lambda_inverse if cfg.algo.lambda_inverse is None else cfg.algo.lambda_inverse
+
+
+def make_world_model(
+    cfg: RunConfig,
+    *,
+    action_dim: int,
+    device: torch.device | str,
+    settings: IsoDreamSettings = ISODREAM_SETTINGS,
+) -> IsoDreamWorldModel:
+    """The world model of ``cfg`` (:func:`isodream_config`) on ``device``, as a run builds it (to read a checkpoint's
+    weights into).
+
+    Raises:
+        ConfigError: as :func:`isodream_config`.
+    """
+    return IsoDreamWorldModel(isodream_config(cfg, action_dim=action_dim, settings=settings), device=device)
+
+
+def make_world_model_alone(
+    cfg: RunConfig, *, action_dim: int, settings: IsoDreamSettings = ISODREAM_SETTINGS
+) -> WorldModelAlone:
+    """The world model of ``cfg`` trained alone (``mode=world_model``): the world model a run of ``cfg`` builds, its
+    loss (:class:`~isodream_rl.objectives.isodream.IsoDreamModelLoss`: DreamerV3's world-model terms and the
+    inverse-dynamics term) and the world model's update of a run
+    (:func:`~isodream_rl.trainers.dreamer_v3.make_dreamer_v3_world_model_stepper`: its ``DreamerV3Optimizer`` at
+    ``train.world_model_lr``, ``lr_warmup``), no actor, no critic.
+
+    Raises:
+        ConfigError: as :func:`isodream_config`.
+    """
+    config = isodream_config(cfg, action_dim=action_dim, settings=settings)
+    world_model = IsoDreamWorldModel(config, device=cfg.train.device)
+    model_loss = IsoDreamModelLoss(
+        world_model, lambda_inverse=lambda_inverse_of(cfg, settings), settings=settings
+    )
+    stepper = make_dreamer_v3_world_model_stepper(
+        cfg,
+        model_loss,
+        world_model,
+        state_dim=config.packed_state_dim,
+        belief_dim=config.packed_belief_dim,
+        settings=settings,
+    )
+    return WorldModelAlone(world_model=world_model, model_loss=model_loss, stepper=stepper, precision="fp32")
+
+
 class IsoDreamComponents(RunComponents):
     """Models, losses, optimisers, stepper and replay buffer of an ``algo=isodream`` run or one of its ablations
     (module docstring).
@@ -114,9 +173,7 @@ class IsoDreamComponents(RunComponents):
             actor_units=model.actor_units,
             value_units=model.value_units,
             horizon=cfg.algo.horizon,
-            lambda_inverse=settings.lambda_inverse
-            if cfg.algo.lambda_inverse is None
-            else cfg.algo.lambda_inverse,
+            lambda_inverse=lambda_inverse_of(cfg, settings),
             device=train.device,
         )
         self.model_loss = self.learner.model_loss

@@ -4,7 +4,8 @@ losses and the acting policy), Adam per parameter group and :class:`~isodream_rl
 
 Its settings are the values :func:`~isodream_rl.trainers.learners.resolved` gives (its table,
 :data:`~isodream_rl.trainers.learners.ISODREAM_V2_SETTINGS`, where the configuration leaves them ``None``);
-``mode=world_model`` trains the world model of :func:`make_world_model_loss` alone.
+``mode=world_model`` trains the world model of :func:`make_world_model_loss` alone
+(:func:`make_world_model_alone`), and :func:`make_world_model` builds it to read a checkpoint.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from isodream_rl.objectives.isodream_v2 import (
     make_target_updater,
 )
 from isodream_rl.trainers.builders import make_adam
-from isodream_rl.trainers.components import RunComponents, make_replay_parts
+from isodream_rl.trainers.components import RunComponents, WorldModelAlone, make_replay_parts
 from isodream_rl.trainers.config import RunConfig, world_model_overrides
 from isodream_rl.trainers.learners import resolved
 from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
@@ -58,6 +59,36 @@ def make_world_model_loss(cfg: RunConfig, *, action_dim: int, extra_terms=()) ->
         kl_balance=algo.kl_balance,
         free_branch_loss=algo.free_branch_loss,
         extra_terms=extra_terms,
+    )
+
+
+def make_world_model(cfg: RunConfig, *, action_dim: int, device: torch.device | str) -> IsoDreamV2WorldModel:
+    """The world model of ``cfg`` (its size preset, ``model.<field>`` settings and branch switches) on ``device``,
+    as a run builds it (to read a checkpoint's weights into)."""
+    return IsoDreamV2WorldModel(make_world_model_config(cfg, action_dim=action_dim), device=device)
+
+
+def make_world_model_alone(cfg: RunConfig, *, action_dim: int) -> WorldModelAlone:
+    """The world model of ``cfg`` trained alone (``mode=world_model``): its loss (eq. 5,
+    :func:`make_world_model_loss`) and :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` with no
+    actor and no value, Adam at ``train.world_model_lr`` (``adam_eps``), gradients clipped to ``train.grad_clip``.
+    """
+    cfg = resolved(cfg)
+    train = cfg.train
+    model_loss = make_world_model_loss(cfg, action_dim=action_dim)
+    stepper = IsoDreamOptimizationStepper(
+        model_loss=model_loss,
+        world_model_optimizer=make_adam(model_loss.parameters(), lr=train.world_model_lr, eps=train.adam_eps),
+        sequence_length=train.sequence_length,
+        grad_clip=train.grad_clip,
+        max_nonfinite=train.max_nonfinite_updates,
+    )
+    world_model = model_loss.world_model
+    return WorldModelAlone(
+        world_model=world_model,
+        model_loss=model_loss,
+        stepper=stepper,
+        precision=world_model.config.precision,
     )
 
 

@@ -42,15 +42,17 @@ from isodream_rl.objectives.isodream_v2.world_model import LOSS_WEIGHTS, PAPER_W
 
 #: Iso-Dream on DreamerV3's learner: the default and its ablations.
 ISODREAM_ALGOS = ("isodream", "isodream_no_inverse", "isodream_no_attention", "isodream_no_static")
-#: The presets of the DreamerV2-style learner (a name of your own builds it too); ``mode=world_model`` trains its
-#: world model.
+#: The presets of the DreamerV2-style learner (a name of your own builds it too); the ``exp`` recipes of
+#: ``mode=world_model`` pick it.
 ISODREAM_V2_ALGOS = ("isodream_v2", "isodream_paper", "dreamerv2")
 #: The algorithms built from TorchRL's own Dreamer pieces (``isodream_rl.baselines``): no Iso-Dream world model.
 TORCHRL_BASELINES = ("torchrl_dreamer", "torchrl_dreamer_v3")
 #: The algorithms trained by DreamerV3's update (:class:`~isodream_rl.trainers.dreamer_v3.DreamerV3OptimizationStepper`).
 DREAMER_V3_LEARNERS = (*ISODREAM_ALGOS, "torchrl_dreamer_v3")
-#: The algorithms whose world model is not the DreamerV2-style one: no ``mode=world_model`` nor its probes.
-OTHER_WORLD_MODELS = (*TORCHRL_BASELINES, *ISODREAM_ALGOS)
+#: The learners (keys of :data:`LEARNERS`) whose world model ``mode=world_model`` trains alone and the latent probe
+#: reads: Iso-Dream's two, whose world models have the branches the mode scores
+#: (:mod:`isodream_rl.trainers.world_model_run`); TorchRL's baselines have none.
+WORLD_MODEL_LEARNERS = ("isodream", "isodream_v2")
 
 #: The ``model.<field>`` settings of the DreamerV2-style world model: every field of its configuration but the
 #: env's ``action_dim``.
@@ -159,9 +161,33 @@ LEARNERS: dict[str, Learner] = {
 LEARNER_SETTINGS = tuple(dict.fromkeys(key for learner in LEARNERS.values() for key in learner.values))
 
 
+def learner_name(algo: str) -> str:
+    """The key in :data:`LEARNERS` of the learner ``algo=<algo>`` builds: ``"isodream_v2"`` (the DreamerV2-style
+    learner) for a name no learner lists."""
+    return next((name for name, learner in LEARNERS.items() if algo in learner.algos), "isodream_v2")
+
+
 def learner_of(algo: str) -> Learner:
     """The learner ``algo=<algo>`` builds: the DreamerV2-style one for a name no learner lists."""
-    return next((learner for learner in LEARNERS.values() if algo in learner.algos), LEARNERS["isodream_v2"])
+    return LEARNERS[learner_name(algo)]
+
+
+def world_model_algos() -> tuple[str, ...]:
+    """The ``algo`` presets whose world model ``mode=world_model`` trains (those of :data:`WORLD_MODEL_LEARNERS`,
+    the default's first; a name of your own builds the DreamerV2-style learner and is trained too)."""
+    return tuple(name for learner in WORLD_MODEL_LEARNERS for name in LEARNERS[learner].algos)
+
+
+def world_model_mode_error(algo: str) -> str | None:
+    """Why ``mode=world_model`` refuses ``algo=<algo>``, in one line naming the algorithms it trains (those of
+    :data:`WORLD_MODEL_LEARNERS`); ``None`` for one it trains."""
+    if learner_name(algo) in WORLD_MODEL_LEARNERS:
+        return None
+    return (
+        f"mode=world_model trains the world model of Iso-Dream's learners, whose branches it scores, not "
+        f"algo={algo}'s ({learner_of(algo).title}: no branches): pick one of "
+        f"{', '.join(f'algo={name}' for name in world_model_algos())}"
+    )
 
 
 def model_fields_read(algo: str) -> tuple[str, ...]:

@@ -8,9 +8,10 @@ Two renames changed what an ``algo`` name builds:
   (:func:`renamed_algo_error`), and a configuration saved under it is read as ``algo=isodream``
   (:func:`saved_algo_name`);
 - ``algo=isodream`` and its ablations were the DreamerV2-style learner until then, now ``algo=isodream_v2``
-  (:data:`FORMER_DREAMER_V2_ALGOS`). A saved configuration does not tell such a run from a later one; its weights do
-  (:func:`saved_learner`): what only reads a checkpoint builds the learner its weights are of
-  (:func:`name_of_saved_learner`), a resume that does not fit says in one line which settings continue it
+  (:data:`FORMER_DREAMER_V2_ALGOS`). A saved configuration does not tell such a run from a later one, in either
+  mode (``mode=world_model`` trained the DreamerV2-style world model under those names too, until it trained the
+  default's); its weights do (:func:`saved_learner`): what only reads a checkpoint builds the learner its weights
+  are of (:func:`name_of_saved_learner`), a resume that does not fit says in one line which settings continue it
   (:func:`former_learner_error`), and ``algo=isodream_v2`` with those settings may resume it
   (:func:`resumes_former_run`).
 
@@ -24,7 +25,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from isodream_rl.trainers.learners import ISODREAM_ALGOS, LEARNER_SETTINGS, learner_of
+from isodream_rl.trainers.learners import LEARNER_SETTINGS, learner_of
 
 #: ``old name -> (new name, why)`` of the ``algo`` presets that were renamed.
 RENAMED_ALGOS: dict[str, tuple[str, str]] = {
@@ -42,16 +43,20 @@ FORMER_DREAMER_V2_ALGOS: dict[str, tuple[str, ...]] = {
     "isodream_no_attention": ("algo.policy_input=controllable",),
     "isodream_no_static": ("algo.static_branch=false",),
 }
-#: ``learner -> (model names, world-model key prefix)``: what the weights of a checkpoint of Iso-Dream's two learners
-#: hold, and the other's do not. The names of the models (``state["models"]``): the DreamerV2-style learner's
-#: (:meth:`~isodream_rl.trainers.isodream_v2.IsoDreamV2Components.modules`) has ``actor_loss``, DreamerV3's
-#: (:func:`~isodream_rl.trainers.dreamer_v3.dreamer_v3_checkpoint_modules`) ``actor`` and ``return_norm``; the
-#: world model's controllable branch: ``IsoDreamV2WorldModel``'s RSSM ``control_rssm``, ``IsoDreamWorldModel``'s
-#: prior ``control_prior`` (neither is in the other, nor in a TorchRL baseline's world model).
+#: ``learner -> (model names, world-model key prefix)``: what the weights of a ``mode=rl`` checkpoint of Iso-Dream's
+#: two learners hold, and the other's do not. The names of the models (``state["models"]``): the DreamerV2-style
+#: learner's (:meth:`~isodream_rl.trainers.isodream_v2.IsoDreamV2Components.modules`) has ``actor_loss``,
+#: DreamerV3's (:func:`~isodream_rl.trainers.dreamer_v3.dreamer_v3_checkpoint_modules`) ``actor`` and
+#: ``return_norm``; the world model's controllable branch: ``IsoDreamV2WorldModel``'s RSSM ``control_rssm``,
+#: ``IsoDreamWorldModel``'s prior ``control_prior`` (neither is in the other, nor in a TorchRL baseline's world
+#: model). A ``mode=world_model`` checkpoint holds the world model alone (:data:`WORLD_MODEL_ONLY`), told by the
+#: same prefix.
 LEARNER_SIGNATURES: dict[str, tuple[frozenset[str], str]] = {
     "isodream_v2": (frozenset({"world_model", "actor_loss", "value_loss"}), "control_rssm."),
     "isodream": (frozenset({"world_model", "actor", "value_loss", "return_norm"}), "control_prior."),
 }
+#: The models of a ``mode=world_model`` checkpoint, of either learner.
+WORLD_MODEL_ONLY = frozenset({"world_model"})
 
 
 def renamed_algo_error(name: str) -> str | None:
@@ -63,13 +68,11 @@ def renamed_algo_error(name: str) -> str | None:
     return f"algo={name} is now algo={new_name} ({why})"
 
 
-def saved_algo_name(name: str, *, mode: str) -> str:
-    """The name today of the ``algo.name`` of a configuration saved with ``mode``: a renamed preset's new name; in
-    ``mode=world_model``, which trains the DreamerV2-style world model whatever the name, ``isodream_v2`` for a name
-    that is now Iso-Dream on DreamerV3's learner (a run saved before ``algo=isodream`` became it; its branch
-    switches were saved with it)."""
-    name = RENAMED_ALGOS.get(name, (name,))[0]
-    return "isodream_v2" if mode == "world_model" and name in ISODREAM_ALGOS else name
+def saved_algo_name(name: str) -> str:
+    """The name today of the ``algo.name`` of a saved configuration: a renamed preset's new name, any other name as
+    it is. A name of :data:`FORMER_DREAMER_V2_ALGOS` stays as it is, in either mode: its configuration does not tell
+    which learner it was saved by, its weights do (:func:`name_of_saved_learner`)."""
+    return RENAMED_ALGOS.get(name, (name,))[0]
 
 
 def drop_unread_settings(saved: Mapping[str, Any]) -> dict[str, Any]:
@@ -86,11 +89,14 @@ def drop_unread_settings(saved: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def saved_learner(models: Mapping[str, Mapping]) -> str | None:
-    """The Iso-Dream learner whose weights ``models`` (a checkpoint's ``state["models"]``) are, by
-    :data:`LEARNER_SIGNATURES`: ``"isodream_v2"`` (the DreamerV2-style learner), ``"isodream"`` (DreamerV3's), or
-    ``None`` (another algorithm's, or a ``mode=world_model`` checkpoint)."""
+    """The Iso-Dream learner whose weights ``models`` (a checkpoint's ``state["models"]``, of either mode) are, by
+    :data:`LEARNER_SIGNATURES` (a ``mode=world_model`` checkpoint, :data:`WORLD_MODEL_ONLY`, by its world model's
+    prefix alone): ``"isodream_v2"`` (the DreamerV2-style learner), ``"isodream"`` (DreamerV3's), or ``None``
+    (another algorithm's)."""
     for learner, (names, prefix) in LEARNER_SIGNATURES.items():
-        if set(models) == names and any(str(key).startswith(prefix) for key in models["world_model"]):
+        if set(models) in (names, WORLD_MODEL_ONLY) and any(
+            str(key).startswith(prefix) for key in models["world_model"]
+        ):
             return learner
     return None
 
@@ -126,10 +132,9 @@ def former_learner_error(
     return None
 
 
-def resumes_former_run(saved_algo: str, algo: str, *, mode: str) -> bool:
-    """Whether ``algo=<algo>`` may resume a ``mode`` run saved as ``algo=<saved_algo>`` (today's name) though the
-    names differ: ``algo=isodream_v2`` continues a ``mode=rl`` run saved under a name of
-    :data:`FORMER_DREAMER_V2_ALGOS`, which may be one of the DreamerV2-style learner trained before that name became
-    Iso-Dream on DreamerV3's learner; only its weights tell, and they are checked when they load
-    (:func:`former_learner_error`)."""
-    return mode == "rl" and saved_algo in FORMER_DREAMER_V2_ALGOS and algo == "isodream_v2"
+def resumes_former_run(saved_algo: str, algo: str) -> bool:
+    """Whether ``algo=<algo>`` may resume a run (of either mode) saved as ``algo=<saved_algo>`` (today's name) though
+    the names differ: ``algo=isodream_v2`` continues a run saved under a name of :data:`FORMER_DREAMER_V2_ALGOS`,
+    which may be one of the DreamerV2-style learner trained before that name became Iso-Dream on DreamerV3's
+    learner; only its weights tell, and they are checked when they load (:func:`former_learner_error`)."""
+    return saved_algo in FORMER_DREAMER_V2_ALGOS and algo == "isodream_v2"

@@ -175,7 +175,7 @@ def differing_settings(saved: dict, cfg: RunConfig) -> dict[str, tuple[Any, Any]
     that name, and the ``algo`` fields that set the variant are compared as any other.
     """
     saved_cfg = config_from_dict(saved)
-    if resumes_former_run(saved_cfg.algo.name, cfg.algo.name, mode=saved_cfg.mode):
+    if resumes_former_run(saved_cfg.algo.name, cfg.algo.name):
         saved_cfg = config_from_dict({**saved, "algo": {**saved["algo"], "name": cfg.algo.name}})
     before = _compared(saved_cfg)
     now = _compared(cfg)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from isodream_rl.modules.sizes import SIZE_PRESETS
-from isodream_rl.trainers.learners import ISODREAM_V2_ALGOS, OTHER_WORLD_MODELS
+from isodream_rl.trainers.learners import world_model_mode_error
 
 #: What ``isodream-train`` trains: Algorithm 1 (world model, actor and value), or the world model alone.
 MODES = ("rl", "world_model")
@@ -49,12 +49,9 @@ def world_model_mode_errors(cfg: Any) -> list[str]:
     overrides = cfg.model.world_model_fields()
     if cfg.model.size not in SIZE_PRESETS:
         errors.append(f"model.size={cfg.model.size!r} is not one of {list(SIZE_PRESETS)}")
-    if algo.name in OTHER_WORLD_MODELS:
-        errors.append(
-            f"mode=world_model trains the DreamerV2-style Iso-Dream world model, not algo={algo.name}'s: pick "
-            f"{', '.join(f'algo={name}' for name in ISODREAM_V2_ALGOS)} (exp=world_model and exp=decomposition "
-            "pick algo=isodream_v2)"
-        )
+    refused = world_model_mode_error(algo.name)
+    if refused:
+        errors.append(refused)
     for name, value, minimum in (
         ("world_model.updates", wm.updates, 1),
         ("world_model.episodes", wm.episodes, 1),

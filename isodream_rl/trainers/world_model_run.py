@@ -1,17 +1,28 @@
 """``mode=world_model``: the world model trained alone on random-action episodes, scored on held-out ones.
 
 ``isodream-train exp=world_model`` (or its alias ``isodream-demo``) collects random-action episodes with held
-actions (the sprites scene by default; any env of the ``env`` group), trains
-:class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel` with :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2ModelLoss`
-through the trainer's :class:`~isodream_rl.trainers.stepper.IsoDreamOptimizationStepper` (no actor, no value),
-and every ``logging.eval_every`` updates scores it on held-out episodes
+actions (the sprites scene by default; any env of the ``env`` group), trains the world model of the run's learner
+alone (no actor, no value), with the loss and the world-model optimiser a run of that learner gives it
+(:class:`~isodream_rl.trainers.components.WorldModelAlone`, :data:`WORLD_MODEL_BUILDERS`):
+
+* the default, ``algo=isodream`` and its ablations (Iso-Dream on DreamerV3's learner):
+  :class:`~isodream_rl.modules.isodream.world_model.IsoDreamWorldModel` with
+  :class:`~isodream_rl.objectives.isodream.IsoDreamModelLoss` and its ``DreamerV3Optimizer``
+  (:func:`~isodream_rl.trainers.isodream.make_world_model_alone`);
+* the DreamerV2-style learner, ``algo=isodream_v2``, ``isodream_paper``, ``dreamerv2`` (the ``exp`` files' algo):
+  :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel` with
+  :class:`~isodream_rl.objectives.isodream_v2.IsoDreamV2ModelLoss` and Adam
+  (:func:`~isodream_rl.trainers.isodream_v2.make_world_model_alone`).
+
+TorchRL's baselines, whose world models have no branches, are refused. Every ``logging.eval_every`` updates it
+scores the world model on held-out episodes
 (:func:`~isodream_rl.evaluation.branches.score_branches`: on every env with ground-truth masks (sprites,
 highway, DMC), :func:`~isodream_rl.evaluation.decomposition_scores`, each branch against the agent, the
 distractors and the background; on sprites, each disc's coverage and reconstruction error too) and draws
 ``pictures/branches_<updates>.png``. It stops after ``world_model.updates`` updates, or once its wall-clock
 passes ``world_model.max_minutes``. At the end, on sprites, it probes what each branch's state knows with the
 :class:`LatentProbe` it is given (``isodream-train`` gives :func:`~isodream_rl.evaluation.latent_probe.probe`) and
-writes ``summary.json``. The loop is the RL run's
+writes ``summary.json`` (its ``algo``, its ``learner``, the last scores). The loop is the RL run's
 (:func:`~isodream_rl.trainers.run_lifecycle.train_with_checkpoints`: TorchRL's ``Trainer``, fed by
 :class:`FixedData`, no new env steps), and so is the run folder: ``logs/`` (the TorchRL logger),
 ``checkpoints/step_<updates>/`` (:class:`~isodream_rl.run_utils.checkpoint.CheckpointManager`, which
@@ -27,12 +38,15 @@ import functools
 import logging
 import math
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
 import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
+from torch import nn
 from torchrl.trainers import Trainer, TrainerHookBase
 from tqdm import tqdm
 
@@ -44,19 +58,25 @@ from isodream_rl.data.sprites_episodes import (
 from isodream_rl.envs.builder import ground_truth_mask_keys
 from isodream_rl.evaluation.branches import branch_grid, save_png, score_branches
 from isodream_rl.evaluation.decomposition import TRUTH_KEYS
-from isodream_rl.modules.isodream_v2 import IsoDreamV2WorldModel
+from isodream_rl.evaluation.latent_probe import ProbedModel
 from isodream_rl.run_utils.checkpoint import CheckpointError, CheckpointManager
+from isodream_rl.trainers import isodream, isodream_v2
 from isodream_rl.trainers.builders import (
     REPLAY_KEYS,
     action_dim_of,
     checked_env_factory,
     close_logger,
-    make_adam,
     make_logger,
 )
+from isodream_rl.trainers.components import WorldModelAlone
 from isodream_rl.trainers.config import ConfigError, RunConfig
-from isodream_rl.trainers.isodream_v2 import make_world_model_config, make_world_model_loss
-from isodream_rl.trainers.learners import OTHER_WORLD_MODELS, resolved
+from isodream_rl.trainers.learners import (
+    learner_name,
+    learner_of,
+    resolved,
+    world_model_algos,
+    world_model_mode_error,
+)
 from isodream_rl.trainers.run_dir import resuming, write_run_config
 from isodream_rl.trainers.run_lifecycle import (
     RunResult,
@@ -69,7 +89,6 @@ from isodream_rl.trainers.run_lifecycle import (
     write_summary,
 )
 from isodream_rl.trainers.saved_models import load_saved_models, saved_run_config
-from isodream_rl.trainers.stepper import IsoDreamOptimizationStepper
 
 logger = logging.getLogger(__name__)
 
@@ -80,8 +99,46 @@ class LatentProbe(Protocol):
     (:func:`isodream_rl.evaluation.latent_probe.probe` is one)."""
 
     def __call__(
-        self, world_model: IsoDreamV2WorldModel, *, episodes: int, seed: int, encoder: bool, **scene: Any
+        self, world_model: ProbedModel, *, episodes: int, seed: int, encoder: bool, **scene: Any
     ) -> dict[str, float]: ...
+
+
+@dataclass(frozen=True)
+class WorldModelBuilder:
+    """What ``mode=world_model`` builds of one of Iso-Dream's learners: what differs between them in a run of the
+    mode and in reading it back (the loop, the data, the scores, the pictures and the checkpoints are the same)."""
+
+    alone: Callable[..., WorldModelAlone]
+    """``(cfg, *, action_dim) -> WorldModelAlone``: the world model, its loss and its stepper, to train."""
+    world_model: Callable[..., nn.Module]
+    """``(cfg, *, action_dim, device) -> world model``: the world model alone, to read a checkpoint's weights
+    into."""
+
+
+#: ``learner -> builder``, one for each of :data:`~isodream_rl.trainers.learners.WORLD_MODEL_LEARNERS` (which the
+#: configuration's check reads): the world model of each learner ``mode=world_model`` trains.
+WORLD_MODEL_BUILDERS: dict[str, WorldModelBuilder] = {
+    "isodream": WorldModelBuilder(
+        alone=isodream.make_world_model_alone, world_model=isodream.make_world_model
+    ),
+    "isodream_v2": WorldModelBuilder(
+        alone=isodream_v2.make_world_model_alone, world_model=isodream_v2.make_world_model
+    ),
+}
+
+
+def world_model_builder(algo: str) -> WorldModelBuilder:
+    """The :class:`WorldModelBuilder` of the learner ``algo=<algo>`` builds.
+
+    Raises:
+        ConfigError: a learner whose world model the mode does not train (TorchRL's baselines: no branches); the
+            one line names the algorithms it trains
+            (:func:`~isodream_rl.trainers.learners.world_model_mode_error`).
+    """
+    refused = world_model_mode_error(algo)
+    if refused:
+        raise ConfigError(f"invalid training configuration: {refused}")
+    return WORLD_MODEL_BUILDERS[learner_name(algo)]
 
 
 #: the ground-truth masks collected with the episodes of an env that has them
@@ -164,20 +221,26 @@ def probe_scene(cfg: RunConfig, *, window: int | None = None) -> dict:
     }
 
 
-def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDreamV2WorldModel, RunConfig]:
-    """The world model (in fp32) and configuration of a checkpoint of ``isodream-train``, either mode.
+def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[ProbedModel, RunConfig]:
+    """The world model (in fp32) and configuration of a checkpoint of ``isodream-train``, either mode, of either
+    Iso-Dream learner: an :class:`~isodream_rl.modules.isodream.world_model.IsoDreamWorldModel` for the default's
+    (``algo=isodream`` and its ablations), an :class:`~isodream_rl.modules.isodream_v2.IsoDreamV2WorldModel` for
+    the DreamerV2-style learner's (``algo=isodream_v2``, ``isodream_paper``, ``dreamerv2``).
 
     Args:
         path: a run folder (its newest readable checkpoint) or one of its ``checkpoints/step_*`` folders.
         device: where the model goes.
 
+    Returns:
+        ``(world_model, cfg)``: the world model with the checkpoint's weights, and the configuration it was saved
+        with, under the name of the learner its weights are of.
+
     Raises:
-        CheckpointError: no readable checkpoint there, or one of another world model
-            (:data:`~isodream_rl.trainers.learners.OTHER_WORLD_MODELS`: TorchRL's baselines, Iso-Dream on
-            DreamerV3's learner), or weights that do not fit the world model of its configuration
-            (:class:`~isodream_rl.trainers.saved_models.CheckpointMismatchError`). An ``algo=isodream`` run saved
-            when that name was the DreamerV2-style learner is read as ``algo=isodream_v2``
-            (:func:`~isodream_rl.trainers.saved_models.saved_run_config`).
+        CheckpointError: no readable checkpoint there, or one of a world model without branches (TorchRL's
+            baselines), or weights that do not fit the world model of its configuration
+            (:class:`~isodream_rl.trainers.saved_models.CheckpointMismatchError`). A run (of either mode) saved by
+            ``algo=isodream`` or one of its ablations when those names were the DreamerV2-style learner is read as
+            ``algo=isodream_v2``, its weights telling (:func:`~isodream_rl.trainers.saved_models.saved_run_config`).
     """
     path = Path(path)
     if path.is_file():
@@ -196,13 +259,14 @@ def load_world_model(path: str | Path, *, device: str = "cpu") -> tuple[IsoDream
     else:
         state, path = manager.load_latest(required_keys=("config", "models"))
     cfg = saved_run_config(state)
-    if cfg.algo.name in OTHER_WORLD_MODELS:
+    if learner_name(cfg.algo.name) not in WORLD_MODEL_BUILDERS:
         raise CheckpointError(
-            f"{path} holds the world model of algo={cfg.algo.name}, not the DreamerV2-style Iso-Dream's"
+            f"{path} holds the world model of algo={cfg.algo.name} ({learner_of(cfg.algo.name).title}), which has "
+            f"no branches: load_world_model reads those of {', '.join(f'algo={n}' for n in world_model_algos())}"
         )
     cfg.model.precision = "fp32"
-    model = IsoDreamV2WorldModel(
-        make_world_model_config(cfg, action_dim=probe_action_dim(cfg)), device=device
+    model = world_model_builder(cfg.algo.name).world_model(
+        cfg, action_dim=probe_action_dim(cfg), device=device
     )
     load_saved_models({"world_model": model}, state, algo=cfg.algo.name, checkpoint=path)
     return model, cfg
@@ -263,7 +327,7 @@ class BranchEvaluation:
     def __init__(
         self,
         *,
-        world_model: IsoDreamV2WorldModel,
+        world_model: nn.Module,
         held_out: TensorDict,
         seen: TensorDict,
         window: int,
@@ -299,6 +363,11 @@ class BranchEvaluation:
 
     def load_state_dict(self, state_dict: dict) -> None:
         self.last = state_dict["last"]
+
+
+#: ``metric -> (label, format)`` of the progress bar, for the metrics a learner's world-model loss has
+#: (``reco_mse`` is the DreamerV2-style loss's)
+_POSTFIX = {"loss_model_reco": ("loss", ".1f"), "reco_mse": ("mse", ".4f")}
 
 
 class UpdateCadence(TrainerHookBase):
@@ -358,7 +427,9 @@ class UpdateCadence(TrainerHookBase):
             metrics["updates_per_s"] = (done - self.first) / (wall_clock() - self._clock)
             for key, value in metrics.items():
                 self.logger.log_scalar(key, value, step=update)
-            self.bar.set_postfix(loss=f"{metrics['loss_model_reco']:.1f}", mse=f"{metrics['reco_mse']:.4f}")
+            self.bar.set_postfix(
+                {name: f"{metrics[key]:{spec}}" for key, (name, spec) in _POSTFIX.items() if key in metrics}
+            )
             self.metrics = metrics
         if (self.eval_every and done % self.eval_every == 0) or last:
             scores = self.evaluation.evaluate(done)
@@ -379,8 +450,9 @@ class UpdateCadence(TrainerHookBase):
 
 class _WorldModelRun:
     """The parts of one ``mode=world_model`` run and what it does with them: the world model, its loss and stepper
-    (no actor, no value), the evaluation on held-out episodes, the logger, the checkpoints and the wall clock
-    (summed over resumes)."""
+    (no actor, no value: the learner's :class:`~isodream_rl.trainers.components.WorldModelAlone`, from
+    :func:`world_model_builder`), the evaluation on held-out episodes, the logger, the checkpoints and the wall
+    clock (summed over resumes)."""
 
     def __init__(
         self,
@@ -400,17 +472,9 @@ class _WorldModelRun:
         self.buffer = make_window_buffer(
             data, batch_size=train_cfg.batch_size, window=train_cfg.sequence_length
         )
-        self.loss = make_world_model_loss(cfg, action_dim=data["action"].shape[-1])
-        self.world_model = self.loss.world_model
-        self.stepper = IsoDreamOptimizationStepper(
-            model_loss=self.loss,
-            world_model_optimizer=make_adam(
-                self.loss.parameters(), lr=train_cfg.world_model_lr, eps=train_cfg.adam_eps
-            ),
-            sequence_length=train_cfg.sequence_length,
-            grad_clip=train_cfg.grad_clip,
-            max_nonfinite=train_cfg.max_nonfinite_updates,
-        )
+        parts = world_model_builder(cfg.algo.name).alone(cfg, action_dim=data["action"].shape[-1])
+        self.loss, self.world_model, self.stepper = parts.model_loss, parts.world_model, parts.stepper
+        self.precision = parts.precision
         self.log = make_logger(cfg, run_dir=run_dir)
         self.evaluation = BranchEvaluation(
             world_model=self.world_model,
@@ -501,7 +565,7 @@ class _WorldModelRun:
             wall_s=self.wall_s,
             max_minutes=cfg.world_model.max_minutes,
             progress_bar=cfg.logging.progress_bar,
-            desc=f"world model ({cfg.model.size}, {self.world_model.config.precision})",
+            desc=f"world model ({cfg.model.size}, {self.precision})",
         )
 
     def summary(self, *, out_of_time: bool, probe: LatentProbe | None) -> dict[str, Any]:
@@ -523,11 +587,14 @@ class _WorldModelRun:
         return {
             "mode": cfg.mode,
             "algo": cfg.algo.name,
+            # which learner's world model (a summary written before the mode trained the default's has none: it is
+            # the DreamerV2-style learner's, whatever its algo)
+            "learner": learner_name(cfg.algo.name),
             "env": cfg.env.name,
             "updates": self.stepper.updates,
             "stopped_by": "max_minutes" if out_of_time else "updates",
             "seconds": round(self.wall_s(), 1),
-            "precision": self.world_model.config.precision,
+            "precision": self.precision,
             "size": cfg.model.size,
             "seed": cfg.train.seed,
             **{key: round(value, 3) for key, value in scores.items()},
@@ -542,15 +609,17 @@ def train(cfg: RunConfig, *, probe: LatentProbe | None = None) -> RunResult:
 
     The loop is the RL run's: a TorchRL ``Trainer`` in
     :func:`~isodream_rl.trainers.run_lifecycle.train_with_checkpoints`, fed by :class:`FixedData` (no new env
-    steps) and sampling windows of the episodes collected first; the stepper has no actor and no value.
+    steps) and sampling windows of the episodes collected first; the stepper (the learner's, from
+    :func:`world_model_builder`) has no actor and no value.
 
     Args:
         cfg: the run's configuration (``mode=world_model``).
         probe: the latent probe run at the end on sprites; needed there when ``world_model.probe_episodes > 0``.
 
     Raises:
-        ConfigError: invalid configuration (before anything is built), ``resume`` with other settings, or a
-            sprites run with ``world_model.probe_episodes`` and no ``probe``.
+        ConfigError: invalid configuration (before anything is built), ``resume`` with other settings, a learner
+            whose world model the mode does not train (:func:`world_model_builder`), or a sprites run with
+            ``world_model.probe_episodes`` and no ``probe``.
         CheckpointError: ``resume`` without a readable checkpoint.
         NonFiniteLossError: too many NaN/inf updates in a row.
     """
