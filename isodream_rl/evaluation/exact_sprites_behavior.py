@@ -57,6 +57,8 @@ class ExactModelConfig:
     settings: DreamerV3Settings = ISODREAM_SETTINGS
     free_branch: bool = False
     free: ExactWidths = field(default_factory=lambda: ExactWidths(0, 0))
+    fast_paths: bool = True
+    """The actor's and critic's RMS norms as the fused ones (``IsoDreamConfig.fast_paths``)."""
 
     @classmethod
     def of(
