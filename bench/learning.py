@@ -83,6 +83,9 @@ CURVE_DECOMPOSITION = (
     "iou_static_vs_agent",
     "iou_free_vs_distractors",
     "target_share_static",
+    "mse_target",
+    "mse_distractors",
+    "mse_background",
 )
 #: The table's column of each score of :data:`CURVE_DECOMPOSITION`.
 DECOMPOSITION_COLUMNS = {
@@ -91,6 +94,9 @@ DECOMPOSITION_COLUMNS = {
     "iou_static_vs_agent": "IoU static vs agent",
     "iou_free_vs_distractors": "IoU action-free vs distractors",
     "target_share_static": "target's share in static",
+    "mse_target": "image error on the target",
+    "mse_distractors": "image error on the distractors",
+    "mse_background": "image error on the background",
 }
 
 

@@ -88,6 +88,13 @@ def test_the_target_is_scored_where_the_windows_hold_its_mask():
         0.5,
     )
     assert scores["iou_free_vs_target"] == pytest.approx(1 / 4)  # 1 shared pixel, 4 in the union
+    assert scores["mse_target"] == 0.0  # drawn exactly (only the agent's pixels are off)
+    offset = FixedMasks(windows, one_hot(AGENT, free), offset=0.2)
+    target_and_agent = target.clone()
+    target_and_agent[0, 0] = True  # over an agent pixel (off by 0.2): one of its 3 pixels has an error
+    windows["next", "mask_target"] = target_and_agent.expand(2, 3, 4, 4).clone()
+    assert decomposition_scores(offset, windows)["mse_target"] == pytest.approx(0.2**2 / 3)
+    windows["next", "mask_target"] = target.expand(2, 3, 4, 4).clone()
     assert scores["iou_static_vs_target"] == pytest.approx(1 / 12)  # static: 11 pixels + 1 of the target's
     windows["next", "mask_target"] = target.float().expand(2, 3, 4, 4).clone()
     with pytest.raises(ValueError, match="mask_target.*bool"):

@@ -180,6 +180,8 @@ def score_decomposition(
         if key not in present:
             continue
         mask = windows.get(key).cpu()
+        # whether the model draws it at all: a branch's mask may hold its pixels and draw the background there
+        scores[f"mse_{part}"] = _ratio(error[mask].sum(), mask.sum())
         for branch in BRANCHES:
             union = (held[branch] | mask).sum()
             scores[f"iou_{branch}_vs_{part}"] = _ratio((held[branch] & mask).sum(), union)
@@ -226,7 +228,8 @@ def decomposition_scores(
           (``[-0.5, 0.5]`` pixel range), and ``reco_mse`` on all of them;
         * where the windows hold a part of :data:`PART_KEYS` (``("next", "mask_target")``, bool
           ``[N, T, H, W]``): ``iou_<branch>_vs_<part>`` and ``<part>_share_<branch>``, the fraction of its
-          pixels each branch holds.
+          pixels each branch holds, and ``mse_<part>``, the composite's error on its pixels (a branch may hold
+          them and draw the background there: the share says where, this says whether it is drawn).
 
     Raises:
         ValueError: windows without the ground truth or of the wrong shapes (:func:`check_windows`).
