@@ -6,13 +6,20 @@ replays each run's final evaluation episode (:func:`isodream_rl.trainers.run.che
 seed, the newest checkpoint) and scores it again; where the run's ``summary.json`` has a decomposition, the JSON
 also says how far the scores both have apart are (0 when the checkpoint is the final one).
 
+With ``--probe`` (sprites runs only) each run also gets the latent probe of the same checkpoint
+(:func:`isodream_rl.trainers.run.checkpoint_probe`): the held-out R^2 of ridge read-outs of each sprite's centre from
+each branch's posterior state, on fresh episodes of the run's scene. Without a static branch the mask IoU
+``iou_free_vs_distractors`` is capped by the discs' share of the frame the action-free branch draws (the background
+too); the probe says whether that branch's state carries the discs.
+
 Writes ``--json``::
 
     {"runs": {label: {"run_dir": ..., "decomposition": {...}, "isolation": {...}, "checkpoint": ...,
-                      "episode_steps": N, "max_difference_to_summary": float | null}},
+                      "episode_steps": N, "max_difference_to_summary": float | null,
+                      "probe": {"r2_<branch>_<sprite>": float}}},  # with --probe only
      "commit": ..., "cpu": ..., "command": ...}
 
-    python bench/rescore_decomposition.py --runs static=/path/run_a nostatic=/path/run_b --json out.json
+    python bench/rescore_decomposition.py --runs static=/path/run_a nostatic=/path/run_b --json out.json [--probe]
 """
 
 from __future__ import annotations
@@ -38,8 +45,10 @@ def max_difference(first: dict, second: dict) -> float | None:
     shared = [
         abs(first[k] - second[k])
         for k in first.keys() & second.keys()
-        if isinstance(first[k], float) and isinstance(second[k], float)
-        and math.isfinite(first[k]) and math.isfinite(second[k])
+        if isinstance(first[k], float)
+        and isinstance(second[k], float)
+        and math.isfinite(first[k])
+        and math.isfinite(second[k])
     ]
     return max(shared) if shared else None
 
@@ -49,9 +58,17 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--runs", nargs="+", required=True, help="run folders, each optionally as label=path")
     parser.add_argument("--json", type=Path, required=True)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument(
+        "--probe",
+        action="store_true",
+        help="also the latent probe of each run's checkpoint (sprites runs): held-out R^2 per branch and sprite",
+    )
+    parser.add_argument(
+        "--probe-episodes", type=int, default=32, help="probe episodes (half fit, half score)"
+    )
     args = parser.parse_args(argv)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    from isodream_rl.trainers.run import checkpoint_decomposition
+    from isodream_rl.trainers.run import checkpoint_decomposition, checkpoint_probe
 
     results = {"runs": {}, **provenance("rescore_decomposition.py", argv, parallel=1)}
     for text in args.runs:
@@ -60,10 +77,15 @@ def main(argv: list[str] | None = None) -> dict:
         summary_path = run_dir / "summary.json"
         summary = json.loads(summary_path.read_text()).get("decomposition") if summary_path.exists() else None
         out["max_difference_to_summary"] = max_difference(out["decomposition"], summary) if summary else None
+        if args.probe:
+            probed = checkpoint_probe(run_dir, episodes=args.probe_episodes, device=args.device)
+            out["probe"] = probed["probe"]
         results["runs"][label] = {"run_dir": str(run_dir), **out}
-        print(f"{label}: " + ", ".join(
-            f"{k} {v:.2f}" for k, v in out["decomposition"].items() if "target" in k or k == "iou_control_vs_agent"
-        ), flush=True)
+        shown = {
+            k: v for k, v in out["decomposition"].items() if "target" in k or k == "iou_control_vs_agent"
+        }
+        shown.update(out.get("probe", {}))
+        print(f"{label}: " + ", ".join(f"{k} {v:.2f}" for k, v in shown.items()), flush=True)
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(results, indent=2, default=float) + "\n")
     return results

@@ -11,6 +11,7 @@ import functools
 import logging
 import shutil
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -18,6 +19,7 @@ from torchrl.envs import EnvBase
 from torchrl.trainers import ReplayBufferTrainer, Trainer, UpdateWeights
 
 from isodream_rl.envs.builder import ground_truth_mask_keys
+from isodream_rl.evaluation.latent_probe import probe
 from isodream_rl.run_utils.checkpoint import CheckpointError, CheckpointManager
 from isodream_rl.run_utils.csv_logs import csv_log_sizes
 from isodream_rl.run_utils.disk_space import ReplayReservation
@@ -39,7 +41,7 @@ from isodream_rl.trainers.evaluation import (
     save_episode_gif,
 )
 from isodream_rl.trainers.hooks import Throughput
-from isodream_rl.trainers.learners import TORCHRL_BASELINES
+from isodream_rl.trainers.learners import TORCHRL_BASELINES, WORLD_MODEL_LEARNERS, learner_name, learner_of
 from isodream_rl.trainers.registry import make_components
 from isodream_rl.trainers.run_dir import hold_run_dir, resuming, write_run_config
 from isodream_rl.trainers.run_lifecycle import (
@@ -54,7 +56,7 @@ from isodream_rl.trainers.run_lifecycle import (
     write_summary,
 )
 from isodream_rl.trainers.saved_models import saved_run_config
-from isodream_rl.trainers.world_model_run import LatentProbe
+from isodream_rl.trainers.world_model_run import LatentProbe, probe_scene
 
 logger = logging.getLogger(__name__)
 
@@ -352,11 +354,18 @@ def _is_scalar(value) -> bool:
 
 
 def _checkpoint_components(
-    run_dir: str | Path, *, seed: int, device: str
+    run_dir: str | Path,
+    *,
+    seed: int,
+    device: str,
+    refuse: Callable[[RunConfig], str | None] | None = None,
 ) -> tuple[RunConfig, RunComponents, Path]:
     """The configuration of ``run_dir``'s newest readable checkpoint, its models (loaded and built on ``device``,
     :func:`evaluate_checkpoint`) and the checkpoint's path; seeds everything with ``seed`` and sets the run's
-    torch threads."""
+    torch threads.
+
+    ``refuse`` reads the saved configuration before anything is built: the line it returns (``None``: none) is
+    raised as a :class:`ConfigError` (a run the caller cannot use, whose env or models need not build here)."""
     unusable = device_error(device, setting="--device")
     if unusable:
         raise ConfigError(unusable)
@@ -369,6 +378,9 @@ def _checkpoint_components(
     cfg = saved_run_config(state)
     if cfg.mode == "world_model":
         raise CheckpointError(f"{path} is of a mode=world_model run: it has no policy to evaluate")
+    refused = refuse(cfg) if refuse is not None else None
+    if refused:
+        raise ConfigError(refused)
     torch.set_num_threads(cfg.train.threads)
     seed_everything(seed)
     cfg.train.device = device
@@ -465,3 +477,71 @@ def checkpoint_decomposition(run_dir: str | Path, *, seed: int | None = None, de
         components.world_model, results.first_rollout, window=cfg.train.sequence_length
     )
     return {**scores, "episode_steps": int(results.first_rollout.shape[0]), "checkpoint": str(path)}
+
+
+def _probe_refusal(cfg: RunConfig, run_dir: str | Path) -> str | None:
+    """Why :func:`checkpoint_probe` cannot probe the run of ``cfg`` (one line naming its algo and env), ``None``
+    when it can: an Iso-Dream world model (either learner's, :data:`WORLD_MODEL_LEARNERS`) on the sprites scene."""
+    problems = []
+    if learner_name(cfg.algo.name) not in WORLD_MODEL_LEARNERS:
+        problems.append(
+            f"algo={cfg.algo.name} ({learner_of(cfg.algo.name).title}) has no Iso-Dream world model"
+        )
+    if cfg.env.name != "sprites" or cfg.env.factory:
+        env = f"env.factory={cfg.env.factory}" if cfg.env.factory else f"env={cfg.env.name}"
+        problems.append(f"{env} is not the sprites scene, whose ground truth the probe reads")
+    if not problems:
+        return None
+    return f"{run_dir} cannot be probed: " + " and ".join(problems)
+
+
+def checkpoint_probe(
+    run_dir: str | Path,
+    *,
+    episodes: int = 32,
+    window: int | None = None,
+    device: str = "cpu",
+    seed: int = 1000,
+) -> dict:
+    """The latent probe of ``run_dir``'s newest checkpoint: which sprites each branch's posterior state carries.
+
+    Runs :func:`isodream_rl.evaluation.latent_probe.probe` on the checkpoint's world model over fresh
+    random-action episodes of the run's scene (its ``env.kwargs``: ``num_distractors``, ``sprite_size``,
+    ``num_backgrounds``, ``background_seed``, colours..., as :func:`~isodream_rl.trainers.world_model_run.probe_scene`
+    reads them), cut into windows of ``window`` steps; the episodes are ``world_model.episode_length`` steps (96
+    unless the run set it) rounded up to whole windows, their actions held ``world_model.action_hold`` steps. Unlike
+    the mask IoU of :func:`checkpoint_decomposition`, which a run without a static branch caps (its action-free
+    branch draws the background too), the probe says whether the action-free branch's state knows where the
+    moving discs are. A scene without distractors probes the agent alone.
+
+    Args:
+        run_dir: the run folder given to ``isodream-train`` (``mode=rl``).
+        episodes: probe episodes (half fit the ridge regressions, half score them; at least 2).
+        window: the windows' length (``None``: the run's ``train.sequence_length``).
+        device: where the world model runs.
+        seed: the episodes' and the posterior samples' seed (the same scores for one checkpoint on every call).
+
+    Returns:
+        ``{"probe": {"r2_<branch>_<sprite>": float}, "checkpoint": str}``: the held-out R^2 of each dynamic
+        branch (``control``, and ``free`` with the action-free branch) and sprite (``agent``, ``distractor_0``,
+        ...), near 1 where the branch's state tells where the sprite is, at or below 0 where it does not; and the
+        checkpoint read.
+
+    Raises:
+        ConfigError: ``device`` is not usable, or the run's world model is not Iso-Dream's or its env is not the
+            sprites scene (one line naming its ``algo`` and ``env``; nothing is built then).
+        CheckpointError: as :func:`evaluate_checkpoint`.
+        ValueError: fewer than 2 ``episodes``, or a ``window`` below 1.
+    """
+    if episodes < 2:
+        raise ValueError(
+            f"episodes={episodes}: the probe fits on half the episodes and scores the rest: give >= 2"
+        )
+    if window is not None and window < 1:
+        raise ValueError(f"window={window} must be >= 1 (None: the run's train.sequence_length)")
+    cfg, components, path = _checkpoint_components(
+        run_dir, seed=seed, device=device, refuse=functools.partial(_probe_refusal, run_dir=run_dir)
+    )
+    scene = probe_scene(cfg, window=window)
+    scores = probe(components.world_model, episodes=episodes, seed=seed, **scene)
+    return {"probe": scores, "checkpoint": str(path)}
