@@ -13,7 +13,7 @@ from isodream_rl.trainers.run import checkpoint_probe
 from tests.conftest import load_bench
 from tests.test_isodream import isodream_run_config
 
-SPRITES = ("agent", "distractor_0", "distractor_1")
+SPRITES = ("agent", "distractor_0", "distractor_1", "target")  # the reach task: its target too
 
 
 @pytest.fixture(scope="module")
@@ -45,10 +45,10 @@ def test_each_branch_is_probed_for_every_sprite_of_the_runs_scene(finished_run):
     assert out["checkpoint"].startswith(str(finished_run / "checkpoints"))
 
 
-def test_a_scene_without_distractors_probes_the_agent(finished_run, tmp_path):
+def test_a_scene_without_distractors_probes_the_agent_and_the_target(finished_run, tmp_path):
     run_dir = saved_again(finished_run, tmp_path, env={"kwargs": {"task": "reach", "num_distractors": 0}})
     out = checkpoint_probe(run_dir, episodes=2, window=16)
-    assert set(out["probe"]) == {"r2_control_agent", "r2_free_agent"}
+    assert set(out["probe"]) == {f"r2_{b}_{s}" for b in ("control", "free") for s in ("agent", "target")}
     assert all(math.isfinite(value) for value in out["probe"].values())
 
 

@@ -25,6 +25,12 @@ def test_sprite_centres_are_pixel_centroids_in_unit_coordinates():
     torch.testing.assert_close(centres[0, 1], torch.tensor([1.0, 0.0]))
     torch.testing.assert_close(centres[1, 2], torch.tensor([0.0, 1.0]))
     assert visible.tolist() == [[True, True, False], [False, False, True]]
+    target = torch.zeros(2, 64, 64, dtype=torch.bool)
+    target[1, 30:33, 40:43] = True  # centre (31, 41), the second frame only
+    truth = TensorDict({"mask_agent": agent, "distractor_ids": ids, "mask_target": target}, [2])
+    centres, visible = sprite_centres(truth, 2)
+    torch.testing.assert_close(centres[1, 3], torch.tensor([31 / 63, 41 / 63]))
+    assert visible[:, 3].tolist() == [False, True]
 
 
 def test_ridge_r2_is_one_for_a_linear_target_and_low_for_noise():
@@ -46,6 +52,11 @@ def test_probe_scores_every_branch_and_sprite_with_seeded_samples():
     # the latent samples are seeded: the same scores again, whatever the global generator did meanwhile
     torch.rand(7)
     assert probe(model, window=8, episodes=4, episode_length=16) == scores
+    # the reach task's target is probed too: where the reward is
+    reach = probe(model, window=8, episodes=4, episode_length=16, num_distractors=1, task="reach")
+    assert set(reach) == {
+        f"r2_{b}_{n}" for b in ("control", "free") for n in ("agent", "distractor_0", "target")
+    }
 
 
 def test_the_cli_probes_a_world_model_run_on_its_scene_and_writes_json(tmp_path):

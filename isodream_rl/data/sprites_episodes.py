@@ -39,7 +39,8 @@ def collect_sprites_episodes(
         a flat ``[episodes * steps]`` tensordict with ``"action"``, ``"is_init"``, ``"episode"`` and under
         ``"next"``: ``"pixels"`` uint8 ``[3, 64, 64]``, ``"reward"``, ``"terminated"``, ``"truncated"``,
         ``"done"``, and the ground-truth masks ``"mask_agent"``, ``"mask_distractors"`` bool ``[64, 64]`` and
-        ``"distractor_ids"`` uint8 ``[64, 64]`` (``i + 1`` on distractor ``i``).
+        ``"distractor_ids"`` uint8 ``[64, 64]`` (``i + 1`` on distractor ``i``); with ``task="reach"`` also
+        ``"mask_target"`` bool ``[64, 64]`` (the target's visible pixels).
     """
     env = SpritesEnv(num_distractors=num_distractors, max_steps=steps, **scene)
     n = episodes * steps
@@ -47,6 +48,7 @@ def collect_sprites_episodes(
     agent = np.empty((n, 64, 64), bool)
     distractors = np.empty((n, 64, 64), bool)
     ids = np.empty((n, 64, 64), np.uint8)
+    target = np.empty((n, 64, 64), bool) if env.task == "reach" else None
     actions = held_random_actions(seed, episodes=episodes, steps=steps, hold=action_hold, dim=2).numpy()
     rewards = np.empty((n, 1), np.float32)
     for episode in range(episodes):
@@ -57,10 +59,13 @@ def collect_sprites_episodes(
             pixels[i], rewards[i] = obs, reward
             agent[i], distractors[i] = info["mask_agent"], info["mask_distractors"]
             ids[i] = info["distractor_ids"]
+            if target is not None:
+                target[i] = info["mask_target"]
     is_init = np.zeros((n, 1), bool)
     is_init[::steps] = True
     done = np.zeros((n, 1), bool)
     done[steps - 1 :: steps] = True
+    truth = {} if target is None else {"mask_target": torch.from_numpy(target)}
     return TensorDict(
         {
             "action": torch.from_numpy(actions),
@@ -75,6 +80,7 @@ def collect_sprites_episodes(
                 "mask_agent": torch.from_numpy(agent),
                 "mask_distractors": torch.from_numpy(distractors),
                 "distractor_ids": torch.from_numpy(ids),
+                **truth,
             },
         },
         [n],

@@ -42,12 +42,21 @@ from isodream_rl.modules.isodream_v2 import IsoDreamV2WorldModel
 ProbedModel = IsoDreamV2WorldModel | IsoDreamWorldModel
 
 
-def sprite_centres(truth, num_distractors: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Centres ``[N, S, 2]`` (row, column in [0, 1]) of the agent then each distractor, and ``[N, S]`` visibility.
+def sprite_names(num_distractors: int, *, target: bool = False) -> list[str]:
+    """The probed sprites in :func:`sprite_centres`' order: ``agent``, ``distractor_<i>``..., then ``target``."""
+    return ["agent"] + [f"distractor_{i}" for i in range(num_distractors)] + (["target"] if target else [])
 
-    ``truth``: a flat tensordict with ``"mask_agent"`` and ``"distractor_ids"`` ``[N, 64, 64]``.
+
+def sprite_centres(truth, num_distractors: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Centres ``[N, S, 2]`` (row, column in [0, 1]) of the agent, each distractor, then the target where ``truth``
+    has one (:func:`sprite_names`), and ``[N, S]`` visibility.
+
+    ``truth``: a flat tensordict with ``"mask_agent"`` and ``"distractor_ids"`` ``[N, 64, 64]``, and
+    ``"mask_target"`` (sprites ``reach``: the still target the agent is rewarded for reaching) if any.
     """
     masks = [truth["mask_agent"].bool()] + [truth["distractor_ids"] == i + 1 for i in range(num_distractors)]
+    if "mask_target" in truth.keys():
+        masks.append(truth["mask_target"].bool())
     masks = torch.stack(masks, dim=1).float()  # [N, S, 64, 64]
     size = masks.shape[-1]
     grid = torch.arange(size, dtype=torch.float32) / (size - 1)
@@ -161,7 +170,8 @@ def probe(
     encoder: bool = False,
     **scene: Any,
 ) -> dict[str, float]:
-    """``r2_{branch}_{sprite}`` for each dynamic branch and sprite (``agent``, ``distractor_0`` ...).
+    """``r2_{branch}_{sprite}`` for each dynamic branch and sprite (``agent``, ``distractor_0`` ..., and ``target``
+    with ``task="reach"`` in ``scene``: whether a branch's state knows where the reward is).
 
     Half of the episodes fit the probes, the other half score them. ``ridge`` is the penalty of the
     branches' posterior features; with ``encoder=True`` the encoder's features (see :func:`encoder_features`)
@@ -195,7 +205,7 @@ def probe(
     truth = data["next"].reshape(-1, window)[:, window // 4 :].reshape(-1)
     centres, visible = sprite_centres(truth, num_distractors)
     half = len(centres) // 2
-    names = ["agent"] + [f"distractor_{i}" for i in range(num_distractors)]
+    names = sprite_names(num_distractors, target="mask_target" in truth.keys())
     scores = {}
     for branch, x in feats.items():
         x = x.cpu()
