@@ -667,7 +667,7 @@ def test_nan_or_inf_env_data_stops_the_run_in_one_line(case, num_envs, tmp_path,
     )
     said(line)
     assert state["counters"]["env_steps"] < 80 * num_envs
-    if resume:
+    if resume and num_envs == 1:  # resuming with 2 worker envs takes the same path: checked once, here
         resumed = run_command("isodream_rl.cli", [*args, "resume=true"], tmp_path)
         assert resumed.returncode == 0, resumed.stderr[-3000:]
         assert f"resumed from run/checkpoints/{checkpoint.name}" in resumed.stdout
