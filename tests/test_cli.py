@@ -418,7 +418,9 @@ def test_the_model_section_holds_every_world_model_field_but_the_envs():
     from isodream_rl.trainers.config import ModelConfig
 
     names = [f.name for f in dataclasses_fields(ModelConfig)]
-    assert names[4:] == [f.name for f in dataclasses_fields(IsoDreamV2Config) if f.name != "action_dim"]
+    # the preset, the behavior widths and the default learner's action-free width, then the world model's fields
+    assert names[:5] == ["size", "actor_units", "value_units", "attention_dim", "free_hidden_fraction"]
+    assert names[5:] == [f.name for f in dataclasses_fields(IsoDreamV2Config) if f.name != "action_dim"]
     assert all(getattr(ModelConfig(), name) is None for name in names[4:])  # None: the preset's value
     assert composed("model.depth=8", "model.precision=bf16").model.world_model_fields() == {
         "depth": 8,

@@ -25,6 +25,7 @@ from isodream_rl.modules.isodream.behavior import PolicyFeatures
 from isodream_rl.modules.isodream.world_model import IsoDreamConfig, IsoDreamWorldModel
 from isodream_rl.trainers import ConfigError, train, validate_config
 from isodream_rl.trainers.isodream import IsoDreamComponents, isodream_config
+from isodream_rl.trainers.learners import unread_setting_errors
 from isodream_rl.trainers.openloop import open_loop_prediction
 from isodream_rl.trainers.registry import components_builder, make_components
 from isodream_rl.trainers.stepper import loss_sum
@@ -248,6 +249,26 @@ class TestComposition:
         cfg.model.size = "bench"
         bench = isodream_config(cfg, action_dim=A)
         assert (bench.hidden, bench.free_hidden, bench.image_depth) == (80, 40, 8)
+
+    def test_free_hidden_fraction_sets_the_action_free_width_and_is_checked(self, tmp_path):
+        """``model.free_hidden_fraction`` replaces the table's 0.5 (a multiple of 8); a value outside (0, 2] is
+        refused by name, and a learner without an action-free branch of its own refuses the setting."""
+        cfg = isodream_run_config(tmp_path)
+        cfg.model.hidden_dim = 32
+        assert isodream_config(cfg, action_dim=A).free_hidden == 16  # hidden 40, 0.5 of it rounds to 16
+        cfg.model.free_hidden_fraction = 0.75
+        config = isodream_config(cfg, action_dim=A)
+        assert (config.hidden, config.free_hidden) == (40, 32)
+        assert config.free.num_categoricals % config.settings.num_blocks == 0
+        for bad in (0.0, -0.5, 3.0):
+            cfg.model.free_hidden_fraction = bad
+            with pytest.raises(ConfigError, match="model.free_hidden_fraction"):
+                isodream_config(cfg, action_dim=A)
+        cfg.model.free_hidden_fraction = 0.75
+        cfg.algo.name = "torchrl_dreamer_v3"
+        assert any(
+            "model.free_hidden_fraction=0.75 is not read" in line for line in unread_setting_errors(cfg)
+        )
 
     @pytest.mark.parametrize("hidden_dim", [16, 24, 32, 40, 48, 64, 128, 200])
     def test_every_hidden_dim_builds_and_runs(self, tmp_path, hidden_dim):

@@ -85,6 +85,9 @@ class _ModelSizes:
     """Width of the value MLP (3 layers in the paper)."""
     attention_dim: int = 500
     """Width of the future-state attention's Q/K/V projections (500 in the authors' code)."""
+    free_hidden_fraction: float | None = None
+    """The default learner's (``algo=isodream``) action-free branch width per unit of its controllable branch's
+    (``None``: the learner's table, 0.5; ``isodream_rl.trainers.isodream``)."""
 
     def world_model_fields(self) -> dict[str, Any]:
         """The ``IsoDreamV2Config`` fields this section sets (those not ``None``), as ``{field: value}``."""

@@ -9,7 +9,8 @@ and the DreamerV3 update (:class:`~isodream_rl.trainers.dreamer_v3.DreamerV3Opti
 
 Widths. DreamerV3's size rule per branch (``hidden``; ``deter = 8 hidden``; categoricals of ``hidden / 16``
 classes): the controllable branch at ``hidden = hidden_per_hidden_dim x`` the size preset's ``hidden_dim`` (a
-multiple of 8) with 32 categoricals, the action-free branch at ``free_hidden_fraction`` of that with as many fewer
+multiple of 8) with 32 categoricals, the action-free branch at ``free_hidden_fraction`` of that
+(``model.free_hidden_fraction``, the settings table's 0.5 unless set; a multiple of 8) with as many fewer
 categoricals (the same classes, so that both branches' logits stack for the KL terms); an image depth of
 ``hidden_dim / 8`` for the encoder and each of the three decoders. At ``size=bench``: ``hidden`` 80 and 40, image
 depth 8, a 1.58 M-parameter world model, where ``algo=torchrl_dreamer_v3`` has one branch of ``hidden`` 120, image
@@ -21,7 +22,8 @@ depth 8 and 1.84 M (``bench/update_speed.py`` writes both counts).
 :func:`make_world_model` builds it to read a checkpoint.
 
 What it reads of the run configuration: ``model.size`` (``hidden_dim``), ``model.actor_units`` /
-``value_units`` / ``attention_dim``, ``model.fast_paths`` (``IsoDreamConfig.fast_paths``; ``None``: on);
+``value_units`` / ``attention_dim``, ``model.fast_paths`` (``IsoDreamConfig.fast_paths``; ``None``: on),
+``model.free_hidden_fraction``;
 ``algo.free_branch`` / ``static_branch`` / ``inverse_dynamics`` (the branch switches), ``algo.reward_uses_free``,
 ``algo.policy_input``, ``algo.attention_window`` (tau), ``algo.horizon`` (L), ``algo.lambda_inverse``;
 ``train.world_model_lr`` / ``actor_lr`` / ``value_lr``, ``world_model_warmup``, ``lr_warmup``,
@@ -69,7 +71,17 @@ def isodream_config(
         )
     hidden_dim = cfg.model.hidden_dim or SIZE_PRESETS[cfg.model.size]["hidden_dim"]
     hidden = 8 * max(1, round(settings.hidden_per_hidden_dim * hidden_dim / 8))
-    free_hidden = 8 * max(1, round(settings.free_hidden_fraction * hidden / 8))
+    fraction = (
+        settings.free_hidden_fraction
+        if cfg.model.free_hidden_fraction is None
+        else cfg.model.free_hidden_fraction
+    )
+    if not 0 < fraction <= 2:
+        raise ConfigError(
+            f"invalid training configuration: model.free_hidden_fraction={fraction!r} must be in (0, 2] (the "
+            "action-free branch's width per unit of the controllable branch's)"
+        )
+    free_hidden = 8 * max(1, round(fraction * hidden / 8))
     algo = cfg.algo
     fast_paths = True if cfg.model.fast_paths is None else cfg.model.fast_paths
     return IsoDreamConfig(

@@ -125,6 +125,7 @@ LEARNERS: dict[str, Learner] = {
             "model.hidden_dim": None,
             "model.precision": None,
             "model.fast_paths": None,  # IsoDreamConfig.fast_paths: None is on
+            "model.free_hidden_fraction": None,  # None: ISODREAM_SETTINGS.free_hidden_fraction
         },
     ),
     "isodream_v2": Learner(
