@@ -640,7 +640,7 @@ def test_nan_or_inf_env_data_stops_the_run_in_one_line(case, num_envs, tmp_path,
     | refused: one line naming the entry, the env step and the env (which worker's), and the last checkpoint to
     continue from (exit 2), the step refused before the policy acts on it or the replay stores it (a worker
     marks it in the batch, which the run refuses); once the env is fixed, resume=true continues from that
-    checkpoint"""
+    checkpoint (checked in this process: `NaN pixels`)"""
     key, value, resume = BAD_ENV_CASES[case]
     total = 120 * num_envs
     args = [
