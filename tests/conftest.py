@@ -23,20 +23,33 @@ def load_bench(name: str):
 torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
 
 
+def cli_env():
+    """The environment of the CLI commands the tests run: one torch thread, one-line errors."""
+    return dict(os.environ, OMP_NUM_THREADS="1", HYDRA_FULL_ERROR="0")
+
+
 def cli_process(args, cwd):
-    """``python -m isodream_rl.cli *args`` started in ``cwd`` (one torch thread, one-line errors), text pipes."""
+    """``python -m isodream_rl.cli *args`` started in ``cwd`` (:func:`cli_env`), text pipes."""
     import subprocess
     import sys
 
-    env = dict(os.environ, OMP_NUM_THREADS="1", HYDRA_FULL_ERROR="0")
     return subprocess.Popen(
         [sys.executable, "-m", "isodream_rl.cli", *args],
         cwd=cwd,
-        env=env,
+        env=cli_env(),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
     )
+
+
+def cli_run(args, cwd, *, timeout=600):
+    """``python -m isodream_rl.cli *args`` run to its end in ``cwd`` (:func:`cli_env`), a
+    ``subprocess.CompletedProcess``: a process of its own, forked from one that paid the imports once
+    (``tests/forked_commands.py``)."""
+    from tests.forked_commands import run_module
+
+    return run_module("isodream_rl.cli", list(args), cwd, cli_env(), timeout=timeout)
 
 
 def tiny_run_config(run_dir, **changes):

@@ -1,10 +1,7 @@
 """The real CLI (``python -m isodream_rl.cli``) with tiny overrides, SheepRL-style, and its config errors."""
 
 import json
-import os
 import re
-import subprocess
-import sys
 import tempfile
 from dataclasses import fields as dataclasses_fields
 from pathlib import Path
@@ -17,6 +14,7 @@ import isodream_rl.cli  # noqa: F401  (registers the config schema)
 from isodream_rl.trainers import AlgoConfig, ConfigError, RunConfig, validate_config
 from isodream_rl.trainers.config import ALGO_NAMES
 from isodream_rl.trainers.learners import ISODREAM_V2_ALGOS, TORCHRL_BASELINES, resolved
+from tests.conftest import cli_run
 
 CONFIGS = Path(isodream_rl.cli.__file__).parent / "configs"
 ENVS = sorted(p.stem for p in (CONFIGS / "env").glob("*.yaml"))
@@ -27,15 +25,9 @@ TINY = ["size=tiny", "train.threads=1", "logging.progress_bar=false"]
 
 
 def run_cli(args, cwd, timeout=300):
-    env = dict(os.environ, OMP_NUM_THREADS="1", HYDRA_FULL_ERROR="0")
-    return subprocess.run(
-        [sys.executable, "-m", "isodream_rl.cli", *args],
-        cwd=cwd,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
+    """``python -m isodream_rl.cli *args`` in ``cwd``, forked from a process that paid the imports once
+    (``tests/conftest.py:cli_run``)."""
+    return cli_run(args, cwd, timeout=timeout)
 
 
 def composed(*overrides) -> RunConfig:

@@ -62,6 +62,7 @@ from isodream_rl.trainers.hooks import ReplayPreparation
 from isodream_rl.trainers.run_dir import RUN_FILES
 from isodream_rl.trainers.saved_models import CheckpointMismatchError
 from tests.conftest import tiny_run_config
+from tests.forked_commands import run_module
 
 ROOT = Path(__file__).resolve().parents[1]
 A = 2  # sprites' action width
@@ -639,7 +640,7 @@ def test_nan_or_inf_env_data_stops_the_run_in_one_line(case, num_envs, tmp_path,
     | refused: one line naming the entry, the env step and the env (which worker's), and the last checkpoint to
     continue from (exit 2), the step refused before the policy acts on it or the replay stores it (a worker
     marks it in the batch, which the run refuses); once the env is fixed, resume=true continues from that
-    checkpoint"""
+    checkpoint (checked in this process: `NaN pixels`)"""
     key, value, resume = BAD_ENV_CASES[case]
     total = 120 * num_envs
     args = [
@@ -1064,14 +1065,9 @@ def command_env(**extra: str) -> dict[str, str]:
 
 
 def run_command(module: str, args: list[str], cwd: Path, **extra_env: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", module, *args],
-        cwd=cwd,
-        env=command_env(**extra_env),
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    """``python -m <module> *args`` run to its end in ``cwd`` with :func:`command_env` (``extra_env`` added): a
+    process of its own, forked from one that paid the imports once (``tests/forked_commands.py``)."""
+    return run_module(module, args, cwd, command_env(**extra_env), timeout=600)
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="train.device=cuda is valid here")
@@ -1238,13 +1234,13 @@ def test_run_dir_guard_fails_closed_whatever_a_check_raises(tmp_path, said):
     """fault: a check of isodream-train's run-dir guard raising an unexpected error (was: Hydra turns an exception
     in a callback into a warning, so the run went past the guard) | refused: one line naming run_dir and the
     error (exit 2), nothing written; with --debug the traceback, then the same line and exit status"""
-    for debug in ([], ["--debug"]):
-        out = subprocess.run(
-            [sys.executable, "-c", _BROKEN_GUARD, *TINY_TRAIN, "run_dir=run", *debug],
-            cwd=tmp_path,
-            env=command_env(),
-            capture_output=True,
-            text=True,
+    for debug in ([], ["--debug"]):  # python -c _BROKEN_GUARD ..., forked as run_command's commands
+        out = run_module(
+            None,
+            [*TINY_TRAIN, "run_dir=run", *debug],
+            tmp_path,
+            command_env(),
+            code=_BROKEN_GUARD,
             timeout=600,
         )
         assert out.returncode == 2, out.stderr[-3000:]
