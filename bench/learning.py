@@ -25,7 +25,7 @@ more at the end::
                       "curves": {seed: {"env_steps": [...], "eval_return": [...], "wall_s": [...],
                                         "updates": [...], "iou_control_vs_agent": [...], ...,
                                         "finished": bool}}}},
-     "commit": ..., "cpu": ..., "command": ..., "overrides": [...]}
+     "commit": ..., "cpu": ..., "command": ..., "overrides": [...], "algo_overrides": {algo: [...]}}
 
 ``decomposition_per_seed`` is each finished run's final decomposition (``summary.json``: every mask IoU of its
 world model against the env's ground truth, ``None`` for runs without one, e.g. TorchRL's DreamerV3) and
@@ -42,6 +42,8 @@ seed's curve, the reference returns as lines) and a table (``--md``: finished se
     python bench/learning.py --algos dreamerv2 --seeds 0 --env-steps 2000 --runs /tmp/lb --json /tmp/lb.json
     python bench/learning.py --algos isodream,dreamerv2,torchrl_dreamer   # TorchRL's older Dreamer (not a default)
     python bench/learning.py --algos isodream_v2 --seeds 0    # Iso-Dream on the DreamerV2-style learner
+    python bench/learning.py --algos isodream,torchrl_dreamer_v3 --override model.hidden_dim=32 \
+        --algo-override isodream:model.free_hidden_fraction=0.6   # a setting one learner reads only
 
 A run folder is ``<algo>_s<seed>``: one made before ``algo=isodream`` became DreamerV3's learner holds, under
 ``isodream_s<seed>``, the DreamerV2-style learner (now ``isodream_v2``), and under ``isodream_v3_s<seed>``
@@ -114,12 +116,33 @@ def run_command(algo: str, seed: int, run_dir: Path, args: argparse.Namespace) -
         "logging.progress_bar=false",
         f"run_dir={run_dir}",
         *args.override,
+        *algo_overrides(args).get(algo, []),
     ]
     if (run_dir / "checkpoints").is_dir() and any((run_dir / "checkpoints").glob("step_*[0-9]")):
         overrides.append("resume=true")
     else:  # never started, or stopped before its first checkpoint: start over (the folder holds bench.log)
         overrides.append("overwrite=true")
     return [sys.executable, "-m", "isodream_rl.cli", *overrides]
+
+
+def algo_overrides(args: argparse.Namespace) -> dict[str, list[str]]:
+    """``--algo-override ALGO:KEY=VALUE`` as ``{algo: ["KEY=VALUE", ...]}``: overrides for one algorithm's runs
+    only (a setting the others' learners refuse, such as ``model.free_hidden_fraction``).
+
+    Raises:
+        SystemExit: an entry without ``ALGO:`` or naming an algorithm not in ``--algos``.
+    """
+    out: dict[str, list[str]] = {}
+    for entry in args.algo_override:
+        algo, sep, override = entry.partition(":")
+        if not sep or "=" not in override:
+            raise SystemExit(f"--algo-override {entry!r}: expected ALGO:KEY=VALUE")
+        if algo not in args.algos:
+            raise SystemExit(
+                f"--algo-override {entry!r}: {algo!r} is not one of --algos {','.join(args.algos)}"
+            )
+        out.setdefault(algo, []).append(override)
+    return out
 
 
 def train_all(args: argparse.Namespace, on_progress: Callable[[], object] | None = None) -> None:
@@ -352,7 +375,8 @@ def table(results: dict) -> str:
             lines.append(
                 f"| {name} policy | - | - | {ref['return']:.1f} | {normalised} "
                 f"| {ref.get(success, float('nan')):.1f} | {ref.get('contacts', float('nan')):.1f} | - |"
-                + " - |" * len(columns)
+                + " - |"
+                * len(columns)
             )
     return "\n".join(lines)
 
@@ -386,6 +410,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--write-every", type=float, default=120.0, help="seconds between rewrites of --json while runs train"
     )
     parser.add_argument("--override", action="append", default=[], help="extra isodream-train override")
+    parser.add_argument(
+        "--algo-override",
+        action="append",
+        default=[],
+        metavar="ALGO:KEY=VALUE",
+        help="extra isodream-train override for one algorithm's runs only",
+    )
     parser.add_argument("--collect-only", action="store_true", help="train nothing, only read the runs")
     return parser
 
@@ -399,6 +430,7 @@ def write_results(args: argparse.Namespace, argv: list[str] | None, final: bool 
         **collect(args, verbose=final),
         "size": args.size,
         "overrides": args.override,
+        "algo_overrides": algo_overrides(args),
         **provenance("learning.py", argv, parallel=args.parallel),
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -202,3 +202,35 @@ def test_the_default_table_never_overwrites_the_status_page(tmp_path):
         == results / "learning_rung1_isodream.md"
     )
     assert learning.table_path(tmp_path / "learning.json") == tmp_path / "learning.md"
+
+
+def test_an_algo_override_reaches_that_algorithms_runs_only(tmp_path):
+    """``--algo-override isodream:KEY=VALUE``: in the default's command, not DreamerV3's (whose learner refuses a
+    setting it does not read), and in the JSON; a malformed entry or an algorithm not benched is refused."""
+    bench = load_bench("learning")
+    parser = bench.build_parser()
+    args = parser.parse_args(
+        [
+            "--algos",
+            "isodream,torchrl_dreamer_v3",
+            "--override",
+            "model.hidden_dim=32",
+            "--algo-override",
+            "isodream:model.free_hidden_fraction=0.6",
+            "--runs",
+            str(tmp_path / "runs"),
+            "--json",
+            str(tmp_path / "out.json"),
+        ]
+    )
+    default = bench.run_command("isodream", 0, tmp_path / "a", args)
+    baseline = bench.run_command("torchrl_dreamer_v3", 0, tmp_path / "b", args)
+    assert "model.free_hidden_fraction=0.6" in default and "model.hidden_dim=32" in default
+    assert "model.free_hidden_fraction=0.6" not in baseline and "model.hidden_dim=32" in baseline
+    args.collect_only = True
+    saved = bench.write_results(args, None, final=False)
+    assert saved["algo_overrides"] == {"isodream": ["model.free_hidden_fraction=0.6"]}
+    for bad in ("model.free_hidden_fraction=0.6", "dreamerv2:model.depth=8", "isodream:depth"):
+        args.algo_override = [bad]
+        with pytest.raises(SystemExit, match="--algo-override"):
+            bench.algo_overrides(args)
