@@ -15,6 +15,7 @@ from omegaconf import OmegaConf
 
 import isodream_rl.cli  # noqa: F401  (registers the config schema)
 from isodream_rl.trainers import ConfigError, train, validate_config
+from isodream_rl.trainers.collectors import _backend_options
 from isodream_rl.trainers.config import world_model_overrides
 
 CONFIGS = Path(isodream_rl.cli.__file__).parent / "configs"
@@ -88,6 +89,17 @@ def test_remote_backends_keep_the_world_model_dense():
     assert "channels_last" not in world_model_overrides(composed())
     with pytest.raises(ConfigError, match="model.channels_last=true cannot be used"):
         validate_config(composed("train.collector_backend=ray", "model.channels_last=true"))
+
+
+def test_local_ray_workers_run_at_the_learners_priority():
+    # Ray's default worker niceness (15) starved the workers behind any other busy process: minutes to start.
+    local = _backend_options(composed("train.collector_backend=ray"))["ray_init_config"]
+    assert local["_system_config"] == {"worker_niceness": 0}
+    # an existing cluster refuses a _system_config
+    cluster = _backend_options(composed("train.collector_backend=ray", "train.ray_address=auto"))[
+        "ray_init_config"
+    ]
+    assert cluster == {"address": "auto"}
 
 
 def test_ray_needs_a_cpu_per_worker_on_a_local_cluster():

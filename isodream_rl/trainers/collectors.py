@@ -35,13 +35,18 @@ def _seeded(make, seed: int):
 #: How long the driver waits for Ray workers to join the weight-sync process group.
 RAY_WEIGHT_SYNC_TIMEOUT = datetime.timedelta(minutes=5)
 
+#: Ray's ``worker_niceness`` for the local Ray instance a run starts (Ray's default is 15).
+RAY_WORKER_NICENESS = 0
+
 
 def _lengthen_ray_weight_sync_timeout() -> None:
     """TorchRL 0.14.1 hard-codes 60 s for Ray workers to join the weight-sync group (``_DIST_TIMEOUT``).
 
-    A worker that starts slowly (a busy 2-core machine, a cold cluster node) then fails the run with
-    ``DistStoreError: wait timeout after 60000ms``. The driver-side constant is read when the collector
-    connects, so raising it here, before the collector exists, is enough.
+    A worker that starts slowly (a cold cluster node, or a busy node of a cluster whose Ray workers keep Ray's
+    niceness 15) then fails the run with ``DistStoreError: wait timeout after 60000ms``. The driver-side constant
+    is read when the collector connects, so raising it here, before the collector exists, is enough. On the local
+    Ray instance a run starts, the workers run at the learner's priority (:data:`RAY_WORKER_NICENESS`) and join
+    in seconds; the longer wait only matters on a cluster (``train.ray_address``).
     """
     from torchrl.weight_update import _ray
 
@@ -61,6 +66,12 @@ def _backend_options(cfg: RunConfig) -> dict[str, Any]:
                 "include_dashboard": False,
                 # The workers print their collector at start-up; keep the console to the progress bar.
                 "log_to_driver": False,
+                # Ray starts every worker process at niceness 15, so the collection workers (and the weight-sync
+                # ConnectionInfo actor, which imports torchrl in a fresh worker) get ~3% of a core next to any
+                # other busy process: on a 2-core machine shared with another run, starting the workers took
+                # minutes instead of seconds. They are the run's own work (the learner waits for their
+                # batches): give them the learner's priority.
+                "_system_config": {"worker_niceness": RAY_WORKER_NICENESS},
             }
         _lengthen_ray_weight_sync_timeout()
         # One CPU per worker and no memory reservation (TorchRL's default reserves 2 GB per worker).
