@@ -1,10 +1,11 @@
 """One full update (world model + behaviour) of TorchRL's DreamerV3 against Iso-Dream (on DreamerV3's learner and on
 the DreamerV2-style one) and DreamerV2, on one core or on a GPU (``--device cuda``).
 
-Each algorithm is built as an ``isodream-train`` run builds it (``env=sprites size=<size> algo=<algo>
-train.device=<device>``, the run's ``make_components``) and an update is its stepper's ``step`` on one fixed replay
-sample of the size's ``B`` windows of ``T`` steps (uint8 pixels and the replay buffer's keys, a window start marked
-in ``is_init``), put on the device before the timing: the world-model update, imagination from every posterior,
+Each algorithm is built as an ``isodream-train`` run builds it (``env=<env> size=<size> algo=<algo>
+train.device=<device>``, the run's ``make_components``; ``--env`` is ``sprites`` unless given, ``sprites_reach``
+builds the quickstart's learner as it trains, without the static branch) and an update is its stepper's ``step``
+on one fixed replay sample of the size's ``B`` windows of ``T`` steps (uint8 pixels and the replay buffer's keys,
+a window start marked in ``is_init``), put on the device before the timing: the world-model update, imagination from every posterior,
 the actor and value updates (and, for DreamerV3, the replay-value term and the slow critic). On a GPU each update
 is timed from a ``torch.cuda.synchronize`` to the next (kernels run asynchronously), and the memory it allocates
 beyond what was held before it is recorded (``update_memory_gb``). The algorithms take turns, one update each per
@@ -29,6 +30,8 @@ The rate inside a real run (collection included) is ``bench/update_rate.py``'s.
         --json docs/results/update_speed.json                                # the default both ways, size=bench
     python bench/update_speed.py --size quickstart --algos isodream,torchrl_dreamer_v3 --fast-paths both \
         --json docs/results/update_speed_quickstart.json
+    python bench/update_speed.py --size quickstart --env sprites_reach --algos isodream --fast-paths both \
+        --json /tmp/speed_quickstart.json                                    # as the quickstart trains
     python bench/update_speed.py --size tiny --rounds 2 --warmup 1 --json /tmp/speed.json   # quick check
     python bench/update_speed.py --device cuda --size paper --json /tmp/speed_gpu.json       # on a GPU
 """
@@ -65,10 +68,12 @@ ALGOS = ("isodream", "isodream_v2", "dreamerv2", "torchrl_dreamer_v3")
 FAST_PATHS = {"on": (True,), "off": (False,), "both": (True, False)}
 
 
-def run_config(algo: str, size: str, *, device: str = "cpu", overrides: tuple[str, ...] = ()):
-    """The ``RunConfig`` that ``isodream-train env=sprites size=<size> algo=<algo> train.device=<device>
+def run_config(
+    algo: str, size: str, *, device: str = "cpu", overrides: tuple[str, ...] = (), env: str = "sprites"
+):
+    """The ``RunConfig`` that ``isodream-train env=<env> size=<size> algo=<algo> train.device=<device>
     <overrides>`` trains."""
-    overrides = ["env=sprites", f"size={size}", f"algo={algo}", f"train.device={device}", *overrides]
+    overrides = [f"env={env}", f"size={size}", f"algo={algo}", f"train.device={device}", *overrides]
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         cfg = compose(config_name="config", overrides=overrides)
     return OmegaConf.to_object(cfg)
@@ -148,6 +153,7 @@ def measure(
     warmup: int,
     scratch: Path,
     fast_paths: str = "on",
+    env: str = "sprites",
 ) -> dict[str, dict]:
     """Time one update of each of ``algos``, built at ``size`` on ``device``, the algorithms taking turns.
 
@@ -160,6 +166,8 @@ def measure(
         scratch: folder of the replay buffers' memmap files (the buffers stay empty).
         fast_paths: ``"on"``, ``"off"`` or ``"both"``: the ``model.fast_paths`` values of the learners that read
             it (:func:`variants`).
+        env: the env group of ``isodream-train`` (``sprites``; ``sprites_reach``, the quickstart's, builds the
+            learner as the quickstart trains it: without the static branch).
 
     Returns:
         per label (:func:`variants`: the algorithm's name, or ``<algo>[fast_paths=false]``): ``algo``,
@@ -174,7 +182,7 @@ def measure(
     entries, steppers, samples = {}, {}, {}
     for label, algo, fast in variants(list(algos), fast_paths):
         overrides = () if fast is None else (f"model.fast_paths={str(fast).lower()}",)
-        cfg = run_config(algo, size, device=str(device), overrides=overrides)
+        cfg = run_config(algo, size, device=str(device), overrides=overrides, env=env)
         action_dim = probe_action_dim(cfg)
         components = make_components(cfg, action_dim=action_dim, scratch_dir=Path(scratch) / label)
         steppers[label] = components.stepper
@@ -227,6 +235,12 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--algos", type=lambda s: s.split(","), default=list(ALGOS))
     parser.add_argument("--size", default="bench", help="the size group of isodream-train")
     parser.add_argument(
+        "--env",
+        default="sprites",
+        help="the env group of isodream-train: sprites (the default, the committed results') or sprites_reach "
+        "(the quickstart's, which builds no static branch)",
+    )
+    parser.add_argument(
         "--fast-paths",
         choices=sorted(FAST_PATHS),
         default="on",
@@ -258,11 +272,12 @@ def main(argv: list[str] | None = None) -> dict:
             warmup=args.warmup,
             scratch=Path(scratch),
             fast_paths=args.fast_paths,
+            env=args.env,
         )
     result = {
         "size": args.size,
         "fast_paths": args.fast_paths,
-        "env": "sprites",
+        "env": args.env,
         "rounds": args.rounds,
         "warmup": args.warmup,
         "torch_threads": torch.get_num_threads(),
