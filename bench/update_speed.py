@@ -14,7 +14,8 @@ median over ``--rounds`` rounds is reported: wall seconds per update, process CP
 second, and the ratio of each algorithm's wall time to Iso-Dream's (``algo=isodream``) and to DreamerV2's. The JSON also records each
 algorithm's trained parameters per group (``parameters.world_model``: the world model's count), the CPU's model name
 (``/proc/cpuinfo``'s, as ``lscpu`` prints it) and the GPU, the commit, the torch threads and the load average before
-and after. ``bench/gpu_check.py`` times its updates with :func:`measure`.
+and after, and ``THP_MEM_ALLOC_ENABLE`` (PyTorch's huge pages for tensors of 2 MB and more, set to ``1`` unless
+exported, as a training run sets it). ``bench/gpu_check.py`` times its updates with :func:`measure`.
 
 ``--fast-paths`` picks how the learners with CPU fast paths (those that read ``model.fast_paths``: the default
 ``algo=isodream`` and its ablations, the DreamerV2-style learner) are built: ``on`` (their default, timed under
@@ -47,10 +48,16 @@ import tempfile
 import time
 from pathlib import Path
 
-import torch
-from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
-from tensordict import TensorDict
+# Huge pages for CPU tensors >= 2 MB, for every learner timed (PyTorch reads this at its first allocation, hence
+# before `import torch`), as a training run has them (isodream_rl.process_settings.use_huge_pages, called by the
+# entry points); THP_MEM_ALLOC_ENABLE=0 measures without. Where torch was imported first (this module loaded by
+# another), the process keeps what it had, recorded as null.
+THP_MEM_ALLOC = None if "torch" in sys.modules else os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
+
+import torch  # noqa: E402
+from hydra import compose, initialize_config_dir  # noqa: E402
+from omegaconf import OmegaConf  # noqa: E402
+from tensordict import TensorDict  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import device_provenance, provenance  # noqa: E402
@@ -281,6 +288,7 @@ def main(argv: list[str] | None = None) -> dict:
         "rounds": args.rounds,
         "warmup": args.warmup,
         "torch_threads": torch.get_num_threads(),
+        "thp_mem_alloc": THP_MEM_ALLOC,
         "algos": entries,
         "load_average": {
             "before": [round(x, 2) for x in load_before],

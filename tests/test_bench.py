@@ -151,6 +151,7 @@ def test_update_speed_env_builds_the_quickstart_learner_as_it_trains(tmp_path):
     args = ["--size", "tiny", "--algos", "isodream", "--rounds", "1", "--warmup", "0", "--json", str(path)]
     reach = module.main([*args, "--env", "sprites_reach"])
     assert json.loads(path.read_text()) == reach and reach["env"] == "sprites_reach"
+    assert reach["thp_mem_alloc"] is None  # torch came first: the process keeps its own setting
     sprites = module.main(args)
     assert sprites["env"] == "sprites"
     parameters = [out["algos"]["isodream"]["parameters"]["world_model"] for out in (reach, sprites)]
