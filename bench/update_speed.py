@@ -1,10 +1,11 @@
 """One full update (world model + behaviour) of TorchRL's DreamerV3 against Iso-Dream (on DreamerV3's learner and on
 the DreamerV2-style one) and DreamerV2, on one core or on a GPU (``--device cuda``).
 
-Each algorithm is built as an ``isodream-train`` run builds it (``env=sprites size=<size> algo=<algo>
-train.device=<device>``, the run's ``make_components``) and an update is its stepper's ``step`` on one fixed replay
-sample of the size's ``B`` windows of ``T`` steps (uint8 pixels and the replay buffer's keys, a window start marked
-in ``is_init``), put on the device before the timing: the world-model update, imagination from every posterior,
+Each algorithm is built as an ``isodream-train`` run builds it (``env=<env> size=<size> algo=<algo>
+train.device=<device>``, the run's ``make_components``; ``--env`` is ``sprites`` unless given, ``sprites_reach``
+builds the quickstart's learner as it trains, without the static branch) and an update is its stepper's ``step``
+on one fixed replay sample of the size's ``B`` windows of ``T`` steps (uint8 pixels and the replay buffer's keys,
+a window start marked in ``is_init``), put on the device before the timing: the world-model update, imagination from every posterior,
 the actor and value updates (and, for DreamerV3, the replay-value term and the slow critic). On a GPU each update
 is timed from a ``torch.cuda.synchronize`` to the next (kernels run asynchronously), and the memory it allocates
 beyond what was held before it is recorded (``update_memory_gb``). The algorithms take turns, one update each per
@@ -13,7 +14,8 @@ median over ``--rounds`` rounds is reported: wall seconds per update, process CP
 second, and the ratio of each algorithm's wall time to Iso-Dream's (``algo=isodream``) and to DreamerV2's. The JSON also records each
 algorithm's trained parameters per group (``parameters.world_model``: the world model's count), the CPU's model name
 (``/proc/cpuinfo``'s, as ``lscpu`` prints it) and the GPU, the commit, the torch threads and the load average before
-and after. ``bench/gpu_check.py`` times its updates with :func:`measure`.
+and after, and ``THP_MEM_ALLOC_ENABLE`` (PyTorch's huge pages for tensors of 2 MB and more, set to ``1`` unless
+exported, as a training run sets it). ``bench/gpu_check.py`` times its updates with :func:`measure`.
 
 ``--fast-paths`` picks how the learners with CPU fast paths (those that read ``model.fast_paths``: the default
 ``algo=isodream`` and its ablations, the DreamerV2-style learner) are built: ``on`` (their default, timed under
@@ -29,6 +31,8 @@ The rate inside a real run (collection included) is ``bench/update_rate.py``'s.
         --json docs/results/update_speed.json                                # the default both ways, size=bench
     python bench/update_speed.py --size quickstart --algos isodream,torchrl_dreamer_v3 --fast-paths both \
         --json docs/results/update_speed_quickstart.json
+    python bench/update_speed.py --size quickstart --env sprites_reach --algos isodream --fast-paths both \
+        --json /tmp/speed_quickstart.json                                    # as the quickstart trains
     python bench/update_speed.py --size tiny --rounds 2 --warmup 1 --json /tmp/speed.json   # quick check
     python bench/update_speed.py --device cuda --size paper --json /tmp/speed_gpu.json       # on a GPU
 """
@@ -44,10 +48,16 @@ import tempfile
 import time
 from pathlib import Path
 
-import torch
-from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
-from tensordict import TensorDict
+# Huge pages for CPU tensors >= 2 MB, for every learner timed (PyTorch reads this at its first allocation, hence
+# before `import torch`), as a training run has them (isodream_rl.process_settings.use_huge_pages, called by the
+# entry points); THP_MEM_ALLOC_ENABLE=0 measures without. Where torch was imported first (this module loaded by
+# another), the process keeps what it had, recorded as null.
+THP_MEM_ALLOC = None if "torch" in sys.modules else os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
+
+import torch  # noqa: E402
+from hydra import compose, initialize_config_dir  # noqa: E402
+from omegaconf import OmegaConf  # noqa: E402
+from tensordict import TensorDict  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import device_provenance, provenance  # noqa: E402
@@ -65,10 +75,12 @@ ALGOS = ("isodream", "isodream_v2", "dreamerv2", "torchrl_dreamer_v3")
 FAST_PATHS = {"on": (True,), "off": (False,), "both": (True, False)}
 
 
-def run_config(algo: str, size: str, *, device: str = "cpu", overrides: tuple[str, ...] = ()):
-    """The ``RunConfig`` that ``isodream-train env=sprites size=<size> algo=<algo> train.device=<device>
+def run_config(
+    algo: str, size: str, *, device: str = "cpu", overrides: tuple[str, ...] = (), env: str = "sprites"
+):
+    """The ``RunConfig`` that ``isodream-train env=<env> size=<size> algo=<algo> train.device=<device>
     <overrides>`` trains."""
-    overrides = ["env=sprites", f"size={size}", f"algo={algo}", f"train.device={device}", *overrides]
+    overrides = [f"env={env}", f"size={size}", f"algo={algo}", f"train.device={device}", *overrides]
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         cfg = compose(config_name="config", overrides=overrides)
     return OmegaConf.to_object(cfg)
@@ -148,6 +160,7 @@ def measure(
     warmup: int,
     scratch: Path,
     fast_paths: str = "on",
+    env: str = "sprites",
 ) -> dict[str, dict]:
     """Time one update of each of ``algos``, built at ``size`` on ``device``, the algorithms taking turns.
 
@@ -160,6 +173,8 @@ def measure(
         scratch: folder of the replay buffers' memmap files (the buffers stay empty).
         fast_paths: ``"on"``, ``"off"`` or ``"both"``: the ``model.fast_paths`` values of the learners that read
             it (:func:`variants`).
+        env: the env group of ``isodream-train`` (``sprites``; ``sprites_reach``, the quickstart's, builds the
+            learner as the quickstart trains it: without the static branch).
 
     Returns:
         per label (:func:`variants`: the algorithm's name, or ``<algo>[fast_paths=false]``): ``algo``,
@@ -174,7 +189,7 @@ def measure(
     entries, steppers, samples = {}, {}, {}
     for label, algo, fast in variants(list(algos), fast_paths):
         overrides = () if fast is None else (f"model.fast_paths={str(fast).lower()}",)
-        cfg = run_config(algo, size, device=str(device), overrides=overrides)
+        cfg = run_config(algo, size, device=str(device), overrides=overrides, env=env)
         action_dim = probe_action_dim(cfg)
         components = make_components(cfg, action_dim=action_dim, scratch_dir=Path(scratch) / label)
         steppers[label] = components.stepper
@@ -227,6 +242,12 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--algos", type=lambda s: s.split(","), default=list(ALGOS))
     parser.add_argument("--size", default="bench", help="the size group of isodream-train")
     parser.add_argument(
+        "--env",
+        default="sprites",
+        help="the env group of isodream-train: sprites (the default, the committed results') or sprites_reach "
+        "(the quickstart's, which builds no static branch)",
+    )
+    parser.add_argument(
         "--fast-paths",
         choices=sorted(FAST_PATHS),
         default="on",
@@ -258,14 +279,16 @@ def main(argv: list[str] | None = None) -> dict:
             warmup=args.warmup,
             scratch=Path(scratch),
             fast_paths=args.fast_paths,
+            env=args.env,
         )
     result = {
         "size": args.size,
         "fast_paths": args.fast_paths,
-        "env": "sprites",
+        "env": args.env,
         "rounds": args.rounds,
         "warmup": args.warmup,
         "torch_threads": torch.get_num_threads(),
+        "thp_mem_alloc": THP_MEM_ALLOC,
         "algos": entries,
         "load_average": {
             "before": [round(x, 2) for x in load_before],

@@ -141,6 +141,23 @@ def test_update_speed_times_the_default_with_and_without_its_fast_paths(tmp_path
     assert reference["ratio_to_isodream"] == pytest.approx(expected)
 
 
+def test_update_speed_env_builds_the_quickstart_learner_as_it_trains(tmp_path):
+    """``--env sprites_reach``: the learner the quickstart trains (its env group, hence no static branch: fewer
+    world-model parameters than ``env=sprites``'s), recorded as the JSON's ``env``; ``sprites`` is the default."""
+    module = load_bench("update_speed")
+    assert module.run_config("isodream", "tiny").algo.static_branch
+    assert not module.run_config("isodream", "tiny", env="sprites_reach").algo.static_branch
+    path = tmp_path / "speed.json"
+    args = ["--size", "tiny", "--algos", "isodream", "--rounds", "1", "--warmup", "0", "--json", str(path)]
+    reach = module.main([*args, "--env", "sprites_reach"])
+    assert json.loads(path.read_text()) == reach and reach["env"] == "sprites_reach"
+    assert reach["thp_mem_alloc"] is None  # torch came first: the process keeps its own setting
+    sprites = module.main(args)
+    assert sprites["env"] == "sprites"
+    parameters = [out["algos"]["isodream"]["parameters"]["world_model"] for out in (reach, sprites)]
+    assert 0 < parameters[0] < parameters[1]
+
+
 def test_update_speed_times_one_full_update_of_each_algorithm_on_one_sample(tmp_path):
     module = load_bench("update_speed")
     path = tmp_path / "speed.json"

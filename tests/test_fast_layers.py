@@ -329,6 +329,30 @@ def test_inward_clamp_passes_only_the_gradients_that_point_back_into_the_range()
         MaskComposition(clamp_gradient="straight")
 
 
+@pytest.mark.parametrize("bounds", [(0.0, 1.0), (-0.5, 0.5)])
+def test_inward_clamp_gradient_by_float_operations_matches_the_boolean_form(bounds):
+    """fast_paths._inward_clamp_grad (the fused composition's ``"inward"`` gate, float passes only) against the
+    reference composition.inward_grad (comparisons and a masked fill), on colours on both bounds and inside and
+    gradients of either sign and zero: the same values."""
+    from isodream_rl.modules.composition import inward_grad
+    from isodream_rl.modules.fast_paths import _inward_clamp_grad
+
+    torch.manual_seed(4)
+    low, high = bounds
+    color = (torch.rand(2, 3, 3, 64) * 1.6 - 0.3) * (high - low) + low
+    color = color.clamp(low, high)  # the node gates the clamped colour: a third of it on a bound
+    grad = torch.randn(2, 3, 3, 64)
+    grad[..., ::7] = 0.0
+    assert (color == low).any() and (color == high).any()
+    expected = inward_grad(grad, color, low, high)
+    got = _inward_clamp_grad(grad.clone(), color, low, high)
+    torch.testing.assert_close(got, expected, rtol=0, atol=0)
+    on_top, on_bottom = color == high, color == low
+    assert (got[on_top] >= 0).all() and (got[on_bottom] <= 0).all()
+    inside = ~(on_top | on_bottom)
+    assert torch.equal(got[inside], grad[inside])
+
+
 @pytest.mark.parametrize(
     "overrides",
     [
