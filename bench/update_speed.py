@@ -79,8 +79,17 @@ def run_config(
     algo: str, size: str, *, device: str = "cpu", overrides: tuple[str, ...] = (), env: str = "sprites"
 ):
     """The ``RunConfig`` that ``isodream-train env=<env> size=<size> algo=<algo> train.device=<device>
-    <overrides>`` trains."""
-    overrides = [f"env={env}", f"size={size}", f"algo={algo}", f"train.device={device}", *overrides]
+    <overrides>`` trains, without its world-model warm-up (``train.world_model_warmup=0``: the size's first updates
+    train the world model alone, e.g. 500 of the quickstart's 4900; a timed update is one of the others, world
+    model and behaviour)."""
+    overrides = [
+        f"env={env}",
+        f"size={size}",
+        f"algo={algo}",
+        f"train.device={device}",
+        "train.world_model_warmup=0",
+        *overrides,
+    ]
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         cfg = compose(config_name="config", overrides=overrides)
     return OmegaConf.to_object(cfg)
