@@ -119,8 +119,10 @@ import json, pathlib, sys, time
 run_dir, out = pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2])
 scalars = run_dir / "logs" / "train" / "scalars"
 scalars.mkdir(parents=True, exist_ok=True)
-(scalars / "eval_return.csv").write_text("100,1.0\\n200,2.0\\n")
-(scalars / "updates.csv").write_text("100,10.0\\n200,30.0\\n")
+# whole files, the updates first: the bench may read the logs at any moment, and a curve starts with its returns
+for name, text in (("updates.csv", "100,10.0\\n200,30.0\\n"), ("eval_return.csv", "100,1.0\\n200,2.0\\n")):
+    (scalars / (name + ".tmp")).write_text(text)
+    (scalars / (name + ".tmp")).replace(scalars / name)
 deadline = time.monotonic() + 60
 while time.monotonic() < deadline:  # until the bench has written this curve into its JSON
     try:
