@@ -139,6 +139,126 @@ class TestDecomposition:
     def test_decoder_inputs_are_checked(self):
         with pytest.raises(ValueError, match="control_decoder_input must be one of"):
             IsoDreamConfig(action_dim=A, hidden=16, image_depth=2, units=16, control_decoder_input="paper")
+        for bad in (0, -2, 1.5, True):
+            with pytest.raises(ValueError, match="free_prior_steps must be an integer >= 1"):
+                IsoDreamConfig(action_dim=A, hidden=16, image_depth=2, units=16, free_prior_steps=bad)
+        with pytest.raises(ValueError, match="free_decoder_input='posterior' draws the posterior"):
+            IsoDreamConfig(
+                action_dim=A,
+                hidden=16,
+                image_depth=2,
+                units=16,
+                free_prior_steps=3,
+                free_decoder_input="posterior",
+            )
+
+    @staticmethod
+    def _window(pixels: torch.Tensor, *, starts: tuple[int, ...] = ()) -> TensorDict:
+        """A ``[2, T]`` window of ``pixels`` with constant actions, episodes starting at ``starts`` besides step 0."""
+        batch, time = pixels.shape[:2]
+        is_init = torch.zeros(batch, time, 1, dtype=torch.bool)
+        is_init[:, list(starts)] = True
+        return TensorDict(
+            {("next", "pixels"): pixels, "action": torch.ones(batch, time, A), "is_init": is_init},
+            [batch, time],
+        )
+
+    @pytest.mark.parametrize(
+        "starts, step, changes",
+        [
+            ((), 0, [True] * 8),  # the posterior at 0 starts every roll
+            ((), 2, [False] * 5 + [True] * 3),  # z_2 is first read by the roll reaching 2 + K
+            ((4,), 2, [False] * 8),  # the episode starting at 4 rolls from its own posterior
+            ((4,), 4, [False] * 4 + [True] * 4),  # that posterior, then rolls of 1, 2, 3 steps from it
+            ((4,), 5, [False] * 8),  # 5, 6, 7 roll from 4: z_5 is read from 8 on
+        ],
+    )
+    def test_the_free_decoder_draws_its_k_step_prior(self, starts, step, changes):
+        """``free_prior_steps=3``: the action-free decoder draws the prior rolled 3 steps from the posterior
+        ``z_{t-3}`` without actions, so a frame changed at step t changes what it draws from t + 3 on, never at t,
+        t + 1, t + 2; a step with fewer previous posteriors in its episode rolls from the episode's start (the
+        posterior at the start itself)."""
+        torch.manual_seed(0)
+        config = IsoDreamConfig(action_dim=A, hidden=16, image_depth=2, units=16, free_prior_steps=3)
+        model = IsoDreamWorldModel(config)
+        pixels = torch.randint(0, 256, (2, 8, 3, 64, 64), dtype=torch.uint8)
+
+        def drawn(frames):
+            torch.manual_seed(1)
+            return model(self._window(frames, starts=starts))["next", "reco_free"]
+
+        changed = pixels.clone()
+        changed[:, step] = 255 - changed[:, step]
+        moved = (drawn(pixels) - drawn(changed)).flatten(2).abs().amax(-1).amax(0) > 0
+        assert moved.tolist() == changes
+
+    def test_one_prior_step_is_todays_one_step_prior(self):
+        """``free_prior_steps=1`` is the default's code and output; and K = 3 draws today's one-step prior (the same
+        tensors, the same seed) where no step has two previous posteriors in its episode."""
+        torch.manual_seed(0)
+        default = IsoDreamWorldModel(IsoDreamConfig(action_dim=A, hidden=16, image_depth=2, units=16))
+        keys = [("next", key) for key in ("reco_free", "mask_free", "reco_pixels", "free_window", "state")]
+
+        def out(steps, window):
+            model = IsoDreamWorldModel(
+                IsoDreamConfig(action_dim=A, hidden=16, image_depth=2, units=16, free_prior_steps=steps)
+            )
+            model.load_state_dict(default.state_dict())
+            torch.manual_seed(1)
+            return model(window.clone())
+
+        pixels = torch.randint(0, 256, (2, 6, 3, 64, 64), dtype=torch.uint8)
+        window = self._window(pixels, starts=(3,))
+        torch.manual_seed(1)
+        today, one = default(window.clone()), out(1, window)
+        for key in keys:
+            assert torch.equal(today[key], one[key]), key
+        alternate = self._window(pixels, starts=(2, 4))  # steps 1, 3, 5 have one previous posterior each
+        three, one = out(3, alternate), out(1, alternate)
+        for key in keys[:3]:  # free_window's rolls sample after the K-step rolls
+            assert torch.equal(three[key], one[key]), key
+
+    def test_the_k_step_prior_is_k_free_steps_from_the_posterior(self, monkeypatch):
+        """The state the action-free decoder draws at step t (``free_prior_steps=3``) is that of 3 calls of
+        :meth:`free_step` from the posterior ``z_{t-3}`` and ``h'_{t-3}``, read with the belief they reach (fewer
+        from an episode's start; the posterior and its belief at the start), and it passes gradients back to the
+        posterior it was rolled from. The categorical draws are made deterministic (the inverse CDF at 0.5) so that
+        a batched roll and a manual one draw the same samples."""
+        import torchrl.modules.models.model_based as torchrl_model_based
+
+        import isodream_rl.modules.isodream.world_model as world_model_module
+
+        sample = torchrl_model_based._straight_through_categorical
+
+        def median(logits, unimix=0.0, uniform=None):
+            return sample(logits, unimix, uniform=torch.full(logits.shape[:-1], 0.5))
+
+        monkeypatch.setattr(torchrl_model_based, "_straight_through_categorical", median)
+        monkeypatch.setattr(world_model_module, "_straight_through_categorical", median)
+        steps = 3
+        torch.manual_seed(0)
+        model = IsoDreamWorldModel(
+            IsoDreamConfig(action_dim=A, hidden=16, image_depth=2, units=16, free_prior_steps=steps)
+        )
+        drawn = []
+        model.free_decoder.register_forward_pre_hook(lambda module, args: drawn.append(args))
+        pixels = torch.randint(0, 256, (2, 8, 3, 64, 64), dtype=torch.uint8)
+        out = model(self._window(pixels, starts=(5,)))["next"]
+        state, belief = drawn[0]
+        z, hz = model.split_state(out["state"])[1], model.split_belief(out["belief"])[1]
+        with torch.no_grad():
+            for t, start in enumerate([0] * 5 + [5] * 3):
+                origin = max(start, t - steps)
+                expected, expected_belief = z[:, origin], hz[:, origin]
+                for _ in range(t - origin):
+                    expected, expected_belief = model.free_step(expected, expected_belief)
+                torch.testing.assert_close(state[:, t], expected, msg=f"state at step {t}")
+                torch.testing.assert_close(belief[:, t], expected_belief, msg=f"belief at step {t}")
+        assert not torch.equal(belief[:, 4], hz[:, 4])  # the open-loop belief, not the filtered one
+        model.zero_grad()
+        state[:, 4].sum().backward()  # rolled from z_1: through the prior steps into the posterior
+        assert sum(p.grad.abs().sum() for p in model.free_posterior.parameters() if p.grad is not None) > 0
+        assert sum(p.grad.abs().sum() for p in model.free_prior.parameters() if p.grad is not None) > 0
 
     def test_inverse_loss_trains_the_controllable_branch_only(self, parts):
         model = parts.learner.world_model
@@ -292,6 +412,24 @@ class TestComposition:
     def test_bad_pixels_get_one_line(self, parts):
         with pytest.raises(ValueError, match="pixels"):
             parts.model_loss(model_batch(parts).set(("next", "pixels"), torch.full((B, T, 3, 64, 64), 2.0)))
+
+    def test_free_prior_steps_is_the_default_learners_setting(self, tmp_path):
+        """``algo.free_prior_steps`` sets ``IsoDreamConfig.free_prior_steps`` (1 unless set), composes from the
+        command line, is checked, and is refused by the learners that do not read it."""
+        cfg = isodream_run_config(tmp_path)
+        assert isodream_config(cfg, action_dim=A).free_prior_steps == 1
+        cfg.algo.free_prior_steps = 3
+        assert isodream_config(cfg, action_dim=A).free_prior_steps == 3
+        assert composed("algo=isodream", "algo.free_prior_steps=3").algo.free_prior_steps == 3
+        validate_config(composed("algo=isodream", "algo.free_prior_steps=3", "size=tiny"))
+        cfg.algo.free_prior_steps = 0
+        with pytest.raises(ConfigError, match="algo.free_prior_steps=0 must be >= 1"):
+            isodream_config(cfg, action_dim=A)
+        with pytest.raises(ConfigError, match="algo.free_prior_steps=0 must be >= 1"):
+            validate_config(composed("algo.free_prior_steps=0", "size=tiny"))
+        for algo in ("torchrl_dreamer_v3", "isodream_v2"):
+            refused = unread_setting_errors(composed(f"algo={algo}", "algo.free_prior_steps=3"))
+            assert any("algo.free_prior_steps=3 is not read" in line for line in refused), algo
 
     def test_bf16_is_refused_and_world_model_mode_is_taken(self, tmp_path):
         cfg = isodream_run_config(tmp_path)
