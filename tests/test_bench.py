@@ -200,3 +200,24 @@ def test_openloop_png_stacks_the_chosen_frames_of_a_gif_downwards(tmp_path):
     assert picture.getpixel((0, 0)) == colours[0] and picture.getpixel((0, 7)) == colours[2]
     with pytest.raises(ValueError, match="outside the GIF's 3 frames"):
         openloop_png.stack_frames(openloop_png.gif_frames(tmp_path / "a.gif"), [3])
+
+
+def test_run_summary_wraps_a_finished_runs_summary_with_its_training_command(tmp_path):
+    bench = load_bench("run_summary")
+    run = tmp_path / "run"
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "overrides.yaml").write_text("- size=quickstart\n- train.threads=1\n- run_dir=/somewhere\n")
+    with pytest.raises(SystemExit, match="has not finished"):
+        bench.run_summary(run, train_commit="abc1234")
+    summary = {"eval_return": 153.3, "normalised_score": 0.56, "isolation": {"agent_branch": "control"}}
+    (run / "summary.json").write_text(json.dumps(summary))
+    out_json = tmp_path / "out.json"
+    bench.main([str(run), "--train-commit", "abc1234", "--note", "one run per core", "--json", str(out_json)])
+    out = json.loads(out_json.read_text())
+    assert out["command"] == "isodream-train size=quickstart train.threads=1"
+    assert out["train_commit"] == "abc1234" and out["note"] == "one run per core"
+    assert out["summary"] == summary
+    assert out["collected_by"]["command"].startswith("python bench/run_summary.py ")
+    (run / ".hydra" / "overrides.yaml").unlink()
+    with pytest.raises(SystemExit, match="not an isodream-train run folder"):
+        bench.run_summary(run, train_commit="abc1234")
