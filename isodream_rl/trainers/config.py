@@ -142,10 +142,6 @@ class AlgoConfig:
     """L, the imagination horizon."""
     lambda_inverse: float | None = None
     """alpha, the weight of the inverse-dynamics loss (both Iso-Dream learners; each has its own value)."""
-    free_prior_steps: int | None = None
-    """Iso-Dream on DreamerV3's learner: K, the action-free prior steps rolled open loop from the posterior
-    ``z_{t-K}`` to give the state the action-free decoder draws at step t (eq. 4; ``IsoDreamConfig.free_prior_steps``):
-    1 is the one-step prior; more keeps an agent that moves a few pixels a step out of the action-free branch."""
     paper_exact: bool | None = None
     """The DreamerV2-style learner: the paper's settings where the library's defaults depart from them
     (``IsoDreamV2Config.paper_exact``; ``algo=isodream_paper``), and eq. 5's ``lambda_inverse``."""
@@ -376,7 +372,6 @@ def _learner_value_errors(cfg: RunConfig) -> list[str]:
             errors.append(f"train.{name}={value} must be > 0")
     _positive(errors, "train.lr_warmup", train.lr_warmup, 0)
     _positive(errors, "algo.slow_target_every", algo.slow_target_every)
-    _positive(errors, "algo.free_prior_steps", algo.free_prior_steps)
     if algo.free_branch_loss is not None:
         _choice(errors, "algo.free_branch_loss", algo.free_branch_loss, FREE_BRANCH_MODES)
     for name in ("actor_loc_penalty", "exploration_noise"):

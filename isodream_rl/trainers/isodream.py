@@ -25,8 +25,7 @@ What it reads of the run configuration: ``model.size`` (``hidden_dim``), ``model
 ``value_units`` / ``attention_dim``, ``model.fast_paths`` (``IsoDreamConfig.fast_paths``; ``None``: on),
 ``model.free_hidden_fraction``;
 ``algo.free_branch`` / ``static_branch`` / ``inverse_dynamics`` (the branch switches), ``algo.reward_uses_free``,
-``algo.policy_input``, ``algo.attention_window`` (tau), ``algo.horizon`` (L), ``algo.lambda_inverse``,
-``algo.free_prior_steps`` (``IsoDreamConfig.free_prior_steps``; ``None``: 1, the one-step prior);
+``algo.policy_input``, ``algo.attention_window`` (tau), ``algo.horizon`` (L), ``algo.lambda_inverse``;
 ``train.world_model_lr`` / ``actor_lr`` / ``value_lr``, ``world_model_warmup``, ``lr_warmup``,
 ``max_nonfinite_updates``, ``sequence_length``, ``device``. The DreamerV2-style learner's settings
 (``algo.gamma``: the continuation head's ``1 - 1/333`` discounts here; ``algo.lmbda``, ``actor_entropy``,
@@ -60,7 +59,7 @@ def isodream_config(
     """The world model's :class:`~isodream_rl.modules.isodream.world_model.IsoDreamConfig` for ``cfg``.
 
     Raises:
-        ConfigError: an unknown size preset, a precision other than fp32 or ``algo.free_prior_steps`` below 1.
+        ConfigError: an unknown size preset or a precision other than fp32.
     """
     if cfg.model.size not in SIZE_PRESETS:
         raise ConfigError(f"invalid training configuration: unknown model.size={cfg.model.size!r}")
@@ -84,12 +83,6 @@ def isodream_config(
         )
     free_hidden = 8 * max(1, round(fraction * hidden / 8))
     algo = cfg.algo
-    free_prior_steps = 1 if algo.free_prior_steps is None else algo.free_prior_steps
-    if free_prior_steps < 1:
-        raise ConfigError(
-            f"invalid training configuration: algo.free_prior_steps={free_prior_steps!r} must be >= 1 (the "
-            "action-free prior steps rolled for the action-free decoder; 1: the one-step prior)"
-        )
     fast_paths = True if cfg.model.fast_paths is None else cfg.model.fast_paths
     return IsoDreamConfig(
         action_dim=action_dim,
@@ -104,7 +97,6 @@ def isodream_config(
         reward_uses_free=bool(algo.reward_uses_free and algo.free_branch),
         settings=settings,
         fast_paths=fast_paths,
-        free_prior_steps=free_prior_steps,
     )
 
 

@@ -121,7 +121,6 @@ LEARNERS: dict[str, Learner] = {
         algos=ISODREAM_ALGOS,
         values={
             "algo.lambda_inverse": ISODREAM_SETTINGS.lambda_inverse,
-            "algo.free_prior_steps": 1,  # IsoDreamConfig.free_prior_steps: the one-step prior
             "train.lr_warmup": ISODREAM_SETTINGS.lr_warmup,
             "model.hidden_dim": None,
             "model.precision": None,

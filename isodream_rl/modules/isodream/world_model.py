@@ -131,19 +131,6 @@ class IsoDreamConfig:
 
     A decoder that draws its prior draws the posterior where no previous posterior exists (a window's first step,
     an episode's start)."""
-    free_prior_steps: int = 1
-    """K, how far the action-free decoder's prior is rolled open loop (with ``free_decoder_input="prior"``; eq. 4's
-    input of the action-free component ``o^z_t``). 1 (default): the one-step prior ``z~_t ~ p(z_t | h'_t)`` above.
-    K > 1: the state ``z~_t`` reached by K steps of the action-free prior (eq. 3,
-    :meth:`IsoDreamWorldModel.free_step`, the transition and unimix straight-through sample of the one-step prior)
-    from the posterior ``z_{t-K}`` and its belief ``h'_{t-K}``, without actions, as Algorithm 1's behavior learning
-    rolls ``z~`` from ``z_t`` through the action-free branch alone; the decoder reads it with the open-loop belief
-    ``h'~_t`` that roll reached. What the actions moved compounds over the K steps, so the branch cannot draw an agent
-    that moves a few pixels a step, while what moves on its own or stands still stays predictable.
-
-    A step with fewer than K previous posteriors of its episode in the window rolls from the earliest one (its
-    episode's start or the window's first step): as many steps as it has, one at least (the one-step prior); the
-    posterior where it has none. At least 1; above 1 with ``free_decoder_input="prior"`` only."""
     settings: DreamerV3Settings = ISODREAM_SETTINGS
     """DreamerV3's settings (unimix, categoricals, bins, blocks): the default learner's."""
     fast_paths: bool = True
@@ -158,17 +145,6 @@ class IsoDreamConfig:
         for name in ("control_decoder_input", "free_decoder_input"):
             if getattr(self, name) not in DECODER_INPUTS:
                 raise ValueError(f"{name} must be one of {DECODER_INPUTS}, got {getattr(self, name)!r}")
-        steps = self.free_prior_steps
-        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-            raise ValueError(
-                f"free_prior_steps must be an integer >= 1 (action-free prior steps), got {steps!r}"
-            )
-        if steps > 1 and self.free_decoder_input != "prior":
-            raise ValueError(
-                f"free_prior_steps={steps} rolls the prior the action-free decoder draws, but "
-                f"free_decoder_input={self.free_decoder_input!r} draws the posterior: set "
-                "free_decoder_input='prior' or free_prior_steps=1"
-            )
 
     @property
     def control(self) -> BranchWidths:
@@ -455,11 +431,7 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             beliefs.append(hz)
             prior.append(free.get(_next("prior_logits")))
             posterior.append(free.get(_next("posterior_logits")))
-            if cfg.free_prior_steps > 1:  # K-step open-loop prior and the belief it reached
-                drawn, drawn_belief = self._free_rolled(z, hz, prior[-1], starts)
-            else:
-                drawn, drawn_belief = self._drawn(z, prior[-1], starts, cfg.free_decoder_input), hz
-            outputs["free"] = self.free_decoder(drawn, drawn_belief)
+            outputs["free"] = self.free_decoder(self._drawn(z, prior[-1], starts, cfg.free_decoder_input), hz)
             tensordict.set(_next("free_window"), self.free_window(z, hz))
         if cfg.static_branch:
             batch, time = embed.shape[:2]
@@ -576,47 +548,6 @@ class IsoDreamWorldModel(TensorDictModuleBase):
             return posterior
         prior = _straight_through_categorical(prior_logits, self.config.settings.unimix).flatten(-2)
         return torch.where(starts, posterior, prior)
-
-    def _free_rolled(
-        self, posterior: torch.Tensor, belief: torch.Tensor, prior_logits: torch.Tensor, starts: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The state and belief the action-free decoder draws with ``free_prior_steps`` K > 1
-        (:attr:`IsoDreamConfig.free_prior_steps`): at step t, K action-free prior steps rolled open loop from the
-        posterior ``z_{t-K}`` and ``h'_{t-K}``; fewer where the step's episode has fewer previous posteriors in the
-        window (from its start: the one-step prior after it, the posterior at it).
-
-        The first step of every roll is the rollout's own one-step prior (``prior_logits``, made by the same
-        transition as :meth:`free_step` from the previous posterior, sampled as :meth:`_drawn` samples it); each
-        further step is one :meth:`free_step` over all ``(B, t)`` at once.
-
-        Args:
-            posterior: the action-free posterior ``z`` ``[B, T, S_z]``.
-            belief: its filtered belief ``h'`` ``[B, T, D_z]``.
-            prior_logits: the one-step prior's logits ``[B, T, K_z, C]`` (from ``belief``).
-            starts: ``[B, T, 1]`` steps without a previous posterior (the window's first step, episode starts).
-
-        Returns:
-            ``(state [B, T, S_z], belief [B, T, D_z])``: the rolled state (straight-through samples, with the RSSM's
-            unimix) and the open-loop belief it was drawn from; the posterior and its belief at ``starts``.
-        """
-        steps, time = self.config.free_prior_steps, posterior.shape[1]
-        index = torch.arange(time, device=posterior.device)
-        # depth[b, t]: the previous posteriors of t's episode in the window (steps since its start), at most K
-        last_start = torch.where(starts.squeeze(-1), index, 0).cummax(dim=1).values
-        depth = (index - last_start).clamp(max=steps).unsqueeze(-1)
-        # one step: the one-step prior at t, p(z_t | h'_t), h'_t made from the posterior z_{t-1}
-        rolled = _straight_through_categorical(prior_logits, self.config.settings.unimix).flatten(-2)
-        drawn, drawn_belief = torch.where(starts, posterior, rolled), belief
-        # rolls of k steps reaching steps k..T-1 (those reaching t < k start before the window)
-        rolled, rolled_belief = rolled[:, 1:], belief[:, 1:]
-        for k in range(2, min(steps, time - 1) + 1):
-            rolled, rolled_belief = self.free_step(rolled[:, :-1], rolled_belief[:, :-1])
-            deeper = depth[:, k:] >= k
-            drawn = torch.cat([drawn[:, :k], torch.where(deeper, rolled, drawn[:, k:])], dim=1)
-            drawn_belief = torch.cat(
-                [drawn_belief[:, :k], torch.where(deeper, rolled_belief, drawn_belief[:, k:])], dim=1
-            )
-        return drawn, drawn_belief
 
     def _inverse(self, s: torch.Tensor, starts: torch.Tensor) -> dict[str, torch.Tensor]:
         """``action_pred[t]`` from ``[s_t, s_{t+1}]`` (the posteriors before and after ``action[t]``, i.e. ``("next",
