@@ -69,3 +69,19 @@ def read_scalar(run_dir: Path, name: str) -> list[tuple[int, float]]:
         return []
     with path.open() as f:
         return [(int(float(row[0])), float(row[1])) for row in csv.reader(f) if len(row) >= 2]
+
+
+def training_command(run_dir: Path) -> str:
+    """``isodream-train`` with the overrides Hydra recorded for the run in ``run_dir`` (``.hydra/overrides.yaml``),
+    ``run_dir=...`` left out (the folder is the user's).
+
+    Raises:
+        SystemExit: ``run_dir`` has no ``.hydra/overrides.yaml`` (not an ``isodream-train`` run folder).
+    """
+    import yaml
+
+    path = Path(run_dir) / ".hydra" / "overrides.yaml"
+    if not path.exists():
+        raise SystemExit(f"{path} is missing: {run_dir} is not an isodream-train run folder (no Hydra overrides)")
+    overrides = yaml.safe_load(path.read_text()) or []
+    return " ".join(["isodream-train", *(o for o in overrides if not o.startswith("run_dir="))])

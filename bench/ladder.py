@@ -19,7 +19,7 @@ from pathlib import Path
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import cpu_name, git_commit, read_scalar  # noqa: E402
+from common import cpu_name, git_commit, read_scalar, training_command  # noqa: E402
 
 from isodream_rl.envs.reference import reference_returns
 
@@ -31,12 +31,11 @@ def scalar(run_dir: Path, name: str) -> list[list[float]]:
 
 
 def collect_run(run_dir: Path) -> dict:
-    overrides = yaml.safe_load((run_dir / ".hydra" / "overrides.yaml").read_text())
     config = yaml.safe_load((run_dir / ".hydra" / "config.yaml").read_text())
     summary_path = run_dir / "summary.json"
     updates = scalar(run_dir, "updates")
     return {
-        "command": "isodream-train " + " ".join(o for o in overrides if not o.startswith("run_dir=")),
+        "command": training_command(run_dir),
         "algo": config["algo"]["name"],
         "env": config["env"]["name"],
         "env_kwargs": config["env"]["kwargs"],

@@ -2,9 +2,9 @@
 
 Every ``isodream-train`` run ends by writing ``<run_dir>/summary.json`` (its final evaluation next to the reference
 policies, the decomposition scores where the env renders the ground truth, ``isolation``). This script wraps it
-with the training command (``isodream-train`` and the overrides Hydra recorded in ``<run_dir>/.hydra/
-overrides.yaml``), the commit the run was trained at (``--train-commit``: a run folder does not record it), the CPU
-and this command::
+with the training command (``common.training_command``: ``isodream-train`` and the overrides Hydra recorded in
+``<run_dir>/.hydra/overrides.yaml``), the commit the run was trained at (``--train-commit``: a run folder does not
+record it), the CPU and this command::
 
     {"command": "isodream-train size=quickstart ...", "train_commit": ..., "note": ..., "cpu": ...,
      "summary": {<summary.json as written>}, "collected_by": {"commit": ..., "command": ...}}
@@ -21,26 +21,10 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import cpu_name, provenance  # noqa: E402
+from common import cpu_name, provenance, training_command  # noqa: E402
 
 
-def training_command(run_dir: Path) -> str:
-    """``isodream-train`` with the overrides of ``run_dir`` (``.hydra/overrides.yaml``, one ``- key=value`` per
-    line; ``run_dir=...`` left out, the folder being the user's)."""
-    path = run_dir / ".hydra" / "overrides.yaml"
-    if not path.exists():
-        raise SystemExit(f"{path} is missing: {run_dir} is not an isodream-train run folder (no Hydra overrides)")
-    overrides = []
-    for line in path.read_text().splitlines():
-        line = line.strip()
-        if line.startswith("- "):
-            value = line[2:].strip().strip("'\"")
-            if not value.startswith("run_dir="):
-                overrides.append(value)
-    return " ".join(["isodream-train", *overrides])
-
-
-def run_summary(run_dir: Path, *, train_commit: str, note: str = "", cpu: str | None = None) -> dict:
+def run_summary(run_dir: Path, *, train_commit: str, note: str = "") -> dict:
     """``run_dir``'s ``summary.json`` with its training command, ``train_commit``, ``note`` and the CPU.
 
     Raises:
@@ -53,7 +37,7 @@ def run_summary(run_dir: Path, *, train_commit: str, note: str = "", cpu: str | 
         "command": training_command(run_dir),
         "train_commit": train_commit,
         "note": note,
-        "cpu": cpu if cpu is not None else cpu_name(),
+        "cpu": cpu_name(),
         "summary": json.loads(summary_path.read_text()),
     }
 
