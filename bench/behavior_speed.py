@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import platform
 import statistics
 import time
@@ -55,6 +54,7 @@ from isodream_rl.modules.isodream_v2 import (
     IsoDreamV2WorldModel,
 )
 from isodream_rl.objectives.isodream_v2 import IsoDreamV2ActorLoss, IsoDreamV2Imagination, IsoDreamV2ValueLoss
+from isodream_rl.run_utils.json_io import dumps_json, write_json
 
 LR = 8e-5
 GAMMA, LMBDA = 0.99, 0.95
@@ -315,10 +315,10 @@ def main(argv=None):
             "cpu_capability": torch.backends.cpu.get_cpu_capability(),
         },
     }
-    print(json.dumps(out, indent=2))
+    print(dumps_json(out, indent=2))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(out, indent=2) + "\n")
+        write_json(args.json, out, indent=2)
     return out
 
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 import tempfile
 from pathlib import Path
@@ -26,6 +25,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(1, str(Path(__file__).resolve().parents[1] / "tests"))
 from common import provenance  # noqa: E402
+
+from isodream_rl.run_utils.json_io import write_json  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RL = [
@@ -142,7 +143,7 @@ def main(argv=None) -> None:
             f"{r['climbs']} climbs"
         )
     if args.json:
-        args.json.write_text(json.dumps(result, indent=1) + "\n")
+        write_json(args.json, result, indent=1)
 
 
 if __name__ == "__main__":

@@ -27,6 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import provenance  # noqa: E402
 from learning import STATUS_PAGE, plot, table  # noqa: E402  (bench/learning.py: the bench's own plot and table)
 
+from isodream_rl.run_utils.json_io import nan_if_none, write_json  # noqa: E402
+
 
 def parse_entry(text: str) -> tuple[str, Path, str | None]:
     """``LABEL=PATH[:ALGO]`` -> ``(label, path, algo or None)``."""
@@ -61,7 +63,9 @@ def compare(entries: list[tuple[str, Path, str | None]]) -> dict:
         results.setdefault("references", source.get("references"))
         entry = dict(algos[algo], source=f"{path.name}:{algo}")
         entry["mean_eval_per_seed"] = [
-            float(np.mean(curve["eval_return"])) for curve in entry["curves"].values() if curve["eval_return"]
+            float(np.mean([nan_if_none(v) for v in curve["eval_return"]]))
+            for curve in entry["curves"].values()
+            if curve["eval_return"]
         ]
         eval_at: dict[str, dict[str, float]] = {}
         for seed, curve in entry["curves"].items():
@@ -124,7 +128,7 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"{md} is the hand-written status page: write the table elsewhere (--md)")
     results.update(provenance("compare_learning.py", argv, parallel=1))
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(results, indent=2) + "\n")
+    write_json(args.json, results, indent=2)
     plot(results, args.png or args.json.with_suffix(".png"))
     text = table(results) + "\n\n" + side_table(results, args.marks)
     md.write_text(

@@ -58,6 +58,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import provenance  # noqa: E402
 
+from isodream_rl.run_utils.json_io import is_absent, write_json  # noqa: E402
 from isodream_rl.trainers.learners import LEARNERS, learner_name  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -228,7 +229,12 @@ def collect(args: argparse.Namespace) -> dict:
                 runs.append(
                     {
                         "seed": seed,
-                        **{k: v for k, v in summary.items() if k not in _NOT_SCORES and _is_number(v)},
+                        # an absent score is null (NaN in an older summary): kept, as null
+                        **{
+                            k: v
+                            for k, v in summary.items()
+                            if k not in _NOT_SCORES and (_is_number(v) or v is None)
+                        },
                         "updates": summary["updates"],
                         "stopped_by": summary.get("stopped_by"),
                         "wall_minutes": round(summary["seconds"] / 60.0, 3),
@@ -260,7 +266,7 @@ def copy_pictures(scenes: dict, folder: Path) -> dict[str, str]:
 
 
 def _fmt(values: list) -> str:
-    values = [v for v in values if v is not None and not (isinstance(v, float) and np.isnan(v))]
+    values = [v for v in values if not is_absent(v)]  # null (an absent score), or NaN in an older summary
     if not values:
         return "n/a"
     if len(values) == 1:
@@ -321,7 +327,7 @@ def main(argv: list[str] | None = None) -> dict:
         **provenance("decomposition.py", argv, parallel=args.parallel),
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(results, indent=2))
+    write_json(args.json, results, indent=2)
     args.json.with_suffix(".md").write_text(
         f"# Decomposition: {args.minutes:g} minutes per run\n\n"
         f"Made by `{results['command']}` at commit `{results['commit']}` on `{results['cpu']}`. IoU of each "

@@ -19,7 +19,6 @@ targets and the machine's load average (``details["load_average"]``, before and 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
@@ -32,6 +31,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from isodream_rl.envs import make_env, make_gym_env  # noqa: E402
+from isodream_rl.run_utils.json_io import write_json  # noqa: E402
 
 # name -> (make_env name, cfg, target ms per agent step from issue 4 / the brief)
 CASES: dict[str, tuple[str, dict, float]] = {
@@ -161,8 +161,7 @@ def main(argv: list[str] | None = None) -> dict:
     out = {**results, "details": details}
     if args.json:
         os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-        with open(args.json, "w") as f:
-            json.dump(out, f, indent=2)
+        write_json(args.json, out, indent=2)
         print(f"wrote {args.json}")
     return out
 

@@ -41,7 +41,6 @@ with advantages normalised the same way, entropy 3e-4), both without the loc pen
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -50,6 +49,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import provenance  # noqa: E402
 
+from isodream_rl.run_utils.json_io import write_json  # noqa: E402
 from isodream_rl.trainers import RunConfig
 from isodream_rl.trainers.exact_model import train_behavior_on_exact_model
 
@@ -166,7 +166,7 @@ def main(argv: list[str] | None = None) -> dict:
                     flush=True,
                 )
                 args.json.parent.mkdir(parents=True, exist_ok=True)
-                args.json.write_text(json.dumps(results, indent=1))
+                write_json(args.json, results, indent=1)
     plot(results, args.png or args.json.with_suffix(".png"))
     return results
 

@@ -76,6 +76,7 @@ from common import device_provenance, provenance  # noqa: E402
 import isodream_rl.cli  # noqa: E402, F401  (registers the config schema and the TorchRL baselines)
 from isodream_rl.data import write_tiny_bair  # noqa: E402
 from isodream_rl.evaluation.latent_probe import probe  # noqa: E402
+from isodream_rl.run_utils.json_io import dumps_json, write_json  # noqa: E402
 from isodream_rl.trainers import run as run_module  # noqa: E402
 from isodream_rl.trainers.config import ConfigError, RunConfig, config_from_dict, validate_config  # noqa: E402
 from isodream_rl.trainers.registry import ALGORITHMS  # noqa: E402
@@ -330,7 +331,7 @@ class Report:
             if found is not None:
                 self.result[section][name] = found
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.path.write_text(json.dumps(self.result, indent=2, default=str) + "\n")
+        write_json(self.path, self.result, indent=2, default=str)
         return found
 
 
@@ -358,7 +359,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     if args.cpu_only:  # the script's own child process of the cpu_only part (CUDA_VISIBLE_DEVICES="")
-        print(json.dumps(evaluate_and_continue_on_cpu(args.cpu_only)))
+        print(dumps_json(evaluate_and_continue_on_cpu(args.cpu_only)))
         return 0
     if not torch.cuda.is_available():
         raise SystemExit(

@@ -22,6 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import cpu_name, git_commit, read_scalar, training_command  # noqa: E402
 
 from isodream_rl.envs.reference import reference_returns
+from isodream_rl.run_utils.json_io import write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -78,7 +79,7 @@ def main(argv: list[str] | None = None) -> None:
         "command": "python bench/ladder.py " + " ".join(sys.argv[1:] if argv is None else argv),
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(out, indent=1))
+    write_json(args.json, out, indent=1)
     for name, run in runs.items():
         evals = ", ".join(f"{s}: {v:.2f}" for s, v in run["eval_return"])
         print(f"{name}: {run['updates']} updates; eval returns {evals}")

@@ -54,7 +54,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import subprocess
 import sys
@@ -66,6 +65,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import provenance, read_scalar  # noqa: E402
+
+from isodream_rl.run_utils.json_io import is_absent, write_json  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 #: The default bench: Iso-Dream (on DreamerV3's learner), the single-branch DreamerV2 baseline and TorchRL's
@@ -331,7 +332,9 @@ def plot(results: dict, path: Path) -> None:
 
 
 def _fmt(values, digits=1) -> str:
-    values = [v for v in values if v is not None]
+    """``mean (min to max)`` of ``values`` less the absent ones (``None``, JSON ``null``, or an older JSON's
+    ``nan``); ``n/a`` where none is left."""
+    values = [v for v in values if not is_absent(v)]
     if not values:
         return "n/a"
     return f"{np.mean(values):.{digits}f} ({min(values):.{digits}f} to {max(values):.{digits}f})"
@@ -339,11 +342,12 @@ def _fmt(values, digits=1) -> str:
 
 def _final_scores(entry: dict, score: str) -> list:
     """Each finished seed's final ``score``; ``None`` where the run has none, or where the score is about the
-    distractors and its scene had none (``mse_distractors`` is then ``nan``)."""
+    distractors and its scene had none (``mse_distractors`` is then ``null``, ``nan`` in a summary written before
+    absent scores were ``null``, or missing)."""
     values = []
     for scores in entry.get("decomposition_per_seed", []):
         scores = scores or {}
-        absent = score.endswith("_distractors") and math.isnan(scores.get("mse_distractors", math.nan))
+        absent = score.endswith("_distractors") and is_absent(scores.get("mse_distractors"))
         values.append(None if absent else scores.get(score))
     return values
 
@@ -434,9 +438,7 @@ def write_results(args: argparse.Namespace, argv: list[str] | None, final: bool 
         **provenance("learning.py", argv, parallel=args.parallel),
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.json.with_name(args.json.name + ".tmp")
-    tmp.write_text(json.dumps(results, indent=2))
-    tmp.replace(args.json)
+    write_json(args.json, results, indent=2, atomic=True)
     if final:
         plot(results, args.png or args.json.with_suffix(".png"))
         md = args.md or table_path(args.json)

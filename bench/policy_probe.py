@@ -61,7 +61,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import json
 import sys
 from pathlib import Path
 
@@ -78,6 +77,7 @@ from isodream_rl.envs import make_env
 from isodream_rl.objectives.isodream_v2 import lambda_returns
 from isodream_rl.objectives.isodream_v2.imagination import policy_features
 from isodream_rl.run_utils.checkpoint import CheckpointManager
+from isodream_rl.run_utils.json_io import dumps_json, write_json
 from isodream_rl.trainers.learners import ISODREAM_ALGOS
 from isodream_rl.trainers.registry import make_components
 from isodream_rl.trainers.saved_models import saved_run_config
@@ -254,8 +254,8 @@ def main(argv: list[str] | None = None) -> dict:
         "command": "python bench/policy_probe.py " + " ".join(sys.argv[1:] if argv is None else argv),
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(result, indent=1))
-    print(json.dumps({k: v for k, v in result.items() if k not in ("commit", "cpu", "command")}, indent=1))
+    write_json(args.json, result, indent=1)
+    print(dumps_json({k: v for k, v in result.items() if k not in ("commit", "cpu", "command")}, indent=1))
     return result
 
 

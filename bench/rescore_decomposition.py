@@ -34,6 +34,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import provenance  # noqa: E402
 
+from isodream_rl.run_utils.json_io import write_json  # noqa: E402
+
 
 def _label_and_dir(text: str) -> tuple[str, Path]:
     label, sep, path = text.partition("=")
@@ -41,7 +43,8 @@ def _label_and_dir(text: str) -> tuple[str, Path]:
 
 
 def max_difference(first: dict, second: dict) -> float | None:
-    """The largest absolute difference between the finite scores both dicts have (``None``: none shared)."""
+    """The largest absolute difference between the finite scores both dicts have (``None``: none shared); an absent
+    score (``null``, or ``NaN`` in an older ``summary.json``) is left out."""
     shared = [
         abs(first[k] - second[k])
         for k in first.keys() & second.keys()
@@ -87,7 +90,7 @@ def main(argv: list[str] | None = None) -> dict:
         shown.update(out.get("probe", {}))
         print(f"{label}: " + ", ".join(f"{k} {v:.2f}" for k, v in shown.items()), flush=True)
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(results, indent=2, default=float) + "\n")
+    write_json(args.json, results, indent=2, default=float)
     return results
 
 

@@ -23,6 +23,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import cpu_name, provenance, training_command  # noqa: E402
 
+from isodream_rl.run_utils.json_io import write_json  # noqa: E402
+
 
 def run_summary(run_dir: Path, *, train_commit: str, note: str = "") -> dict:
     """``run_dir``'s ``summary.json`` with its training command, ``train_commit``, ``note`` and the CPU.
@@ -52,7 +54,7 @@ def main(argv: list[str] | None = None) -> None:
     out = run_summary(args.run_dir, train_commit=args.train_commit, note=args.note)
     made = provenance("run_summary.py", argv, parallel=1)
     out["collected_by"] = {"commit": made["commit"], "command": made["command"]}
-    args.json.write_text(json.dumps(out, indent=2) + "\n")
+    write_json(args.json, out, indent=2)
     summary = out["summary"]
     print(
         f"{out['command']}: eval return {summary.get('eval_return')}, normalised {summary.get('normalised_score')}, "

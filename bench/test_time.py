@@ -9,7 +9,6 @@ Run it on an otherwise idle machine: the time is the machine's, with nothing els
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import re
 import subprocess
@@ -19,6 +18,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import provenance  # noqa: E402
+
+from isodream_rl.run_utils.json_io import dumps_json, write_json  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -52,8 +53,8 @@ def main(argv: list[str] | None = None) -> dict:
         **provenance("test_time.py", argv, parallel=2),
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps(result, indent=2))
+    write_json(args.json, result, indent=2)
+    print(dumps_json(result, indent=2))
     return result
 
 

@@ -30,6 +30,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import provenance  # noqa: E402
 
+from isodream_rl.run_utils.json_io import nan_if_none, write_json  # noqa: E402
+
 
 def normalised(value: float, constant: float, scripted: float) -> float:
     """``(value - constant) / (scripted - constant)``: 0 the best constant action, 1 the scripted policy."""
@@ -67,7 +69,8 @@ def time_to_score(results: dict, score: float = 0.5) -> dict:
         minutes = [minutes_to(curve, score, constant, scripted) for curve in curves]
         walls = [wall / 60.0 for wall in entry["wall_s_per_seed"]]
         finals = entry["normalised_per_seed"]
-        per_minute = [final / wall for final, wall in zip(finals, walls, strict=True)]
+        # an absent final score (null, or NaN in an older JSON) is NaN per minute, as before
+        per_minute = [nan_if_none(final) / wall for final, wall in zip(finals, walls, strict=True)]
         out[algo] = {
             "seeds": seeds,
             f"minutes_to_{key}_per_seed": minutes,
@@ -121,7 +124,7 @@ def main(argv: list[str] | None = None) -> dict:
         **provenance("bench/time_to_score.py", argv, parallel=results.get("parallel_runs", 1)),
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(out, indent=1) + "\n")
+    write_json(args.json, out, indent=1)
     print(table(algos, args.score))
     return out
 

@@ -17,7 +17,6 @@ number plans the learning bench's budget (``bench/learning.py``), it is not a sp
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import subprocess
@@ -29,6 +28,8 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import provenance, read_scalar  # noqa: E402
+
+from isodream_rl.run_utils.json_io import write_json  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the learning bench's rung-1 env (no distractors, radius-6 sprites, a pool of 8 backgrounds)
@@ -109,7 +110,7 @@ def main(argv: list[str] | None = None) -> dict:
                 flush=True,
             )
             args.json.parent.mkdir(parents=True, exist_ok=True)
-            args.json.write_text(json.dumps(result, indent=1))
+            write_json(args.json, result, indent=1)
     return result
 
 

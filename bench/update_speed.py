@@ -40,7 +40,6 @@ The rate inside a real run (collection included) is ``bench/update_rate.py``'s.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import sys
@@ -63,6 +62,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import device_provenance, provenance  # noqa: E402
 
 import isodream_rl.cli  # noqa: E402, F401  (registers the config schema and the TorchRL baselines)
+from isodream_rl.run_utils.json_io import write_json  # noqa: E402
 from isodream_rl.trainers.config import device_error  # noqa: E402
 from isodream_rl.trainers.learners import learner_of  # noqa: E402
 from isodream_rl.trainers.registry import make_components  # noqa: E402
@@ -314,7 +314,7 @@ def main(argv: list[str] | None = None) -> dict:
         )
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=2) + "\n")
+        write_json(args.json, result, indent=2)
     return result
 
 

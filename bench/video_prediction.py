@@ -45,6 +45,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import cpu_name, git_commit  # noqa: E402
 
+from isodream_rl.run_utils.json_io import nan_if_none, write_json  # noqa: E402
+
 VARIANTS = ("isodream", "no_action_free", "no_inverse", "predrnn")
 SPEED_PATHS = {
     "plain": {"channels_last": False, "precision": "fp32"},
@@ -430,7 +432,7 @@ def _write_paper_scale(args: argparse.Namespace) -> None:
         "command": " ".join(["python", *sys.argv]),
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(out, indent=2) + "\n")
+    write_json(args.json, out, indent=2)
 
 
 def _write_speed(args: argparse.Namespace) -> None:
@@ -469,7 +471,7 @@ def _write_speed(args: argparse.Namespace) -> None:
         "seconds_total": round(time.monotonic() - start, 1),
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(out, indent=2) + "\n")
+    write_json(args.json, out, indent=2)
 
 
 def _train_all(args: argparse.Namespace) -> None:
@@ -517,7 +519,7 @@ def _collect(args: argparse.Namespace) -> dict:
         runs.append(
             {
                 "seed": seed,
-                **{k: round(v, 4) for k, v in result["metrics"].items()},
+                **{k: round(nan_if_none(v), 4) for k, v in result["metrics"].items()},  # null: nan
                 "iterations": result["iterations"],
                 "train_minutes": round(result["train_seconds"] / 60, 2),
             }
@@ -571,7 +573,7 @@ def main() -> int:
         _train_all(args)
     out = _collect(args)
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(out, indent=2) + "\n")
+    write_json(args.json, out, indent=2)
     table = _table(out["variants"], out["copy_last_frame"])
     args.json.with_suffix(".md").write_text(table)
 

@@ -14,7 +14,6 @@ it writes an open-loop prediction GIF and the JSON ``--out`` (with the CPU, comm
 """
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -29,6 +28,7 @@ from common import cpu_name, git_commit  # noqa: E402  (bench/common.py, on the 
 
 from isodream_rl.envs.builder import make_gym_env
 from isodream_rl.envs.reference import scripted_action
+from isodream_rl.run_utils.json_io import write_json
 from isodream_rl.trainers.config import RunConfig
 from isodream_rl.trainers.isodream_v2 import IsoDreamV2Components
 from isodream_rl.trainers.openloop import open_loop_prediction, prediction_frames, save_gif
@@ -175,17 +175,16 @@ for u in range(1, a.updates + 1):
         print(a.name, row, flush=True)
 out_path = Path(a.out or f"runs/world_model_reward_{a.name}.json")
 out_path.parent.mkdir(parents=True, exist_ok=True)
-out_path.write_text(
-    json.dumps(
-        {
-            "args": vars(a),
-            "curve": res,
-            "cpu": cpu_name(),
-            "commit": git_commit(),
-            "command": "python bench/world_model_reward.py " + " ".join(sys.argv[1:]),
-        },
-        indent=1,
-    )
+write_json(
+    out_path,
+    {
+        "args": vars(a),
+        "curve": res,
+        "cpu": cpu_name(),
+        "commit": git_commit(),
+        "command": "python bench/world_model_reward.py " + " ".join(sys.argv[1:]),
+    },
+    indent=1,
 )
 
 tb = test_batch[:1, :16]

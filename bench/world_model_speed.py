@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import os
 import platform
 import statistics
@@ -54,6 +53,7 @@ from torchrl.objectives import DreamerModelLoss
 from isodream_rl.modules import SIZE_PRESETS
 from isodream_rl.modules.isodream_v2 import IsoDreamV2Config, IsoDreamV2WorldModel
 from isodream_rl.objectives.isodream_v2 import IsoDreamV2ModelLoss
+from isodream_rl.run_utils.json_io import dumps_json, write_json
 
 
 def torchrl_dreamer(size: dict, action_dim: int, channels_last: bool) -> DreamerModelLoss:
@@ -320,10 +320,10 @@ def main(argv=None):
             "cpu_amx": getattr(torch.cpu, "_is_amx_tile_supported", lambda: None)(),
         },
     }
-    print(json.dumps(out, indent=2))
+    print(dumps_json(out, indent=2))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(out, indent=2) + "\n")
+        write_json(args.json, out, indent=2)
     return out
 
 

@@ -21,7 +21,6 @@ in one line where it stopped and exits with status 130 or 143: continue it with 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
 from isodream_rl.process_settings import use_huge_pages
@@ -40,6 +39,7 @@ from isodream_rl.envs.finite import NonFiniteEnvDataError  # noqa: E402
 from isodream_rl.evaluation.latent_probe import probe  # noqa: E402
 from isodream_rl.run_utils.checkpoint import CheckpointError  # noqa: E402
 from isodream_rl.run_utils.disk_space import DiskFullError  # noqa: E402
+from isodream_rl.run_utils.json_io import dumps_json  # noqa: E402
 from isodream_rl.run_utils.run_lock import RunDirBusyError  # noqa: E402
 from isodream_rl.trainers import run as run_module  # noqa: E402
 from isodream_rl.trainers.config import ConfigError, RunConfig  # noqa: E402
@@ -184,7 +184,7 @@ def probe_run(argv: list[str] | None = None) -> dict[str, float]:
     model, cfg = load_world_model(args.checkpoint)
     scene = probe_scene(cfg, window=args.window)
     scores = probe(model, episodes=args.episodes, seed=cfg.train.seed + 1000, encoder=args.encoder, **scene)
-    text = json.dumps({k: round(v, 3) for k, v in scores.items()}, indent=2)
+    text = dumps_json({k: round(v, 3) for k, v in scores.items()}, indent=2)  # an absent score: null
     print(text)
     if args.json:
         with open(args.json, "w") as f:

@@ -25,6 +25,7 @@ from tensordict import TensorDictBase
 from torch import nn
 
 from isodream_rl.modules.isodream.world_model import IsoDreamWorldModel
+from isodream_rl.run_utils.json_io import nan_if_none
 
 #: The world model's branches, in the order their masks are stacked.
 BRANCHES = ("control", "free", "static")
@@ -258,16 +259,18 @@ def isolation_verdict(scores: dict[str, float]) -> dict[str, object]:
     """Where a world model's decomposition put the agent and the distractors, against :data:`ISOLATION_AIMS`.
 
     Args:
-        scores: :func:`decomposition_scores`' output (``iou_<branch>_vs_<class>``).
+        scores: :func:`decomposition_scores`' output (``iou_<branch>_vs_<class>``), or those scores read back from
+            a ``summary.json``, where an absent score is ``None`` (JSON ``null``) or ``nan`` (older files' ``NaN``):
+            both count as missing.
 
     Returns:
         ``agent_branch``: the branch of :data:`BRANCHES` whose mask overlaps the agent most (``None`` without an
         agent in the windows); ``isolates_agent``: ``iou_control_vs_agent >= 0.7`` and ``iou_free_vs_agent <= 0.2``;
         ``isolates_distractors``: ``iou_free_vs_distractors >= 0.5`` (``None`` without distractor pixels in the
-        windows, ``mse_distractors`` being ``nan``);
+        windows, ``mse_distractors`` being ``nan``, ``None`` or missing);
         ``message``: one line saying where the agent landed when it is not isolated, else ``None``.
     """
-    agent = {b: scores.get(f"iou_{b}_vs_agent", math.nan) for b in BRANCHES}
+    agent = {b: nan_if_none(scores.get(f"iou_{b}_vs_agent")) for b in BRANCHES}
     has_agent = not all(math.isnan(v) for v in agent.values())
     branch = max(BRANCHES, key=lambda b: -1.0 if math.isnan(agent[b]) else agent[b]) if has_agent else None
     isolates = (
@@ -276,8 +279,8 @@ def isolation_verdict(scores: dict[str, float]) -> dict[str, object]:
         and not agent["free"] > ISOLATION_AIMS["iou_free_vs_agent"]
     )
     # no distractor pixels in the windows (mse_distractors counts them): nothing to isolate
-    has_distractors = not math.isnan(scores.get("mse_distractors", math.nan))
-    distractors = scores.get("iou_free_vs_distractors", math.nan) if has_distractors else math.nan
+    has_distractors = not math.isnan(nan_if_none(scores.get("mse_distractors")))
+    distractors = nan_if_none(scores.get("iou_free_vs_distractors")) if has_distractors else math.nan
     verdict: dict[str, object] = {
         "agent_branch": branch,
         "isolates_agent": bool(isolates) if has_agent else None,

@@ -10,7 +10,6 @@ in a TorchRL ``Trainer`` with :func:`train_with_checkpoints` (checkpoints of the
 from __future__ import annotations
 
 import dataclasses
-import json
 import random
 import time
 from collections.abc import Callable, Mapping
@@ -25,6 +24,7 @@ from torchrl.trainers import Trainer
 from isodream_rl.modules.pixels import check_pixel_values, check_pixels
 from isodream_rl.run_utils.checkpoint import CheckpointManager, rng_state, set_rng_state
 from isodream_rl.run_utils.csv_logs import csv_log_sizes, cut_csv_logs
+from isodream_rl.run_utils.json_io import write_json
 from isodream_rl.run_utils.signals import StopOnSignal
 from isodream_rl.trainers.builders import env_factory
 from isodream_rl.trainers.config import ConfigError, RunConfig
@@ -127,12 +127,10 @@ def resume_state(cfg: RunConfig, checkpoints: CheckpointManager, *, required_key
 
 
 def write_summary(run_dir: str | Path, summary: dict) -> Path:
-    """Write ``<run_dir>/summary.json`` atomically (temporary file, then rename); the path written."""
-    path = Path(run_dir) / "summary.json"
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(summary, indent=2))
-    tmp.replace(path)
-    return path
+    """Write ``<run_dir>/summary.json`` atomically (temporary file, then rename), as strict JSON: an absent score
+    (``nan``, such as ``mse_distractors`` without distractors) is ``null``
+    (:func:`~isodream_rl.run_utils.json_io.write_json`); the path written."""
+    return write_json(Path(run_dir) / "summary.json", summary, indent=2, atomic=True)
 
 
 def run_state(

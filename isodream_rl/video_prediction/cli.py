@@ -14,7 +14,6 @@ Examples::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import typing
 from dataclasses import MISSING, fields, replace
@@ -24,6 +23,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from isodream_rl.run_utils.disk_space import DiskFullError
+from isodream_rl.run_utils.json_io import dumps_json, write_json
 from isodream_rl.run_utils.run_lock import RunDirBusyError
 from isodream_rl.user_errors import exit_stopped, report_user_errors, take_debug_flag
 from isodream_rl.video_prediction.metrics import FrameMetrics
@@ -115,7 +115,7 @@ def _train(args: argparse.Namespace) -> dict:
         return result
     result["config"] = {k: v for k, v in vars(config).items()}
     if args.result_json is not None:
-        args.result_json.write_text(json.dumps(result, indent=2, default=list))
+        write_json(args.result_json, result, indent=2, default=list)
     return result
 
 
@@ -139,7 +139,7 @@ def _eval(args: argparse.Namespace) -> dict:
         "curves": {k: [round(float(x), 5) for x in v] for k, v in curves.items()},
     }
     if args.json is not None:
-        args.json.write_text(json.dumps(result, indent=2))
+        write_json(args.json, result, indent=2)
     if args.showcase is not None:
         from isodream_rl.video_prediction.showcase import save_showcase, showcase_rows
 
@@ -174,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
             checkpoint=result["checkpoint"],
             resume="--resume",
         )
-    print(json.dumps(result["metrics"], indent=2))
+    print(dumps_json(result["metrics"], indent=2))
     return 0
 
 
