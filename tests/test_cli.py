@@ -490,6 +490,31 @@ def test_an_env_argument_the_env_group_does_not_write_is_accepted_without_a_plus
     assert free_form_overrides(["train.slurm_kwargs.timeout_min=5"]) == ["++train.slurm_kwargs.timeout_min=5"]
 
 
+def test_the_highway_top_down_options_reach_the_env_from_the_command_line():
+    from isodream_rl.cli_overrides import free_form_overrides
+    from isodream_rl.envs import make_gym_env
+    from isodream_rl.trainers.builders import env_factory
+
+    options = [
+        "++env.kwargs.view=top_down",
+        "++env.kwargs.top_down_follow=road",
+        "++env.kwargs.top_down_scaling=2.5",
+    ]
+    plain = [option.removeprefix("++") for option in options]  # isodream-train adds the ++ itself
+    assert free_form_overrides(["env=highway", *plain]) == ["env=highway", *options]
+    cfg = composed("env=highway", *options)
+    validate_config(cfg)
+    factory = env_factory(cfg)
+    assert factory.args == ("highway",)
+    assert {k: factory.keywords[k] for k in ("top_down_follow", "top_down_scaling")} == {
+        "top_down_follow": "road",
+        "top_down_scaling": 2.5,
+    }
+    env = make_gym_env(cfg.env.name, **factory.keywords)
+    assert (env.view, env.top_down_follow, env.top_down_scaling) == ("top_down", "road", 2.5)
+    env.close()
+
+
 @pytest.mark.parametrize(
     ("line", "refused", "readers"),
     [

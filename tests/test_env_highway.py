@@ -308,9 +308,17 @@ def _frame_without(env: HighwayIsoEnv, keep) -> np.ndarray:
         env.road.vehicles[:] = vehicles
 
 
-@pytest.mark.parametrize("view", HIGHWAY_VIEWS)
-def test_masks_are_exactly_the_pixels_each_vehicle_group_is_drawn_on(view):
-    env = HighwayIsoEnv(view=view, vehicles_count=2)
+@pytest.mark.parametrize(
+    ("view", "top_down"),
+    [(view, {}) for view in HIGHWAY_VIEWS]
+    + [
+        ("top_down", {"top_down_follow": "road"}),
+        ("top_down", {"top_down_follow": "road", "top_down_scaling": 2.5}),
+    ],
+    ids=["first_person", "top_down", "top_down-road", "top_down-road-2.5"],
+)
+def test_masks_are_exactly_the_pixels_each_vehicle_group_is_drawn_on(view, top_down):
+    env = HighwayIsoEnv(view=view, vehicles_count=2, **top_down)
     obs, info = env.reset(seed=0)
     assert {"mask_agent", "mask_vehicles", "mask_distractors"} <= set(info)
     _place(env, env.ego, x=100.0, y=4.0, heading=0.0, speed=20.0)
@@ -350,3 +358,114 @@ def test_masks_can_be_switched_off():
     _, info = env.reset(seed=0)
     assert "mask_agent" not in info and "mask_agent" not in env.step(STRAIGHT)[-1]
     env.close()
+
+
+def _ego_column_and_lateral(follow: str, scaling: float, steers) -> tuple[np.ndarray, np.ndarray]:
+    """The ego mask's centroid column and the ego's highway-env y, from a placed start (lane 1, heading 0, no
+    traffic) and after each steer of ``steers``."""
+    env = HighwayIsoEnv(view="top_down", vehicles_count=0, top_down_follow=follow, top_down_scaling=scaling)
+    env.reset(seed=0)
+    _place(env, env.ego, x=100.0, y=4.0, heading=0.0, speed=20.0)
+    _only_cruisers(env)
+    info = env.step(STRAIGHT)[-1]
+    columns, lateral = [], []
+    for steer in [None, *steers]:
+        if steer is not None:
+            *_, terminated, _, info = env.step(np.array([steer, 0.0], dtype=np.float32))
+            assert not terminated
+        columns.append(np.nonzero(info["mask_agent"])[1].mean())
+        lateral.append(env.ego.position[1])
+    env.close()
+    return np.array(columns), np.array(lateral)
+
+
+@pytest.mark.parametrize("scaling", [1.5, 2.5])
+@pytest.mark.parametrize("side", [1.0, -1.0])
+def test_the_road_view_shows_the_ego_steering_across_the_frame_and_the_ego_view_does_not(scaling, side):
+    # an S: 2 m towards one side, ending straight (heading 0 again) so the ego's sprite is not turned
+    steers = side * np.array([0.2, 0.2, -0.2, -0.2, 0.0])
+    ego_columns, lateral = _ego_column_and_lateral("ego", scaling, steers)
+    road_columns, road_lateral = _ego_column_and_lateral("road", scaling, steers)
+    np.testing.assert_array_equal(lateral, road_lateral)  # the view does not change the driving
+    assert abs(lateral[-1] - lateral[0]) > 1.9
+    moved = (lateral[-1] - lateral[0]) * scaling  # pixels; +y (the driver's right) is the frame's right
+    # ego-centred: the ego's pixels only wobble as its sprite turns, and are back where they were once straight
+    assert np.abs(ego_columns - ego_columns[0]).max() < 1
+    assert ego_columns[-1] == ego_columns[0]
+    # road-centred: the ego crosses the frame by its lateral motion (to a pixel of rounding)
+    shift = road_columns[-1] - road_columns[0]
+    assert abs(shift) >= 2.5 and np.sign(shift) == side
+    assert abs(shift - moved) <= 1.5
+
+
+def test_the_road_view_keeps_the_whole_road_in_view_and_its_masks_exact_while_steering():
+    env = HighwayIsoEnv(view="top_down", vehicles_count=20, top_down_follow="road", top_down_scaling=2.5)
+    obs, info = env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    columns, frames = [], 0
+    while True:
+        agent, vehicles = info["mask_agent"], info["mask_vehicles"]
+        assert not (agent & vehicles).any()
+        if env.ego.on_road:
+            assert agent.any()
+            columns.append(np.nonzero(agent)[1].mean())
+        np.testing.assert_array_equal((obs != _frame_without(env, lambda v: v is not env.ego)).any(-1), agent)
+        np.testing.assert_array_equal((obs != _frame_without(env, lambda v: v is env.ego)).any(-1), vehicles)
+        frames += 1
+        if frames == 25:
+            break
+        obs, _, terminated, truncated, info = env.step(
+            np.array([rng.uniform(-0.2, 0.2), 0.1], dtype=np.float32)
+        )
+        if terminated or truncated:
+            break
+    assert frames >= 5 and np.ptp(columns) >= 2, (frames, columns)
+    # the paved road (its two edge lines) spans the same columns in every frame, within the image
+    grass = (obs.astype(int) == (71, 128, 51)).all(-1)
+    paved = np.nonzero(~grass.all(0))[0]
+    assert 0 < paved[0] and paved[-1] < 63 and paved[-1] - paved[0] + 1 == pytest.approx(16 * 2.5, abs=2)
+    env.close()
+
+
+@pytest.mark.parametrize("follow", ["ego", "road"])
+def test_a_larger_top_down_scaling_draws_a_larger_ego(follow):
+    counts = []
+    for scaling in (1.5, 2.5):
+        env = HighwayIsoEnv(
+            view="top_down", vehicles_count=0, top_down_follow=follow, top_down_scaling=scaling
+        )
+        env.reset(seed=0)
+        _place(env, env.ego, x=100.0, y=4.0, heading=0.0, speed=20.0)
+        counts.append(env.step(STRAIGHT)[-1]["mask_agent"].sum())
+        env.close()
+    # a 5 m x 2 m car: about 7x3 pixels at 1.5 px/m, 12x5 at 2.5
+    assert 15 <= counts[0] <= 30 and counts[1] > 2 * counts[0], counts
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"view": "top_down", "top_down_follow": "lane"}, r"top_down_follow 'lane'.*'ego', 'road'"),
+        ({"view": "top_down", "top_down_follow": None}, r"top_down_follow None"),
+        ({"view": "top_down", "top_down_scaling": 0}, r"top_down_scaling .*> 0, got 0"),
+        ({"view": "top_down", "top_down_scaling": -1.5}, r"top_down_scaling .*got -1.5"),
+        ({"view": "top_down", "top_down_scaling": float("nan")}, r"top_down_scaling .*got nan"),
+        ({"view": "top_down", "top_down_scaling": "2"}, r"top_down_scaling .*got '2'"),
+        ({"top_down_follow": "road"}, r"view='top_down' only.*top_down_follow='road'"),
+        ({"view": "first_person", "top_down_scaling": 2.5}, r"view='top_down' only.*top_down_scaling=2.5"),
+        (
+            {"view": "top_down", "top_down_follow": "road", "top_down_scaling": 5.0},
+            r"whole road in view.*top_down_scaling=5.0.*80 pixels wide",
+        ),
+    ],
+)
+def test_bad_top_down_options_raise_clear_errors(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        HighwayIsoEnv(vehicles_count=0, **kwargs)
+
+
+def test_the_default_top_down_options_are_accepted_with_either_view():
+    for view in HIGHWAY_VIEWS:
+        HighwayIsoEnv(view=view, vehicles_count=0, top_down_follow="ego", top_down_scaling=1.5).close()
+    # an ego-centred view may zoom in further than the road fits
+    HighwayIsoEnv(view="top_down", vehicles_count=0, top_down_scaling=5.0).close()

@@ -17,14 +17,19 @@ import numbers
 import gymnasium as gym
 import numpy as np
 from highway_env import utils
+from highway_env.road.lane import StraightLane
 from highway_env.road.road import Road
 from highway_env.vehicle.kinematics import Vehicle
 
-from isodream_rl.envs.highway_render import ChaseViewRenderer, FirstPersonRenderer
+from isodream_rl.envs.highway_render import CHASE_VIEW_FOLLOWS, ChaseViewRenderer, FirstPersonRenderer
 from isodream_rl.envs.highway_sim import HighwaySimulator
 
 HIGHWAY_VIEWS = ("first_person", "top_down")
 """Observation views of :class:`HighwayIsoEnv`."""
+
+HIGHWAY_TOP_DOWN_FOLLOWS = CHASE_VIEW_FOLLOWS
+"""What the top-down view's camera follows (``top_down_follow`` of :class:`HighwayIsoEnv`): ``"ego"`` or
+``"road"``."""
 
 SIMULATION_FREQUENCY = 20
 """Simulation ticks per second (dt = 0.05 s), as the authors' synchronous CARLA."""
@@ -56,7 +61,7 @@ class HighwayIsoEnv(gym.Env):
 
     Args:
         view (str, optional): ``"first_person"`` (forward roof camera, 60 degree field of view, as in the paper) or
-            ``"top_down"`` (ego-centred chase view). Defaults to ``"first_person"``.
+            ``"top_down"`` (a chase view from above: ``top_down_follow``). Defaults to ``"first_person"``.
         vehicles_count (int, optional): other vehicles. Defaults to 30.
         lanes_count (int, optional): lanes of the highway. Defaults to 4.
         action_repeat (int, optional): ticks per agent step. Defaults to 4.
@@ -73,6 +78,15 @@ class HighwayIsoEnv(gym.Env):
         masks (bool, optional): put the ground-truth masks in ``info`` at every reset and step (below; one
             more drawing of the vehicles per frame, a segmentation pass in the first-person view). Defaults to
             ``True`` (``make_env`` and ``make_gym_env``: off unless ``return_masks=True``).
+        top_down_follow (str, optional): what the top-down view's camera follows. ``"ego"``: it is centred on
+            the ego, which then stays at the same pixels in every frame (only the road shifts sideways when the
+            ego changes lane). ``"road"``: it follows the ego along the road but stays centred on the road's
+            centre line (the middle of all lanes), so steering and lane changes move the ego across the frame:
+            the ego's own motion is visible, which the decomposition scores need. The whole road width must fit
+            in the image (``lanes_count * 4 m * top_down_scaling <= image_size``). Top-down view only.
+            Defaults to ``"ego"``.
+        top_down_scaling (float, optional): pixels per metre of the top-down view (at 1.5, 43 m of road and a
+            3x7 pixel ego in a 64x64 frame). Top-down view only. Defaults to 1.5.
 
     Ground truth (``masks=True``), bool ``[image_size, image_size]`` at the observation's resolution, exact to
     the pixel and disjoint:
@@ -113,6 +127,8 @@ class HighwayIsoEnv(gym.Env):
         stuck_speed: float = 0.02,
         stuck_check_ticks: int = 100,
         masks: bool = True,
+        top_down_follow: str = "ego",
+        top_down_scaling: float = 1.5,
     ) -> None:
         if view not in HIGHWAY_VIEWS:
             raise ValueError(f"Unknown view {view!r}. Valid views: {', '.join(map(repr, HIGHWAY_VIEWS))}")
@@ -138,6 +154,26 @@ class HighwayIsoEnv(gym.Env):
                 raise ValueError(f"{name} must be a number >= 0, got {value!r}")
         if not _is_number(vehicles_density) or not vehicles_density > 0:
             raise ValueError(f"vehicles_density must be > 0, got {vehicles_density!r}")
+        if not isinstance(top_down_follow, str) or top_down_follow not in HIGHWAY_TOP_DOWN_FOLLOWS:
+            raise ValueError(
+                f"Unknown top_down_follow {top_down_follow!r}. "
+                f"Valid: {', '.join(map(repr, HIGHWAY_TOP_DOWN_FOLLOWS))}"
+            )
+        if not _is_number(top_down_scaling) or not 0 < top_down_scaling < np.inf:
+            raise ValueError(f"top_down_scaling must be a finite number > 0, got {top_down_scaling!r}")
+        if view != "top_down" and (top_down_follow != "ego" or top_down_scaling != 1.5):
+            raise ValueError(
+                f"top_down_follow and top_down_scaling apply to view='top_down' only; with view={view!r} leave "
+                f"them at their defaults ('ego', 1.5), got top_down_follow={top_down_follow!r}, "
+                f"top_down_scaling={top_down_scaling!r}"
+            )
+        road_pixels = lanes_count * StraightLane.DEFAULT_WIDTH * top_down_scaling
+        if top_down_follow == "road" and road_pixels > image_size:
+            raise ValueError(
+                f"top_down_follow='road' needs the whole road in view, but {lanes_count} lanes of "
+                f"{StraightLane.DEFAULT_WIDTH:g} m at top_down_scaling={top_down_scaling!r} px/m are "
+                f"{road_pixels:g} pixels wide, more than image_size={image_size}"
+            )
         self.view = view
         self.vehicles_count = int(vehicles_count)
         self.lanes_count = int(lanes_count)
@@ -151,6 +187,8 @@ class HighwayIsoEnv(gym.Env):
         self.stuck_speed = float(stuck_speed)
         self.stuck_check_ticks = int(stuck_check_ticks)
         self.masks = bool(masks)
+        self.top_down_follow = top_down_follow
+        self.top_down_scaling = float(top_down_scaling)
         self.dt = 1.0 / SIMULATION_FREQUENCY
         self.metadata = {**self.metadata, "render_fps": SIMULATION_FREQUENCY / self.action_repeat}
         self.observation_space = gym.spaces.Box(0, 255, (self.image_size, self.image_size, 3), np.uint8)
@@ -175,7 +213,9 @@ class HighwayIsoEnv(gym.Env):
                 lanes_count=self.lanes_count, max_vehicles=self.vehicles_count, image_size=self.image_size
             )
         else:
-            self._renderer = ChaseViewRenderer(image_size=self.image_size)
+            self._renderer = ChaseViewRenderer(
+                image_size=self.image_size, scaling=self.top_down_scaling, follow=self.top_down_follow
+            )
         self._ticks = 0
         self._done = True
         self._crashed_before = False

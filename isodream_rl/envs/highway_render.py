@@ -296,6 +296,10 @@ class _LaneGraphics(LaneGraphics):
     STRIPE_WIDTH = _LINE_WIDTH
 
 
+CHASE_VIEW_FOLLOWS = ("ego", "road")
+"""What :class:`ChaseViewRenderer`'s camera follows: the ego (ego-centred) or the road (laterally fixed)."""
+
+
 class ChaseViewRenderer:
     """Top-down view that follows the ego, turned so that driving points up, drawn with highway-env's graphics.
 
@@ -305,14 +309,23 @@ class ChaseViewRenderer:
         image_size (int, optional): side of the square image in pixels. Defaults to 64.
         scaling (float, optional): pixels per metre. Defaults to 1.5 (about 43 m of road in view).
         ego_from_bottom (float, optional): fraction of the image height below the ego. Defaults to 0.3.
+        follow (str, optional): ``"ego"``: the camera is centred on the ego, which then stays at the same place
+            in the frame (only the road shifts sideways when it changes lane). ``"road"``: the camera follows the
+            ego along the road but stays centred on the road's centre line (the middle of all lanes), so
+            steering and lane changes move the ego across the frame. Defaults to ``"ego"``.
     """
 
-    def __init__(self, *, image_size: int = 64, scaling: float = 1.5, ego_from_bottom: float = 0.3) -> None:
-        if image_size < 8 or scaling <= 0 or not 0.0 <= ego_from_bottom <= 1.0:
+    def __init__(
+        self, *, image_size: int = 64, scaling: float = 1.5, ego_from_bottom: float = 0.3, follow: str = "ego"
+    ) -> None:
+        if image_size < 8 or not scaling > 0 or not 0.0 <= ego_from_bottom <= 1.0:
             raise ValueError(
                 "expected image_size >= 8, scaling > 0 and ego_from_bottom in [0, 1], got "
                 f"image_size={image_size}, scaling={scaling}, ego_from_bottom={ego_from_bottom}"
             )
+        if follow not in CHASE_VIEW_FOLLOWS:
+            raise ValueError(f"Unknown follow {follow!r}. Valid: {', '.join(map(repr, CHASE_VIEW_FOLLOWS))}")
+        self.follow = follow
         size = (image_size, image_size)
         # A plain Surface needs no display, so this bypasses highway-env's EnvViewer and its SDL driver checks.
         self._surface = WorldSurface(size, 0, pygame.Surface(size))
@@ -331,11 +344,9 @@ class ChaseViewRenderer:
             np.ndarray: uint8 RGB image of shape [image_size, image_size, 3].
         """
         surface = self._surface
-        surface.move_display_window_to(ego.position)
-        surface.fill(_GRASS)
         lanes = road.network.lanes_list()
-        top = min(lane.start[1] - lane.width / 2 for lane in lanes)
-        bottom = max(lane.start[1] + lane.width / 2 for lane in lanes)
+        top, bottom = self._move_window(road, ego)
+        surface.fill(_GRASS)
         left, upper = surface.pos2pix(min(lane.start[0] for lane in lanes), top)
         right, lower = surface.pos2pix(max(lane.end[0] for lane in lanes), bottom)
         pygame.draw.rect(surface, _ASPHALT, (left, upper, right - left, lower - upper))
@@ -354,14 +365,28 @@ class ChaseViewRenderer:
         Returns:
             ``(mask_agent, mask_vehicles)``: bool ``[image_size, image_size]`` each, disjoint.
         """
-        surface = self._surface
-        surface.move_display_window_to(ego.position)
+        self._move_window(road, ego)
         vehicles = list(road.vehicles)
         index = next((i for i, v in enumerate(vehicles) if v is ego), len(vehicles))
         agent = self._footprint([ego])
         after = self._footprint(vehicles[index + 1 :])
         before = self._footprint(vehicles[:index])
         return agent & ~after, after | (before & ~agent)
+
+    def _move_window(self, road: Road, ego: Vehicle) -> tuple[float, float]:
+        """Places the view for the ego (on the ego, or on the road's centre line level with it: ``follow``).
+
+        Returns:
+            tuple: highway-env y of the paved road's two edges (smaller first).
+        """
+        lanes = road.network.lanes_list()
+        top = min(lane.start[1] - lane.width / 2 for lane in lanes)
+        bottom = max(lane.start[1] + lane.width / 2 for lane in lanes)
+        if self.follow == "ego":
+            self._surface.move_display_window_to(ego.position)
+        else:
+            self._surface.move_display_window_to(np.array([ego.position[0], (top + bottom) / 2]))
+        return top, bottom
 
     def _footprint(self, vehicles: Sequence[Vehicle]) -> np.ndarray:
         """Pixels covered by ``vehicles`` drawn alone (bool ``[image_size, image_size]``)."""
