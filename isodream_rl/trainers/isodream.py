@@ -23,7 +23,7 @@ depth 8 and 1.84 M (``bench/update_speed.py`` writes both counts).
 
 What it reads of the run configuration: ``model.size`` (``hidden_dim``), ``model.actor_units`` /
 ``value_units`` / ``attention_dim``, ``model.fast_paths`` (``IsoDreamConfig.fast_paths``; ``None``: on),
-``model.free_hidden_fraction``;
+``model.free_hidden_fraction``, ``model.static_mask_bias`` (``IsoDreamConfig.static_mask_bias``; ``None``: 3);
 ``algo.free_branch`` / ``static_branch`` / ``inverse_dynamics`` (the branch switches), ``algo.reward_uses_free``,
 ``algo.policy_input``, ``algo.attention_window`` (tau), ``algo.horizon`` (L), ``algo.lambda_inverse``;
 ``train.world_model_lr`` / ``actor_lr`` / ``value_lr``, ``world_model_warmup``, ``lr_warmup``,
@@ -97,6 +97,7 @@ def isodream_config(
         reward_uses_free=bool(algo.reward_uses_free and algo.free_branch),
         settings=settings,
         fast_paths=fast_paths,
+        **({} if cfg.model.static_mask_bias is None else {"static_mask_bias": cfg.model.static_mask_bias}),
     )
 
 

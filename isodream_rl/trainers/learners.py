@@ -126,6 +126,7 @@ LEARNERS: dict[str, Learner] = {
             "model.precision": None,
             "model.fast_paths": None,  # IsoDreamConfig.fast_paths: None is on
             "model.free_hidden_fraction": None,  # None: ISODREAM_SETTINGS.free_hidden_fraction
+            "model.static_mask_bias": None,  # None: IsoDreamConfig.static_mask_bias
         },
     ),
     "isodream_v2": Learner(
