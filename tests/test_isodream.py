@@ -270,6 +270,24 @@ class TestComposition:
             "model.free_hidden_fraction=0.75 is not read" in line for line in unread_setting_errors(cfg)
         )
 
+    def test_static_mask_bias_setting_reaches_the_static_mask(self, tmp_path):
+        """``model.static_mask_bias`` replaces ``IsoDreamConfig``'s 3 (the static mask's head start), and the built
+        static decoder's mask logit carries it."""
+        cfg = isodream_run_config(tmp_path)
+        assert isodream_config(cfg, action_dim=A).static_mask_bias == 3.0
+        cfg.model.static_mask_bias = 0.5
+        config = isodream_config(cfg, action_dim=A)
+        assert config.static_mask_bias == 0.5
+        assert not unread_setting_errors(cfg)
+        torch.manual_seed(0)
+        default = IsoDreamWorldModel(isodream_config(isodream_run_config(tmp_path), action_dim=A))
+        torch.manual_seed(0)
+        shifted = IsoDreamWorldModel(config)
+        # the same initial weights but for the mask logit's bias, lower by 3 - 0.5
+        default_bias = default.static_decoder.layers[-1].bias[3]
+        shifted_bias = shifted.static_decoder.layers[-1].bias[3]
+        assert float(default_bias - shifted_bias) == pytest.approx(2.5, abs=1e-5)
+
     @pytest.mark.parametrize("hidden_dim", [16, 24, 32, 40, 48, 64, 128, 200])
     def test_every_hidden_dim_builds_and_runs(self, tmp_path, hidden_dim):
         """``model.hidden_dim`` between the presets builds too: the action-free branch's categoricals are a multiple
