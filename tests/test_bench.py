@@ -206,7 +206,9 @@ def test_run_summary_wraps_a_finished_runs_summary_with_its_training_command(tmp
     bench = load_bench("run_summary")
     run = tmp_path / "run"
     (run / ".hydra").mkdir(parents=True)
-    (run / ".hydra" / "overrides.yaml").write_text("- size=quickstart\n- train.threads=1\n- run_dir=/somewhere\n")
+    (run / ".hydra" / "overrides.yaml").write_text(
+        "- size=quickstart\n- train.threads=1\n- run_dir=/somewhere\n"
+    )
     with pytest.raises(SystemExit, match="has not finished"):
         bench.run_summary(run, train_commit="abc1234")
     summary = {"eval_return": 153.3, "normalised_score": 0.56, "isolation": {"agent_branch": "control"}}
@@ -221,3 +223,24 @@ def test_run_summary_wraps_a_finished_runs_summary_with_its_training_command(tmp
     (run / ".hydra" / "overrides.yaml").unlink()
     with pytest.raises(SystemExit, match="not an isodream-train run folder"):
         bench.run_summary(run, train_commit="abc1234")
+
+
+def test_world_model_flops_counts_each_learners_update_by_module(tmp_path):
+    """``bench/world_model_flops.py`` at the tiny size: both learners' updates, the forward split by the world
+    model's modules (each dynamic branch's decoder among them), the JSON as returned."""
+    flops = load_bench("world_model_flops")
+    path = tmp_path / "flops.json"
+    out = flops.main(["--sizes", "tiny", "--override", "train.batch_size=2", "--json", str(path)])
+    assert json.loads(path.read_text()) == out
+    runs = {run["algo"]: run for run in out["runs"]}
+    assert set(runs) == {"isodream", "isodream_v2"}
+    for run in runs.values():
+        assert run["batch_size"] == 2 and run["sequence_length"] == 16
+        # backward costs more than the forward alone; each module's share is part of the forward
+        assert run["gflop_update"] > 2 * run["gflop_forward"] > 0
+        assert {"control_decoder", "free_decoder", "static_decoder"} <= set(run["forward_by_module"])
+        assert 0 < max(run["forward_by_module"].values()) <= run["gflop_forward"]
+        assert run["parameters"] > 0
+    # the two dynamic decoders are alike in each learner
+    default = runs["isodream"]["forward_by_module"]
+    assert default["control_decoder"] == pytest.approx(default["free_decoder"], rel=0.05)
