@@ -8,7 +8,11 @@ included). The scenes differ only by the env:
 
 * ``sprites``: three discs, a new background per episode;
 * ``dmc_walker_walk``, ``dmc_cheetah_run``: the robot before a ``video_easy`` background video;
-* ``highway``: the top-down view, the ego among the other vehicles.
+* ``highway``: the top-down view on the road's centre line at 2.5 pixels per metre
+  (``top_down_follow="road"``), the ego among the other vehicles: steering moves the ego across the frame. The
+  ego-centred view (``"ego"``, the env's default) keeps the ego at one place in the frame, about 3 x 7 pixels,
+  so "the controllable branch holds the ego" could not tell a branch that follows the ego from one that does
+  not; the first-person view does not show the ego at all.
 
 The algorithms (``--algos``): ``isodream``, the default (Iso-Dream on DreamerV3's learner), and ``isodream_v2``, the
 same decomposition on the DreamerV2-style learner, by default; ``dreamerv2``, the single-branch baseline, on
@@ -67,7 +71,12 @@ SCENES = {
     "sprites": ["env=sprites", "env.kwargs.task=none"],
     "dmc_walker_walk": ["env=dmc_walker_walk"],
     "dmc_cheetah_run": ["env=dmc_cheetah_run"],
-    "highway": ["env=highway", "++env.kwargs.view=top_down"],
+    "highway": [
+        "env=highway",
+        "++env.kwargs.view=top_down",
+        "++env.kwargs.top_down_follow=road",
+        "++env.kwargs.top_down_scaling=2.5",
+    ],
 }
 #: The algorithms the bench runs: the default and the DreamerV2-style learner (:data:`DEFAULT_ALGOS`), and the
 #: single-branch baseline.

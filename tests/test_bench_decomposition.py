@@ -57,6 +57,8 @@ def test_an_interrupted_run_resumes_and_a_fresh_one_starts_over(tmp_path):
     assert command[command.index("exp=decomposition") + 1 : command.index("algo=dreamerv2")] == [
         "env=highway",
         "++env.kwargs.view=top_down",
+        "++env.kwargs.top_down_follow=road",
+        "++env.kwargs.top_down_scaling=2.5",
     ]
     assert "world_model.max_minutes=7.0" in command and command[-1] == "overwrite=true"
     (tmp_path / "highway-dreamerv2-s1" / "checkpoints" / "step_00000002").mkdir(parents=True)

@@ -88,7 +88,12 @@ def test_every_exp_composes_to_a_valid_config_and_its_results_page_names_the_rec
         ["env=sprites", "env.kwargs.task=none"],
         ["env=dmc_walker_walk"],
         ["env=dmc_cheetah_run"],
-        ["env=highway", "++env.kwargs.view=top_down"],
+        [
+            "env=highway",
+            "++env.kwargs.view=top_down",
+            "++env.kwargs.top_down_follow=road",
+            "++env.kwargs.top_down_scaling=2.5",
+        ],
     ],
 )
 @pytest.mark.parametrize("algo", ["isodream_v2", "dreamerv2"])
@@ -110,6 +115,8 @@ def test_the_decomposition_recipe_is_the_same_on_every_scene(scene, algo):
         assert "num_backgrounds" not in cfg.env.kwargs and "num_distractors" not in cfg.env.kwargs
     if cfg.env.name.startswith("dmc_"):
         assert cfg.env.kwargs["background"] == "video_easy"
+    if cfg.env.name == "highway":  # the road's view: the ego moves across the frame
+        assert (cfg.env.kwargs["top_down_follow"], cfg.env.kwargs["top_down_scaling"]) == ("road", 2.5)
 
 
 def test_domain_presets_follow_the_paper():
