@@ -60,6 +60,12 @@ def train(run_dir, *overrides):
     return run_module.train(composed(f"run_dir={run_dir}", *overrides), probe=probe)
 
 
+def read_scalar(run_dir, name: str) -> list[tuple[int, float]]:
+    """``(step, value)`` rows of the CSV log ``name`` of the run in ``run_dir``."""
+    rows = (Path(run_dir) / "logs" / "train" / "scalars" / f"{name}.csv").read_text().split()
+    return [(int(step), float(value)) for step, value in (row.split(",") for row in rows)]
+
+
 def latest_state(run_dir) -> dict:
     return CheckpointManager(Path(run_dir) / "checkpoints").load_latest()[0]
 
@@ -105,6 +111,15 @@ def test_writes_pictures_scores_probe_checkpoint_and_logs_in_the_run_folder(tmp_
     assert all(saved[k] <= 1.0 for k in probes)
     scalars = tmp_path / "logs"
     assert list(scalars.rglob("probe_r2_free_agent.csv")) and list(scalars.rglob("loss_model_reco.csv"))
+    # the held-out scores under an RL run's names, at each evaluation; the loss's reco_mse (the training
+    # batch's, at each logged update) alone in its own file
+    held_out = read_scalar(tmp_path, "eval/decomposition/iou_control_vs_agent")
+    assert [step for step, _ in held_out] == [2, 3]
+    assert held_out[-1][1] == pytest.approx(saved["iou_control_vs_agent"], abs=1e-3)  # the summary rounds
+    assert read_scalar(tmp_path, "eval/decomposition/train_reco_error_agent")[-1][1] == pytest.approx(
+        saved["train_reco_error_agent"], abs=1e-3
+    )
+    assert [step for step, _ in read_scalar(tmp_path, "reco_mse")] == [0, 2]
     assert saved["png"] == str(tmp_path / "pictures" / "branches_00000003.png")
     with pytest.raises(CheckpointError, match="no policy"):
         run_module.evaluate_checkpoint(tmp_path)

@@ -306,10 +306,16 @@ class FixedData:
         """Nothing to stop."""
 
 
+#: the logged name of a score of :class:`BranchEvaluation` is this prefix and the score's name, as an RL run logs
+#: its world model's decomposition scores
+EVAL_PREFIX = "eval/decomposition/"
+
+
 class BranchEvaluation:
     """The evaluation of ``mode=world_model``, its counterpart of the RL run's
     :class:`~isodream_rl.trainers.evaluation.Evaluation`: scores on the held-out episodes and, ``train_*``, on as
-    many training episodes (:func:`~isodream_rl.evaluation.branches.score_branches`), logged at the update,
+    many training episodes (:func:`~isodream_rl.evaluation.branches.score_branches`), logged at the update as
+    ``eval/decomposition/<score>`` (:data:`EVAL_PREFIX`; ``train_<score>`` for the training episodes'),
     and the branch picture of the first held-out window, ``<pictures>/branches_<updates>.png``.
 
     It runs on a forked random generator (the posteriors are samples): evaluating does not change the training.
@@ -352,7 +358,9 @@ class BranchEvaluation:
             )
         scores.update({f"train_{key}": value for key, value in train_scores.items()})
         for key, value in scores.items():
-            self.logger.log_scalar(key, value, step=step)
+            # an RL run's names for its decomposition scores; the loss's own ``reco_mse`` (the DreamerV2-style
+            # loss's, on the training batch) keeps its plain name
+            self.logger.log_scalar(f"{EVAL_PREFIX}{key}", value, step=step)
         picture = self.pictures / f"branches_{step:08d}.png"
         self.last_picture = save_png(branch_grid(out, sample=0, steps=self.window), picture)
         self.last, self.last_scores = step, scores
