@@ -82,6 +82,20 @@ def training_command(run_dir: Path) -> str:
 
     path = Path(run_dir) / ".hydra" / "overrides.yaml"
     if not path.exists():
-        raise SystemExit(f"{path} is missing: {run_dir} is not an isodream-train run folder (no Hydra overrides)")
+        raise SystemExit(
+            f"{path} is missing: {run_dir} is not an isodream-train run folder (no Hydra overrides)"
+        )
     overrides = yaml.safe_load(path.read_text()) or []
     return " ".join(["isodream-train", *(o for o in overrides if not o.startswith("run_dir="))])
+
+
+def composed_run_config(*overrides: str):
+    """The ``RunConfig`` that ``isodream-train <overrides>`` trains (Hydra's composition of the package's configs,
+    as the command line does it)."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    import isodream_rl.cli  # noqa: F401  (registers the configuration schema)
+
+    with initialize_config_dir(config_dir=str(ROOT / "isodream_rl" / "configs"), version_base="1.3"):
+        return OmegaConf.to_object(compose(config_name="config", overrides=list(overrides)))

@@ -64,14 +64,12 @@ from collections.abc import Callable
 from pathlib import Path
 
 import torch
-from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import decomposition  # noqa: E402
 import update_rate  # noqa: E402
 import update_speed  # noqa: E402
-from common import device_provenance, provenance  # noqa: E402
+from common import composed_run_config, device_provenance, provenance  # noqa: E402
 
 import isodream_rl.cli  # noqa: E402, F401  (registers the config schema and the TorchRL baselines)
 from isodream_rl.data import write_tiny_bair  # noqa: E402
@@ -136,8 +134,7 @@ def registered_algos() -> list[str]:
 
 def composed(*overrides: str) -> RunConfig:
     """The ``RunConfig`` of ``isodream-train <overrides>``."""
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        return OmegaConf.to_object(compose(config_name="config", overrides=list(overrides)))
+    return composed_run_config(*overrides)
 
 
 def continue_run(run_dir: Path, *, device: str, more: int) -> RunResult:

@@ -54,12 +54,10 @@ from pathlib import Path
 THP_MEM_ALLOC = None if "torch" in sys.modules else os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
 
 import torch  # noqa: E402
-from hydra import compose, initialize_config_dir  # noqa: E402
-from omegaconf import OmegaConf  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import device_provenance, provenance  # noqa: E402
+from common import composed_run_config, device_provenance, provenance  # noqa: E402
 
 import isodream_rl.cli  # noqa: E402, F401  (registers the config schema and the TorchRL baselines)
 from isodream_rl.run_utils.json_io import write_json  # noqa: E402
@@ -69,7 +67,6 @@ from isodream_rl.trainers.registry import make_components  # noqa: E402
 from isodream_rl.trainers.run_lifecycle import probe_action_dim  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIGS = ROOT / "isodream_rl" / "configs"
 ALGOS = ("isodream", "isodream_v2", "dreamerv2", "torchrl_dreamer_v3")
 #: ``--fast-paths`` choices: the ``model.fast_paths`` values timed for a learner that reads it.
 FAST_PATHS = {"on": (True,), "off": (False,), "both": (True, False)}
@@ -90,9 +87,7 @@ def run_config(
         "train.world_model_warmup=0",
         *overrides,
     ]
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=overrides)
-    return OmegaConf.to_object(cfg)
+    return composed_run_config(*overrides)
 
 
 def has_fast_paths(algo: str) -> bool:

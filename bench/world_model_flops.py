@@ -28,16 +28,14 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import provenance  # noqa: E402
+from common import composed_run_config, provenance  # noqa: E402
 
-import isodream_rl.cli  # noqa: E402,F401  (registers the configuration schema)
 from isodream_rl.configs import register_resolvers  # noqa: E402
 from isodream_rl.data.sprites_episodes import make_window_buffer  # noqa: E402
 from isodream_rl.run_utils.json_io import write_json  # noqa: E402
 from isodream_rl.trainers.learners import resolved  # noqa: E402
 from isodream_rl.trainers.world_model_run import collect_episodes, world_model_builder  # noqa: E402
 
-CONFIGS = Path(isodream_rl.cli.__file__).resolve().parent / "configs"
 #: the learners ``mode=world_model`` trains
 ALGOS = ("isodream", "isodream_v2")
 
@@ -45,9 +43,6 @@ ALGOS = ("isodream", "isodream_v2")
 def composed(algo: str, size: str, overrides: list[str]):
     """The run configuration of ``isodream-train exp=decomposition env=sprites env.kwargs.task=none algo=<algo>
     size=<size> <overrides>``, with 16-step episodes (enough for one batch of windows)."""
-    from hydra import compose, initialize_config_dir
-    from omegaconf import OmegaConf
-
     line = [
         "exp=decomposition",
         "env=sprites",
@@ -57,8 +52,7 @@ def composed(algo: str, size: str, overrides: list[str]):
         "world_model.episode_length=16",
         *overrides,
     ]
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        return resolved(OmegaConf.to_object(compose(config_name="config", overrides=line)))
+    return resolved(composed_run_config(*line))
 
 
 def count(algo: str, size: str, overrides: list[str]) -> dict:

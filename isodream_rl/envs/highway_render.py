@@ -21,6 +21,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 import pygame  # noqa: E402
 from highway_env.road.graphics import LaneGraphics, RoadGraphics, WorldSurface  # noqa: E402
+from highway_env.road.lane import AbstractLane  # noqa: E402
 from highway_env.road.road import Road  # noqa: E402
 from highway_env.vehicle.graphics import VehicleGraphics  # noqa: E402
 from highway_env.vehicle.kinematics import Vehicle  # noqa: E402
@@ -345,7 +346,7 @@ class ChaseViewRenderer:
         """
         surface = self._surface
         lanes = road.network.lanes_list()
-        top, bottom = self._move_window(road, ego)
+        top, bottom = self._move_window(lanes, ego)
         surface.fill(_GRASS)
         left, upper = surface.pos2pix(min(lane.start[0] for lane in lanes), top)
         right, lower = surface.pos2pix(max(lane.end[0] for lane in lanes), bottom)
@@ -365,7 +366,7 @@ class ChaseViewRenderer:
         Returns:
             ``(mask_agent, mask_vehicles)``: bool ``[image_size, image_size]`` each, disjoint.
         """
-        self._move_window(road, ego)
+        self._move_window(road.network.lanes_list(), ego)
         vehicles = list(road.vehicles)
         index = next((i for i, v in enumerate(vehicles) if v is ego), len(vehicles))
         agent = self._footprint([ego])
@@ -373,13 +374,16 @@ class ChaseViewRenderer:
         before = self._footprint(vehicles[:index])
         return agent & ~after, after | (before & ~agent)
 
-    def _move_window(self, road: Road, ego: Vehicle) -> tuple[float, float]:
+    def _move_window(self, lanes: Sequence[AbstractLane], ego: Vehicle) -> tuple[float, float]:
         """Places the view for the ego (on the ego, or on the road's centre line level with it: ``follow``).
+
+        Args:
+            lanes: the road's lanes (``road.network.lanes_list()``).
+            ego: the vehicle the view follows.
 
         Returns:
             tuple: highway-env y of the paved road's two edges (smaller first).
         """
-        lanes = road.network.lanes_list()
         top = min(lane.start[1] - lane.width / 2 for lane in lanes)
         bottom = max(lane.start[1] + lane.width / 2 for lane in lanes)
         if self.follow == "ego":
