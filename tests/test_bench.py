@@ -244,3 +244,26 @@ def test_world_model_flops_counts_each_learners_update_by_module(tmp_path):
     # the two dynamic decoders are alike in each learner
     default = runs["isodream"]["forward_by_module"]
     assert default["control_decoder"] == pytest.approx(default["free_decoder"], rel=0.05)
+
+
+def test_run_curves_reads_what_an_unfinished_run_has_logged(tmp_path):
+    """``bench/run_curves.py``: a run folder without ``summary.json`` gives its evaluation curves so far, its update
+    rate and its training command (``run_dir=`` left out); a score it never logged is an empty curve."""
+    curves = load_bench("run_curves")
+    run = tmp_path / "walker-isodream_v2-s0"
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "overrides.yaml").write_text(
+        "- exp=decomposition\n- env=dmc_walker_walk\n- run_dir=/somewhere\n"
+    )
+    scalars = run / "logs" / "train" / "scalars"
+    (scalars / "eval" / "decomposition").mkdir(parents=True)
+    (scalars / "eval" / "decomposition" / "iou_control_vs_agent.csv").write_text("500,0.05\n1000,0.123456\n")
+    (scalars / "updates_per_s.csv").write_text("0,1.5\n20,1.98765\n")
+    out = curves.main([str(run), "--json", str(tmp_path / "curves.json")])
+    assert json.loads((tmp_path / "curves.json").read_text()) == out
+    entry = out["runs"]["walker-isodream_v2-s0"]
+    assert entry["command"] == "isodream-train exp=decomposition env=dmc_walker_walk"
+    assert entry["finished"] is False
+    assert entry["curves"]["iou_control_vs_agent"] == [[500, 0.05], [1000, 0.1235]]
+    assert entry["curves"]["iou_free_vs_distractors"] == []
+    assert entry["updates_per_s"] == [[0, 1.5], [20, 1.988]]
