@@ -31,7 +31,8 @@ Writes ``--json`` (default ``docs/results/decomposition.json``)::
 (each run's held-out scores of :func:`isodream_rl.evaluation.decomposition_scores`, its scores on as many
 training episodes with a ``train_`` prefix), one picture per scene, ``decomposition_<scene>.png`` beside the
 JSON (the final ground truth, composite, each branch and its mask over a held-out window of the first
-Iso-Dream seed), and a table (the JSON's path with ``.md``).
+Iso-Dream seed; the default's where it ran), each other algorithm's beside it (``decomposition_<scene>_<algo>.png``,
+listed under ``"pictures_by_algo"``), and a table (the JSON's path with ``.md``).
 
     python bench/decomposition.py                                  # 4 scenes x 2 algos x 2 seeds x 30 min
     python bench/decomposition.py --scenes sprites --algos isodream,isodream_v2,dreamerv2 --seeds 0 --minutes 5 \\
@@ -259,19 +260,36 @@ def _is_number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
-def copy_pictures(scenes: dict, folder: Path) -> dict[str, str]:
-    """``decomposition_<scene>.png`` in ``folder``: the final branch picture of the first Iso-Dream run of
-    each scene, the default's (``isodream``), else the DreamerV2-style learner's (``isodream_v2``), else the first
-    algorithm's with a run."""
-    written = {}
+def scene_picture_algo(algos: dict) -> str | None:
+    """The algorithm whose picture stands for a scene: the default (``isodream``), else the DreamerV2-style learner
+    (``isodream_v2``), else the first with a run; ``None`` without runs."""
+    for algo in ("isodream", "isodream_v2", *algos):
+        if algos.get(algo):
+            return algo
+    return None
+
+
+def copy_pictures(scenes: dict, folder: Path) -> tuple[dict[str, str], dict[str, dict[str, str]]]:
+    """The final branch pictures (the first seed's) in ``folder``: ``decomposition_<scene>.png`` for the algorithm
+    of :func:`scene_picture_algo`, ``decomposition_<scene>_<algo>.png`` for each other one.
+
+    Returns:
+        ``({scene: file name}, {scene: {algo: file name}})``: the scene's picture, and every algorithm's.
+    """
+    per_scene: dict[str, str] = {}
+    per_algo: dict[str, dict[str, str]] = {}
     for scene, algos in scenes.items():
-        runs = algos.get("isodream") or algos.get("isodream_v2") or next((r for r in algos.values() if r), [])
-        if runs and Path(runs[0]["picture"]).exists():
-            target = folder / f"decomposition_{scene}.png"
-            target.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(runs[0]["picture"], target)
-            written[scene] = target.name
-    return written
+        chosen = scene_picture_algo(algos)
+        for algo, runs in algos.items():
+            if not runs or not Path(runs[0]["picture"]).exists():
+                continue
+            name = f"decomposition_{scene}.png" if algo == chosen else f"decomposition_{scene}_{algo}.png"
+            folder.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(runs[0]["picture"], folder / name)
+            per_algo.setdefault(scene, {})[algo] = name
+            if algo == chosen:
+                per_scene[scene] = name
+    return per_scene, per_algo
 
 
 def _fmt(values: list) -> str:
@@ -327,9 +345,11 @@ def main(argv: list[str] | None = None) -> dict:
     if not args.collect_only:
         train_all(args)
     scenes = collect(args)
+    pictures, pictures_by_algo = copy_pictures(scenes, args.json.parent)
     results = {
         "scenes": scenes,
-        "pictures": copy_pictures(scenes, args.json.parent),
+        "pictures": pictures,
+        "pictures_by_algo": pictures_by_algo,
         "minutes": args.minutes,
         "scene_overrides": {scene: SCENES[scene] for scene in args.scenes},
         "overrides": args.override,

@@ -39,6 +39,12 @@ def test_decomposition_bench_writes_the_schema(tmp_path):
         str(tmp_path / "runs" / "sprites-isodream-s0")
     )
     assert (out.parent / "decomposition_sprites.png").stat().st_size > 0
+    # and the other learner's beside it
+    assert saved["pictures_by_algo"]["sprites"] == {
+        "isodream": "decomposition_sprites.png",
+        "isodream_v2": "decomposition_sprites_isodream_v2.png",
+    }
+    assert (out.parent / "decomposition_sprites_isodream_v2.png").stat().st_size > 0
     table = out.with_suffix(".md").read_text()
     assert "| sprites | isodream | 1 |" in table and "| sprites | isodream_v2 | 1 |" in table
 
