@@ -278,13 +278,13 @@ def copy_pictures(scenes: dict, folder: Path) -> tuple[dict[str, str], dict[str,
     """
     per_scene: dict[str, str] = {}
     per_algo: dict[str, dict[str, str]] = {}
+    folder.mkdir(parents=True, exist_ok=True)
     for scene, algos in scenes.items():
         chosen = scene_picture_algo(algos)
         for algo, runs in algos.items():
             if not runs or not Path(runs[0]["picture"]).exists():
                 continue
             name = f"decomposition_{scene}.png" if algo == chosen else f"decomposition_{scene}_{algo}.png"
-            folder.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(runs[0]["picture"], folder / name)
             per_algo.setdefault(scene, {})[algo] = name
             if algo == chosen:

@@ -34,6 +34,7 @@ from isodream_rl.configs import register_resolvers  # noqa: E402
 from isodream_rl.data.sprites_episodes import make_window_buffer  # noqa: E402
 from isodream_rl.run_utils.json_io import write_json  # noqa: E402
 from isodream_rl.trainers.learners import resolved  # noqa: E402
+from isodream_rl.trainers.stepper import loss_sum  # noqa: E402
 from isodream_rl.trainers.world_model_run import collect_episodes, world_model_builder  # noqa: E402
 
 #: the learners ``mode=world_model`` trains
@@ -66,16 +67,15 @@ def count(algo: str, size: str, overrides: list[str]) -> dict:
     parts = world_model_builder(algo).alone(cfg, action_dim=data["action"].shape[-1])
     batch = parts.stepper.prepare(buffer.sample().reshape(-1)).reshape(-1, window)
 
-    def loss_sum() -> torch.Tensor:
+    def total() -> torch.Tensor:
         losses = parts.model_loss(batch)
-        losses = losses[0] if isinstance(losses, tuple) else losses
-        return sum(value for key, value in losses.items() if key.startswith("loss_"))
+        return loss_sum(losses[0] if isinstance(losses, tuple) else losses)
 
     with FlopCounterMode(display=False) as forward:
         with torch.no_grad():
-            loss_sum()
+            total()
     with FlopCounterMode(display=False) as update:
-        loss_sum().backward()
+        total().backward()
     prefix = type(parts.model_loss).__name__ + ".world_model."
     counts = {
         name[len(prefix) :]: round(sum(ops.values()) / 1e9, 4)

@@ -34,7 +34,7 @@ from isodream_rl.trainers import (
 from isodream_rl.trainers import run as run_module
 from isodream_rl.trainers.learners import WORLD_MODEL_LEARNERS, resolved
 from isodream_rl.trainers.world_model_run import collect_episodes, load_world_model
-from tests.conftest import cli_process
+from tests.conftest import cli_process, load_bench
 
 CONFIGS = Path(isodream_rl.cli.__file__).parent / "configs"
 # two updates of 2 windows x 8 steps on two short episodes, no probe: what every tiny run here shares
@@ -60,10 +60,8 @@ def train(run_dir, *overrides):
     return run_module.train(composed(f"run_dir={run_dir}", *overrides), probe=probe)
 
 
-def read_scalar(run_dir, name: str) -> list[tuple[int, float]]:
-    """``(step, value)`` rows of the CSV log ``name`` of the run in ``run_dir``."""
-    rows = (Path(run_dir) / "logs" / "train" / "scalars" / f"{name}.csv").read_text().split()
-    return [(int(step), float(value)) for step, value in (row.split(",") for row in rows)]
+#: ``(step, value)`` rows of a run's CSV log (``bench/common.py``'s reader)
+read_scalar = load_bench("common").read_scalar
 
 
 def latest_state(run_dir) -> dict:
